@@ -1,0 +1,1 @@
+"""Characteristic diagrams: regression, XML, database (not built yet)."""

@@ -1,0 +1,1 @@
+"""Diagnosis of model discrepancies against measured data (not built yet)."""

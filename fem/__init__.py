@@ -1,0 +1,1 @@
+"""Thermo-elastic finite element model of a machine tool."""

@@ -1,0 +1,173 @@
+"""Assembly of thermal and thermo-elastic operators on any scikit-fem P1 mesh.
+
+All functions take per-element material arrays, so one mesh can carry many
+bodies.  SI units throughout.  The elastic operators are assembled with a
+vectorised element loop (einsum over the scalar basis gradients): the generic
+vector form takes about 75 s for 50k hexahedral nodes, this about 3 s.
+Displacement DOFs are node-interleaved: dof ``3 * node + component``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import skfem
+from skfem.helpers import dot, grad
+
+
+def element_for(mesh: skfem.Mesh) -> skfem.Element:
+    """The P1 (trilinear for hexahedra) element of a mesh."""
+    if isinstance(mesh, skfem.MeshHex):
+        return skfem.ElementHex1()
+    if isinstance(mesh, skfem.MeshTet):
+        return skfem.ElementTetP1()
+    if isinstance(mesh, skfem.MeshQuad):
+        return skfem.ElementQuad1()
+    if isinstance(mesh, skfem.MeshTri):
+        return skfem.ElementTriP1()
+    if isinstance(mesh, skfem.MeshLine):
+        return skfem.ElementLineP1()
+    raise TypeError(f"no P1 element for {type(mesh).__name__}")
+
+
+def cell_basis(mesh: skfem.Mesh) -> skfem.CellBasis:
+    return skfem.Basis(mesh, element_for(mesh))
+
+
+def _per_qp(basis: skfem.CellBasis, values_e: np.ndarray) -> np.ndarray:
+    v = np.asarray(values_e, dtype=float)
+    if v.ndim == 0:
+        v = np.full(basis.nelems, float(v))
+    if v.shape != (basis.nelems,):
+        raise ValueError(f"need one value per element ({basis.nelems}), got shape {v.shape}")
+    return np.repeat(v[:, None], basis.X.shape[1], axis=1)
+
+
+@skfem.BilinearForm
+def _diffusion(u, v, w):
+    return w.k * dot(grad(u), grad(v))
+
+
+@skfem.BilinearForm
+def _mass(u, v, w):
+    return w.rc * u * v
+
+
+@skfem.BilinearForm
+def _facet_mass(u, v, _):
+    return u * v
+
+
+@skfem.LinearForm
+def _facet_area(v, _):
+    return v
+
+
+def conductivity_matrix(basis: skfem.CellBasis, conductivity_W_mK) -> sp.csr_matrix:
+    """K = ∫ k ∇φ_i·∇φ_j dV [W/K]; ``conductivity_W_mK`` per element [W/(m K)]."""
+    return _diffusion.assemble(basis, k=_per_qp(basis, conductivity_W_mK)).tocsr()
+
+
+def capacity_matrix(basis: skfem.CellBasis, volumetric_heat_capacity_J_m3K) -> sp.csr_matrix:
+    """M = ∫ ρc φ_i φ_j dV [J/K] (consistent); ρc per element [J/(m^3 K)]."""
+    return _mass.assemble(basis, rc=_per_qp(basis, volumetric_heat_capacity_J_m3K)).tocsr()
+
+
+def convection_matrix(mesh: skfem.Mesh, facets: np.ndarray) -> sp.csr_matrix:
+    """H = ∫_Γ φ_i φ_j dA over ``facets`` [m^2]; multiply by h [W/(m^2 K)]."""
+    fb = skfem.FacetBasis(mesh, element_for(mesh), facets=np.asarray(facets, dtype=np.int64))
+    return _facet_mass.assemble(fb).tocsr()
+
+
+def facet_area_vector(mesh: skfem.Mesh, facets: np.ndarray) -> np.ndarray:
+    """∫_Γ φ_i dA over ``facets`` [m^2] (H·1); sums to the area."""
+    fb = skfem.FacetBasis(mesh, element_for(mesh), facets=np.asarray(facets, dtype=np.int64))
+    return _facet_area.assemble(fb)
+
+
+def probe_matrix(basis: skfem.CellBasis, points_m: np.ndarray, cells: np.ndarray) -> sp.csr_matrix:
+    """Interpolation rows: (P @ T)[j] is the field at ``points_m[:, j]`` in element ``cells[j]``."""
+    pts = np.asarray(points_m, dtype=float)
+    cells = np.asarray(cells, dtype=np.int64)
+    if (cells < 0).any():
+        raise ValueError(f"points outside the mesh: {pts[:, cells < 0].T.tolist()}")
+    X = basis.mapping.invF(pts[:, :, None], tind=cells)
+    phis = np.array([basis.elem.gbasis(basis.mapping, X, k, tind=cells)[0] for k in range(basis.Nbfun)])
+    rows = np.tile(np.arange(pts.shape[1]), basis.Nbfun)
+    cols = basis.element_dofs[:, cells].ravel()
+    return sp.coo_matrix((phis.reshape(basis.Nbfun, -1).ravel(), (rows, cols)), shape=(pts.shape[1], basis.N)).tocsr()
+
+
+def lame(youngs_modulus_Pa, poisson_ratio):
+    """Lamé parameters (λ, μ) [Pa]."""
+    E, nu = np.asarray(youngs_modulus_Pa, float), np.asarray(poisson_ratio, float)
+    return E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+
+
+def _gradients(basis: skfem.CellBasis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scalar basis gradients G[a, i, e, q], values P[a, e, q] and weights dx[e, q]."""
+    G = np.array([basis.basis[a][0].grad for a in range(basis.Nbfun)])
+    P = np.array([basis.basis[a][0].value for a in range(basis.Nbfun)])
+    return G, P, basis.dx
+
+
+def _scatter_vector(t: np.ndarray, Ke: np.ndarray, n_nodes: int) -> sp.csr_matrix:
+    """Assemble element blocks Ke[e, a, i, b, j] into the node-interleaved global matrix."""
+    nb = t.shape[0]
+    dofs = (3 * t.T[:, :, None] + np.arange(3)).reshape(t.shape[1], 3 * nb)  # (nel, 3nb)
+    rows = np.repeat(dofs, 3 * nb, axis=1).ravel()
+    cols = np.tile(dofs, (1, 3 * nb)).ravel()
+    A = sp.coo_matrix((Ke.reshape(t.shape[1], -1).ravel(), (rows, cols)), shape=(3 * n_nodes, 3 * n_nodes))
+    return A.tocsr()
+
+
+def elasticity_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio) -> sp.csr_matrix:
+    """Linear-elastic stiffness [N/m] on a scalar P1 basis, node-interleaved DOFs.
+
+    K[(a,i),(b,j)] = ∫ λ ∂_i φ_a ∂_j φ_b + μ (δ_ij ∇φ_a·∇φ_b + ∂_j φ_a ∂_i φ_b) dV.
+    """
+    G, _, dx = _gradients(basis)
+    lam, mu = lame(youngs_modulus_Pa, poisson_ratio)
+    lam = np.broadcast_to(lam, (basis.nelems,))
+    mu = np.broadcast_to(mu, (basis.nelems,))
+    # S[e, i, j, a, b] = ∫ ∂_i φ_a ∂_j φ_b dV
+    S = np.empty((basis.nelems, 3, 3, G.shape[0], G.shape[0]))
+    for i in range(3):
+        for j in range(3):
+            S[:, i, j] = np.einsum("aeq,beq,eq->eab", G[:, i], G[:, j], dx, optimize=True)
+    lap = S[:, 0, 0] + S[:, 1, 1] + S[:, 2, 2]
+    Ke = lam[:, None, None, None, None] * S.transpose(0, 3, 1, 4, 2)  # λ ∂_i φ_a ∂_j φ_b
+    Ke += mu[:, None, None, None, None] * S.transpose(0, 3, 2, 4, 1)  # μ ∂_j φ_a ∂_i φ_b
+    Ke += (mu[:, None, None] * lap)[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
+    return _scatter_vector(basis.mesh.t, Ke, basis.mesh.p.shape[1])
+
+
+def thermal_load_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio, expansion_1_K) -> sp.csr_matrix:
+    """F_th[(a,i), b] = ∫ (3λ + 2μ) α ∂_i φ_a φ_b dV [N/K]: nodal forces of a temperature rise.
+
+    ``K_u u = F_th ΔT`` is linear elasticity with thermal strain α ΔT I.
+    """
+    G, P, dx = _gradients(basis)
+    lam, mu = lame(youngs_modulus_Pa, poisson_ratio)
+    beta = np.broadcast_to((3 * lam + 2 * mu) * np.asarray(expansion_1_K, float), (basis.nelems,))
+    Fe = np.einsum("aieq,beq,eq,e->eaib", G, P, dx, beta)  # (e, a, i, b)
+    nb = G.shape[0]
+    t = basis.mesh.t
+    rows = np.repeat((3 * t.T[:, :, None] + np.arange(3)).reshape(t.shape[1], 3 * nb), nb, axis=1).ravel()
+    cols = np.tile(t.T, (1, 3 * nb)).ravel()
+    n = basis.mesh.p.shape[1]
+    return sp.coo_matrix((Fe.ravel(), (rows, cols)), shape=(3 * n, n)).tocsr()
+
+
+def rigid_body_modes(points_m: np.ndarray) -> np.ndarray:
+    """The six rigid-body displacement fields (3n × 6), node-interleaved [m per unit]."""
+    x, y, z = points_m
+    n = x.size
+    B = np.zeros((3 * n, 6))
+    B[0::3, 0] = 1
+    B[1::3, 1] = 1
+    B[2::3, 2] = 1
+    B[0::3, 3], B[1::3, 3] = -y, x
+    B[1::3, 4], B[2::3, 4] = -z, y
+    B[0::3, 5], B[2::3, 5] = z, -x
+    return B

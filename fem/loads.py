@@ -1,0 +1,181 @@
+"""The boundary-condition time series (loads CSV) and the outputs CSV.
+
+Loads CSV (DESIGN.md): ``time_s``, one column ``<source>[<segment>]_W`` (or
+``<source>_W`` for a fixed source) per heat input [W], one ``<zone>_degC`` per
+convection zone [°C].  A missing column means zero power or the reference
+temperature; an unknown column is an error.  Outputs CSV: ``time_s``,
+``<sensor>_degC`` ..., ``dx_um``, ``dy_um``, ``dz_um``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hybridcomp.models.machine import Machine
+
+
+class LoadsFileError(ValueError):
+    """A loads CSV is invalid; the message names the file, row or column and value."""
+
+
+@dataclass(frozen=True)
+class Loads:
+    """A BC time series in model input order.
+
+    Attributes
+    ----------
+    time_s : times [s]
+    values : heat powers [W] and air temperatures [°C] (nt × nu), columns as ``names``
+    names : column names (``*_W``, ``*_degC``)
+    """
+
+    time_s: np.ndarray
+    values: np.ndarray
+    names: tuple[str, ...]
+
+    def as_inputs(self, reference_temperature_degC: float) -> np.ndarray:
+        """Model inputs: powers [W] and air temperature rises over the reference [K]."""
+        U = self.values.copy()
+        for j, n in enumerate(self.names):
+            if n.endswith("_degC"):
+                U[:, j] -= reference_temperature_degC
+        return U
+
+
+def input_columns(machine: Machine) -> tuple[str, ...]:
+    return tuple(f"{q}_W" for q in machine.heat_inputs()) + tuple(f"{z.name}_degC" for z in machine.zones)
+
+
+def read_loads(path: str | Path, machine: Machine) -> Loads:
+    """Read and check a loads CSV against a machine."""
+    path = Path(path)
+    expected = input_columns(machine)
+    try:
+        fh = path.open(newline="")
+    except OSError as exc:
+        raise LoadsFileError(f"{path}: cannot open loads file: {exc}") from None
+    with fh:
+        rd = csv.reader(fh)
+        try:
+            header = [h.strip() for h in next(rd)]
+        except StopIteration:
+            raise LoadsFileError(f"{path}: empty file, expected a header with 'time_s'") from None
+        if "time_s" not in header:
+            raise LoadsFileError(f"{path}: column 'time_s' is missing (header: {header})")
+        if len(set(header)) != len(header):
+            dup = [h for h in header if header.count(h) > 1][0]
+            raise LoadsFileError(f"{path}: column {dup!r} appears twice")
+        unknown = [h for h in header if h != "time_s" and h not in expected]
+        if unknown:
+            raise LoadsFileError(
+                f"{path}: column {unknown[0]!r} is not an input of machine {machine.name!r} (inputs: {', '.join(expected)})"
+            )
+        rows = []
+        for i, row in enumerate(rd, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise LoadsFileError(f"{path}: line {i} has {len(row)} fields, the header has {len(header)}")
+            try:
+                vals = [float(c) for c in row]
+            except ValueError:
+                bad = next(c for c in row if not _is_float(c))
+                raise LoadsFileError(f"{path}: line {i}: value {bad!r} is not a number") from None
+            for h, v in zip(header, vals):
+                if not math.isfinite(v):
+                    raise LoadsFileError(f"{path}: line {i}, column {h!r}: value {v} is not finite")
+                if h.endswith("_W") and v < 0:
+                    raise LoadsFileError(f"{path}: line {i}, column {h!r}: a heat power cannot be negative, got {v}")
+            rows.append(vals)
+    if not rows:
+        raise LoadsFileError(f"{path}: no data rows")
+    data = np.array(rows)
+    t = data[:, header.index("time_s")]
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        i = int(back[0])
+        raise LoadsFileError(f"{path}: line {i + 3}: time_s {t[i + 1]} does not increase after {t[i]}")
+    U = np.zeros((len(t), len(expected)))
+    for j, name in enumerate(expected):
+        if name in header:
+            U[:, j] = data[:, header.index(name)]
+        elif name.endswith("_degC"):
+            U[:, j] = machine.reference_temperature_degC
+    return Loads(t, U, expected)
+
+
+def _is_float(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def write_loads(path: str | Path, loads: Loads) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["time_s", *loads.names])
+        for t, row in zip(loads.time_s, loads.values):
+            w.writerow([f"{t:g}", *(f"{v:.6g}" for v in row)])
+
+
+def write_outputs(path: str | Path, time_s: np.ndarray, sensor_names, sensors_degC: np.ndarray, drift_um: np.ndarray) -> None:
+    """Write the outputs CSV contract: time_s, <sensor>_degC..., dx_um, dy_um, dz_um."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["time_s", *(f"{s}_degC" for s in sensor_names), "dx_um", "dy_um", "dz_um"])
+        for k in range(len(time_s)):
+            w.writerow([f"{time_s[k]:g}", *(f"{v:.6f}" for v in sensors_degC[k]), *(f"{v:.6f}" for v in drift_um[k])])
+
+
+def example_loads(machine: Machine, duration_h: float = 16.0, dt_s: float = 60.0, seed: int = 0) -> Loads:
+    """A reproducible working-day load case for a machine (until the histogram generator supplies real ones).
+
+    Blocks of one hour alternate between axis-heavy roughing, spindle-heavy
+    finishing and pauses; the workshop air follows a daily swing of ±1.5 K and
+    the workspace air lags it by one hour, 1 K warmer while the spindle runs.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration_h * 3600 + 0.5 * dt_s, dt_s)
+    names = input_columns(machine)
+    U = np.zeros((t.size, len(names)))
+    n_blocks = int(np.ceil(duration_h))
+    axis_f = {a.name: rng.uniform(0.1, 0.6, n_blocks) for a in machine.axes}
+    spindle_f = rng.uniform(0.2, 0.9, n_blocks)
+    pause = rng.random(n_blocks) < 0.25
+    block = np.minimum((t // 3600).astype(int), n_blocks - 1)
+    active = ~pause[block]
+    for s in machine.heat_sources:
+        if s.driver is None:
+            f = np.where(active, 0.5, 0.0)
+        elif s.driver == "spindle":
+            f = np.where(active, spindle_f[block], 0.0)
+        else:
+            f = np.where(active, axis_f[s.driver][block], 0.0)
+        p = machine.source_power_W(s, f)
+        if s.kind == "fixed":
+            U[:, names.index(f"{s.name}_W")] = p
+        else:
+            a = machine.axis(s.axis)
+            # share over rail segments: the job works mostly in the middle of the travel
+            w = np.exp(-0.5 * ((np.arange(a.n_segments) - (a.n_segments - 1) / 2) / max(a.n_segments / 3, 1)) ** 2)
+            w /= w.sum()
+            for k in range(a.n_segments):
+                U[:, names.index(f"{s.name}[{k + 1}]_W")] = p * w[k]
+    t_ref = machine.reference_temperature_degC
+    ambient = t_ref + 1.5 * np.sin(2 * np.pi * (t / 3600 - 9) / 24)
+    lagged = t_ref + 1.5 * np.sin(2 * np.pi * (t / 3600 - 10) / 24)
+    for z in machine.zones:
+        j = names.index(f"{z.name}_degC")
+        U[:, j] = ambient if z.air == "ambient" else lagged + 1.0 * active
+    return Loads(t, U, names)

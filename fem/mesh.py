@@ -1,0 +1,312 @@
+"""FE meshes of a machine at a pose.
+
+Box bodies are meshed together on one conforming tensor grid of trilinear
+hexahedra: every box face at the pose is a grid plane, so touching bodies share
+nodes (perfect thermal contact, bonded joints) and each element belongs to
+exactly one body.  An imported mesh (anything meshio reads, e.g. gmsh ``.msh``
+with physical groups) is used as it is, with bodies and convection surfaces
+taken from its named cell sets.  Coordinates inside are metres.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import skfem
+
+from hybridcomp.models.machine import FACES, Machine, MachineFileError, box_at_pose, check_pose_geometry
+
+log = logging.getLogger(__name__)
+
+MM = 1e-3
+
+
+@dataclass(frozen=True)
+class MachineMesh:
+    """A meshed machine at one pose.
+
+    Attributes
+    ----------
+    mesh : skfem mesh (``MeshHex`` or ``MeshTet``), coordinates [m]
+    body_of_element : index into ``body_names`` per element
+    body_names : names of the bodies, in machine-file order
+    zone_facets : boundary facet indices per convection-zone name
+    pose_mm : axis positions the mesh was made at [mm]
+    grid_m : grid lines per direction [m] for a tensor mesh, else ``None``
+    cell_of_grid : element index per tensor-grid cell (``-1``: no body), else ``None``
+    """
+
+    mesh: skfem.Mesh
+    body_of_element: np.ndarray
+    body_names: tuple[str, ...]
+    zone_facets: dict[str, np.ndarray]
+    pose_mm: dict[str, float]
+    grid_m: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    cell_of_grid: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def n_nodes(self) -> int:
+        return self.mesh.p.shape[1]
+
+    def find_elements(self, points_m: np.ndarray, body: str | None = None) -> np.ndarray:
+        """Element index containing each point (3 × n) [m]; -1 outside (or outside ``body``)."""
+        pts = np.atleast_2d(points_m)
+        if self.grid_m is not None:
+            idx = []
+            for d in range(3):
+                g = self.grid_m[d]
+                i = np.searchsorted(g, pts[d], side="right") - 1
+                # points on the last grid plane belong to the last cell; tolerate round-off
+                i = np.where(np.isclose(pts[d], g[-1], rtol=0, atol=1e-9), len(g) - 2, i)
+                idx.append(i)
+            ix, iy, iz = idx
+            nx, ny, nz = (len(g) - 1 for g in self.grid_m)
+            ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (iz >= 0) & (iz < nz)
+            cells = np.full(pts.shape[1], -1)
+            flat = (ix + nx * (iy + ny * iz))[ok]
+            cells[ok] = self.cell_of_grid[flat]
+            if body is not None:
+                # a point on a face between two bodies: search the neighbouring cells of its own body
+                want = self.body_names.index(body)
+                bad = np.flatnonzero((cells < 0) | (self.body_of_element[np.maximum(cells, 0)] != want))
+                for j in bad:
+                    cells[j] = self._neighbour_in_body(pts[:, j], want)
+        else:
+            finder = self.mesh.element_finder()
+            cells = np.full(pts.shape[1], -1)
+            for j in range(pts.shape[1]):
+                try:
+                    cells[j] = finder(*pts[:, j : j + 1])[0]
+                except (ValueError, IndexError):
+                    cells[j] = -1
+            if body is not None:
+                want = self.body_names.index(body)
+                bad = np.flatnonzero((cells < 0) | (self.body_of_element[np.maximum(cells, 0)] != want))
+                for j in bad:
+                    cells[j] = self._nearest_in_body(pts[:, j], want)
+        return cells
+
+    def _neighbour_in_body(self, p: np.ndarray, want: int) -> int:
+        nx, ny, nz = (len(g) - 1 for g in self.grid_m)
+        base = []
+        for d in range(3):
+            g = self.grid_m[d]
+            i = int(np.clip(np.searchsorted(g, p[d], side="right") - 1, 0, len(g) - 2))
+            base.append(i)
+        for dx in (0, -1, 1):
+            for dy in (0, -1, 1):
+                for dz in (0, -1, 1):
+                    i, j, k = base[0] + dx, base[1] + dy, base[2] + dz
+                    if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz:
+                        c = self.cell_of_grid[i + nx * (j + ny * k)]
+                        if c >= 0 and self.body_of_element[c] == want:
+                            lo = np.array([self.grid_m[0][i], self.grid_m[1][j], self.grid_m[2][k]])
+                            hi = np.array([self.grid_m[0][i + 1], self.grid_m[1][j + 1], self.grid_m[2][k + 1]])
+                            if np.all(p >= lo - 1e-9) and np.all(p <= hi + 1e-9):
+                                return int(c)
+        return -1
+
+    def _nearest_in_body(self, p: np.ndarray, want: int, tol_m: float = 1e-6) -> int:
+        els = np.flatnonzero(self.body_of_element == want)
+        cent = self.mesh.p[:, self.mesh.t[:, els]].mean(axis=1)
+        j = els[np.argmin(np.sum((cent - p[:, None]) ** 2, axis=0))]
+        # accept only when the point lies on (or within round-off of) that element's bounding box
+        lo = self.mesh.p[:, self.mesh.t[:, j]].min(axis=1) - tol_m
+        hi = self.mesh.p[:, self.mesh.t[:, j]].max(axis=1) + tol_m
+        return int(j) if np.all(p >= lo) and np.all(p <= hi) else -1
+
+
+def _grid_lines(breaks_mm: np.ndarray, h_mm: float) -> np.ndarray:
+    """Grid lines [mm]: every break, with each interval split into equal cells of at most ``h_mm``."""
+    lines = [breaks_mm[:1]]
+    for a, b in zip(breaks_mm[:-1], breaks_mm[1:]):
+        n = max(1, int(np.ceil((b - a) / h_mm - 1e-9)))
+        lines.append(np.linspace(a, b, n + 1)[1:])
+    return np.concatenate(lines)
+
+
+def mesh_machine(machine: Machine, pose_mm: dict[str, float] | None = None, element_size_mm: float | None = None) -> MachineMesh:
+    """Mesh the machine at a pose (default: mid travel of every axis).
+
+    Parameters
+    ----------
+    machine : a loaded machine
+    pose_mm : axis positions [mm]; missing axes at mid travel
+    element_size_mm : largest element edge [mm]; default from the machine file
+    """
+    pose = machine.check_pose(pose_mm or {})
+    if machine.mesh.file is not None:
+        return _import_mesh(machine, pose)
+    check_pose_geometry(machine, pose)
+    h = float(element_size_mm or machine.mesh.element_size_mm)
+    if h <= 0:
+        raise MachineFileError(f"{machine.source}: element size must be positive, got {h} mm")
+    boxes = [box_at_pose(machine, b, pose) for b in machine.bodies]
+    lines_mm = []
+    for d in range(3):
+        br = np.unique(np.round(np.concatenate([[lo[d], hi[d]] for lo, hi in boxes]), 9))
+        lines_mm.append(_grid_lines(br, h))
+    grid = tuple(g * MM for g in lines_mm)
+    nx, ny, nz = (len(g) - 1 for g in grid)
+    cx, cy, cz = (0.5 * (g[1:] + g[:-1]) for g in lines_mm)
+    CX, CY, CZ = np.meshgrid(cx, cy, cz, indexing="ij")
+    body_of_cell = np.full((nx, ny, nz), -1)
+    for i, (lo, hi) in enumerate(boxes):
+        inside = (CX > lo[0]) & (CX < hi[0]) & (CY > lo[1]) & (CY < hi[1]) & (CZ > lo[2]) & (CZ < hi[2])
+        body_of_cell[inside] = i
+    full = skfem.MeshHex.init_tensor(*grid)
+    # locate each tensor element in the grid by its centroid (independent of skfem's numbering)
+    cent = full.p[:, full.t].mean(axis=1)
+    ijk = [np.searchsorted(grid[d], cent[d]) - 1 for d in range(3)]
+    body_full = body_of_cell[ijk[0], ijk[1], ijk[2]]
+    keep = np.flatnonzero(body_full >= 0)
+    mesh = full.restrict(keep)
+    cell_of_grid = np.full(nx * ny * nz, -1)
+    flat = ijk[0][keep] + nx * (ijk[1][keep] + ny * ijk[2][keep])
+    cell_of_grid[flat] = np.arange(len(keep))
+    body_of_element = body_full[keep]
+    names = tuple(b.name for b in machine.bodies)
+    mm = MachineMesh(mesh, body_of_element, names, {}, pose, grid, cell_of_grid)
+    zones = _box_zone_facets(machine, mm)
+    log.info("meshed %s at %s: %d nodes, %d hexahedra", machine.name, pose, mesh.p.shape[1], mesh.t.shape[1])
+    return MachineMesh(mesh, body_of_element, names, zones, pose, grid, cell_of_grid)
+
+
+def _facet_normals(mesh: skfem.Mesh, facets: np.ndarray) -> np.ndarray:
+    """Outward unit normals of boundary facets (3 × n)."""
+    fc = mesh.p[:, mesh.facets[:, facets]].mean(axis=1)
+    tc = mesh.p[:, mesh.t[:, mesh.f2t[0, facets]]].mean(axis=1)
+    a = mesh.p[:, mesh.facets[0, facets]]
+    b = mesh.p[:, mesh.facets[1, facets]]
+    c = mesh.p[:, mesh.facets[2, facets]]
+    n = np.cross((b - a).T, (c - a).T).T
+    n /= np.linalg.norm(n, axis=0)
+    flip = np.sum(n * (fc - tc), axis=0) < 0
+    n[:, flip] *= -1
+    return n
+
+
+def _box_zone_facets(machine: Machine, mm: MachineMesh) -> dict[str, np.ndarray]:
+    mesh = mm.mesh
+    bf = mesh.boundary_facets()
+    normals = _facet_normals(mesh, bf)
+    body = mm.body_of_element[mesh.f2t[0, bf]]
+    fc_mm = mesh.p[:, mesh.facets[:, bf]].mean(axis=1) / MM
+    face_of = np.full(len(bf), "", dtype=object)
+    for d, ax in enumerate("xyz"):
+        face_of[normals[d] > 0.5] = "+" + ax
+        face_of[normals[d] < -0.5] = "-" + ax
+    claimed = np.full(len(bf), -1)
+    out: dict[str, np.ndarray] = {}
+    for zi, z in enumerate(machine.zones):
+        if z.rest:
+            continue
+        sel = np.zeros(len(bf), bool)
+        for s in z.surfaces:
+            bi = mm.body_names.index(s.body)
+            m = (body == bi) & np.isin(face_of, list(s.faces or FACES))
+            if s.region_mm is not None:
+                off = machine.body_offset_mm(s.body, mm.pose_mm)
+                lo, hi = np.asarray(s.region_mm[0]) + off, np.asarray(s.region_mm[1]) + off
+                m &= np.all((fc_mm >= lo[:, None] - 1e-9) & (fc_mm <= hi[:, None] + 1e-9), axis=0)
+            sel |= m
+        clash = sel & (claimed >= 0)
+        if clash.any():
+            other = machine.zones[claimed[np.flatnonzero(clash)[0]]].name
+            raise MachineFileError(
+                f"{machine.source}: field 'zones' gives surfaces to both {other!r} and {z.name!r} "
+                f"(e.g. the facet at {np.round(fc_mm[:, np.flatnonzero(clash)[0]], 1).tolist()} mm)"
+            )
+        claimed[sel] = zi
+        out[z.name] = bf[sel]
+    for zi, z in enumerate(machine.zones):
+        if z.rest:
+            out[z.name] = bf[claimed < 0]
+            claimed[claimed < 0] = zi
+    for z in machine.zones:
+        if len(out[z.name]) == 0:
+            raise MachineFileError(f"{machine.source}: field 'zones' zone {z.name!r} has no exposed surface at pose {mm.pose_mm}")
+    return out
+
+
+def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
+    """Bodies and zones from the named cell sets of an imported mesh (units: mm in the file)."""
+    import meshio
+
+    path: Path = machine.mesh.file
+    try:
+        m = meshio.read(path)
+    except Exception as exc:  # meshio raises many kinds
+        raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} could not be read: {exc}") from None
+    if any(abs(v) > 1e-12 for v in pose.values()) and any(a.mid_mm != pose[a.name] for a in machine.axes):
+        log.warning("an imported mesh is used at the pose it was made for; pose %s only moves points, not bodies", pose)
+    tets = [i for i, c in enumerate(m.cells) if c.type == "tetra"]
+    if not tets:
+        raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} has no tetrahedra")
+    offsets = np.cumsum([0] + [len(c.data) for c in m.cells])
+    tet_global = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in tets])
+    t = np.concatenate([m.cells[i].data for i in tets]).T
+    used = np.unique(t)
+    remap = np.full(m.points.shape[0], -1)
+    remap[used] = np.arange(len(used))
+    mesh = skfem.MeshTet(np.ascontiguousarray(m.points[used].T * MM), remap[t])
+    sets = _cell_sets(m)
+    body_of_element = np.full(mesh.t.shape[1], -1)
+    g2l = {int(g): i for i, g in enumerate(tet_global)}
+    for bi, b in enumerate(machine.bodies):
+        if b.group not in sets:
+            raise MachineFileError(f"{machine.source}: field 'bodies[{bi}].group' {b.group!r} is not a group of {path.name} (groups: {sorted(sets)})")
+        idx = [g2l[int(g)] for g in sets[b.group] if int(g) in g2l]
+        body_of_element[idx] = bi
+    if (body_of_element < 0).any():
+        raise MachineFileError(f"{machine.source}: field 'mesh.file' has {(body_of_element < 0).sum()} tetrahedra in no body group")
+    # boundary facets per surface group: match triangles by their sorted node triples
+    bf = mesh.boundary_facets()
+    key = {tuple(sorted(mesh.facets[:, f])): f for f in bf}
+    zones = {}
+    claimed = set()
+    for z in machine.zones:
+        if z.rest:
+            continue
+        fs = []
+        for s in z.surfaces:
+            if s.group is None:
+                raise MachineFileError(f"{machine.source}: field 'zones' zone {z.name!r} needs 'group' surfaces with an imported mesh")
+            if s.group not in sets:
+                raise MachineFileError(f"{machine.source}: field 'zones' group {s.group!r} is not in {path.name} (groups: {sorted(sets)})")
+            tri = np.concatenate([m.cells[i].data for i in range(len(m.cells)) if m.cells[i].type == "triangle"])
+            tri_off = [i for i in range(len(m.cells)) if m.cells[i].type == "triangle"]
+            glob_tri = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in tri_off])
+            pos = {int(g): k for k, g in enumerate(glob_tri)}
+            for g in sets[s.group]:
+                k = pos.get(int(g))
+                if k is None:
+                    continue
+                f = key.get(tuple(sorted(remap[tri[k]])))
+                if f is not None:
+                    fs.append(f)
+        fs = np.unique(np.asarray(fs, dtype=int))
+        if claimed & set(fs.tolist()):
+            raise MachineFileError(f"{machine.source}: field 'zones' zone {z.name!r} shares surfaces with another zone")
+        claimed |= set(fs.tolist())
+        zones[z.name] = fs
+    for z in machine.zones:
+        if z.rest:
+            zones[z.name] = np.asarray([f for f in bf if f not in claimed], dtype=int)
+    names = tuple(b.name for b in machine.bodies)
+    return MachineMesh(mesh, body_of_element, names, zones, pose)
+
+
+def _cell_sets(m) -> dict[str, np.ndarray]:
+    """Named cell sets as global cell indices (meshio's per-block lists concatenated)."""
+    out: dict[str, np.ndarray] = {}
+    offsets = np.cumsum([0] + [len(c.data) for c in m.cells])
+    for name, blocks in (m.cell_sets or {}).items():
+        if name.startswith("gmsh:"):
+            continue
+        idx = [offsets[i] + np.asarray(b, dtype=int) for i, b in enumerate(blocks) if b is not None and len(b)]
+        out[name] = np.concatenate(idx) if idx else np.zeros(0, int)
+    return out

@@ -1,0 +1,262 @@
+"""The assembled thermo-elastic model of a machine at a pose.
+
+Thermal system in temperature rise x = T - T_ref [K]::
+
+    M x' + (K + Σ_i h_i H_i) x = B q(t) + Σ_i h_i H_i 1 ΔT_air,i(t)
+
+Inputs ``u = [q_1 .. q_m [W], ΔT_air,1 .. ΔT_air,z [K]]`` enter through
+``input_matrix`` (n × (m + z)).  Outputs: sensor temperatures ``C x + T_ref``
+and the TCP-minus-table drift ``G x`` [m], whose three rows come from adjoint
+solves of the thermo-elastic problem ``K_u u = F_th x`` with statically
+determinate supports.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from hybridcomp.fem import assembly
+from hybridcomp.fem.mesh import MM, MachineMesh, mesh_machine
+from hybridcomp.fem.solvers import solve_spd_few
+from hybridcomp.models.machine import HeatSource, Machine, MachineFileError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ThermoElasticModel:
+    """Assembled operators of one machine at one pose (SI units).
+
+    Attributes
+    ----------
+    M : heat capacity matrix [J/K]
+    K : conduction matrix [W/K]
+    H : unit convection matrix per zone [m^2]
+    h_W_m2K : heat-transfer coefficient per zone [W/(m^2 K)]
+    B : heat distribution per input (n × m), columns sum to 1 [-]
+    C : sensor interpolation rows (s × n) [-]
+    G : drift rows dx, dy, dz of TCP minus table reference (3 × n) [m/K]
+    reference_temperature_degC : the state x = 0 [°C]
+    """
+
+    machine: Machine
+    mesh: MachineMesh
+    M: sp.csr_matrix
+    K: sp.csr_matrix
+    H: tuple[sp.csr_matrix, ...]
+    h_W_m2K: np.ndarray
+    B: np.ndarray
+    C: sp.csr_matrix
+    G: np.ndarray
+    heat_names: tuple[str, ...]
+    zone_names: tuple[str, ...]
+    sensor_names: tuple[str, ...]
+    reference_temperature_degC: float
+    timings_s: dict = field(default_factory=dict, compare=False)
+    _cache: dict = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def n(self) -> int:
+        return self.M.shape[0]
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Column names of the loads CSV this model reads, in input order."""
+        return tuple(f"{q}_W" for q in self.heat_names) + tuple(f"{z}_degC" for z in self.zone_names)
+
+    @property
+    def coords_m(self) -> np.ndarray:
+        return self.mesh.mesh.p.T
+
+    def A(self) -> sp.csr_matrix:
+        """K + Σ h_i H_i [W/K]."""
+        key = ("A",)
+        if key not in self._cache:
+            A = self.K.copy()
+            for h, H in zip(self.h_W_m2K, self.H):
+                A = A + h * H
+            self._cache[key] = A.tocsr()
+        return self._cache[key]
+
+    def input_matrix(self) -> np.ndarray:
+        """[B, h_i H_i 1] (n × (m + z))."""
+        key = ("Bu",)
+        if key not in self._cache:
+            cols = [self.B] + [(h * (H @ np.ones(self.n)))[:, None] for h, H in zip(self.h_W_m2K, self.H)]
+            self._cache[key] = np.hstack(cols)
+        return self._cache[key]
+
+    def with_htc(self, **h_W_m2K: float) -> ThermoElasticModel:
+        """A copy with changed zone heat-transfer coefficients (no re-assembly)."""
+        h = self.h_W_m2K.copy()
+        for name, value in h_W_m2K.items():
+            if name not in self.zone_names:
+                raise KeyError(f"unknown zone {name!r} (zones: {self.zone_names})")
+            if not value > 0:
+                raise ValueError(f"h of zone {name!r} must be positive, got {value}")
+            h[self.zone_names.index(name)] = value
+        return dataclasses.replace(self, h_W_m2K=h, _cache={})
+
+
+def _material_arrays(machine: Machine, mm: MachineMesh) -> dict[str, np.ndarray]:
+    mats = [machine.materials[machine.body(b).material] for b in mm.body_names]
+    get = lambda attr: np.array([getattr(m, attr) for m in mats])[mm.body_of_element]  # noqa: E731
+    return {
+        "k": get("conductivity_W_mK"),
+        "rc": get("density_kg_m3") * get("specific_heat_J_kgK"),
+        "E": get("youngs_modulus_Pa"),
+        "nu": get("poisson_ratio"),
+        "alpha": get("expansion_1_K"),
+    }
+
+
+def _sample_box(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
+    """Cell-centred sample points of a box (3 × N), at most ``spacing`` apart."""
+    axes = []
+    for d in range(3):
+        n = max(2, int(np.ceil((hi[d] - lo[d]) / spacing)))
+        e = np.linspace(lo[d], hi[d], n + 1)
+        axes.append(0.5 * (e[1:] + e[:-1]))
+    X, Y, Z = np.meshgrid(*axes, indexing="ij")
+    return np.vstack([X.ravel(), Y.ravel(), Z.ravel()])
+
+
+def _source_patches_mm(machine: Machine, s: HeatSource, pose: dict[str, float]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Boxes [mm] at the pose over which a source's heat enters: one, or one per rail segment."""
+    off = machine.body_offset_mm(s.body, pose)
+    half = 0.5 * np.asarray(s.size_mm)
+    c = np.asarray(s.position_mm) + off
+    if s.kind == "fixed":
+        return [(c - half, c + half)]
+    a = machine.axis(s.axis)
+    out = []
+    for lo_k, hi_k in zip(a.segment_bounds_mm[:-1], a.segment_bounds_mm[1:]):
+        lo, hi = c - half, c + half
+        lo[a.direction] += lo_k
+        hi[a.direction] += hi_k
+        out.append((lo, hi))
+    return out
+
+
+def heat_input_matrix(machine: Machine, mm: MachineMesh, basis) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Distribution of 1 W of every heat input over the nodes (n × m); columns sum to 1.
+
+    A source's heat enters uniformly over its patch (clipped to its body): the
+    patch is sampled on a grid finer than the elements and each sample point's
+    share is spread by the shape functions, which conserves power exactly.
+    """
+    h_mm = machine.mesh.element_size_mm
+    cols, names = [], []
+    for s in machine.heat_sources:
+        patches = _source_patches_mm(machine, s, mm.pose_mm)
+        for k, (lo, hi) in enumerate(patches):
+            if mm.grid_m is not None:
+                b = machine.body(s.body)
+                off = machine.body_offset_mm(s.body, mm.pose_mm)
+                lo = np.maximum(lo, np.asarray(b.box_mm[0]) + off)
+                hi = np.minimum(hi, np.asarray(b.box_mm[1]) + off)
+            spacing = min(0.5 * h_mm, 0.5 * float(np.min(hi - lo)) if np.all(hi > lo) else h_mm)
+            pts = _sample_box(lo, hi, max(spacing, 1e-3)) * MM if np.all(hi > lo) else np.zeros((3, 0))
+            cells = mm.find_elements(pts, body=s.body) if pts.shape[1] else np.zeros(0, int)
+            ok = cells >= 0
+            name = s.name if s.kind == "fixed" else f"{s.name}[{k + 1}]"
+            if not ok.any():
+                raise MachineFileError(f"{machine.source}: heat source {name!r}: its patch lies outside its body {s.body!r}")
+            P = assembly.probe_matrix(basis, pts[:, ok], cells[ok])
+            cols.append(np.asarray(P.sum(axis=0)).ravel() / ok.sum())
+            names.append(name)
+    B = np.column_stack(cols) if cols else np.zeros((basis.N, 0))
+    return B, tuple(names)
+
+
+def _point_rows(machine: Machine, mm: MachineMesh, basis, points) -> sp.csr_matrix:
+    pts, cells = [], []
+    for p in points:
+        x = (np.asarray(p.position_mm) + machine.body_offset_mm(p.body, mm.pose_mm)) * MM
+        c = mm.find_elements(x[:, None], body=p.body)[0]
+        if c < 0:
+            raise MachineFileError(f"{machine.source}: point {p.name!r} at {list(p.position_mm)} mm is not in the mesh of body {p.body!r}")
+        pts.append(x)
+        cells.append(c)
+    if not pts:
+        return sp.csr_matrix((0, basis.N))
+    return assembly.probe_matrix(basis, np.array(pts).T, np.array(cells))
+
+
+def drift_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.ndarray]) -> tuple[np.ndarray, str]:
+    """Rows g_x, g_y, g_z [m/K] with drift = G (T - T_ref), by three adjoint solves."""
+    Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
+    Fth = assembly.thermal_load_matrix(basis, mats["E"], mats["nu"], mats["alpha"])
+    n = basis.N
+    P = _point_rows(machine, mm, basis, [machine.tcp, machine.table_reference])  # (2 × n)
+    E = np.zeros((3 * n, 3))
+    for d in range(3):
+        E[d::3, d] = (P[0] - P[1]).toarray().ravel()
+    fixed = []
+    for s in machine.supports:
+        x = (np.asarray(s.position_mm) + machine.body_offset_mm(s.body, mm.pose_mm)) * MM
+        nodes_of_body = np.unique(mm.mesh.t[:, mm.body_of_element == mm.body_names.index(s.body)])
+        node = nodes_of_body[np.argmin(np.sum((mm.mesh.p[:, nodes_of_body] - x[:, None]) ** 2, axis=0))]
+        fixed.extend(3 * int(node) + d for d in s.directions)
+    fixed = np.asarray(sorted(set(fixed)))
+    if fixed.size != 6:
+        raise MachineFileError(f"{machine.source}: field 'supports' lands {fixed.size} constraints on mesh nodes instead of 6; refine the mesh or move the supports apart")
+    free = np.setdiff1d(np.arange(3 * n), fixed)
+    Kf = Ku[free][:, free]
+    rbm = assembly.rigid_body_modes(mm.mesh.p)[free]
+    lam_f, backend = solve_spd_few(Kf, E[free], mm.mesh.p.T, block=3, near_null=rbm)
+    lam = np.zeros((3 * n, 3))
+    lam[free] = lam_f
+    return np.asarray(Fth.T @ lam).T, backend
+
+
+def build_model(
+    machine: Machine,
+    pose_mm: dict[str, float] | None = None,
+    element_size_mm: float | None = None,
+) -> ThermoElasticModel:
+    """Mesh and assemble the machine at a pose (default mid travel)."""
+    if element_size_mm is not None:
+        machine = dataclasses.replace(machine, mesh=dataclasses.replace(machine.mesh, element_size_mm=float(element_size_mm)))
+    timings = {}
+    t0 = time.perf_counter()
+    mm = mesh_machine(machine, pose_mm)
+    timings["mesh"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    basis = assembly.cell_basis(mm.mesh)
+    mats = _material_arrays(machine, mm)
+    K = assembly.conductivity_matrix(basis, mats["k"])
+    M = assembly.capacity_matrix(basis, mats["rc"])
+    H = tuple(assembly.convection_matrix(mm.mesh, mm.zone_facets[z.name]) for z in machine.zones)
+    B, heat_names = heat_input_matrix(machine, mm, basis)
+    if heat_names != machine.heat_inputs():
+        raise AssertionError(f"heat inputs {heat_names} differ from the machine's {machine.heat_inputs()}")
+    C = _point_rows(machine, mm, basis, machine.sensors)
+    timings["assembly_thermal"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    G, backend = drift_rows(machine, mm, basis, mats)
+    timings["elastic_adjoint"] = time.perf_counter() - t0
+    timings["elastic_backend"] = backend
+    log.info("assembled %s: %d nodes, %d heat inputs, %d zones, %s", machine.name, mm.n_nodes, len(heat_names), len(H), timings)
+    return ThermoElasticModel(
+        machine=machine,
+        mesh=mm,
+        M=M,
+        K=K,
+        H=H,
+        h_W_m2K=np.array([z.h_W_m2K for z in machine.zones]),
+        B=B,
+        C=C,
+        G=G,
+        heat_names=heat_names,
+        zone_names=tuple(z.name for z in machine.zones),
+        sensor_names=tuple(s.name for s in machine.sensors),
+        reference_temperature_degC=machine.reference_temperature_degC,
+        timings_s=timings,
+    )

@@ -1,0 +1,1 @@
+"""Traces and G-code to thermal boundary conditions (not built yet)."""

@@ -1,0 +1,3 @@
+"""hybridcomp: hybrid thermal error compensation for machine tools."""
+
+__version__ = "0.1.0"

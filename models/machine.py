@@ -1,0 +1,816 @@
+"""Typed machine definitions and their loader.
+
+A machine file is TOML, documented field by field in ``models/README.md``.
+Geometry is given in millimetres at the reference pose (every axis at 0 mm);
+the loader converts nothing: SI conversion happens in ``fem``.  Every table is
+checked for unknown keys so that a typo is an error, not a silent default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import itertools
+import logging
+import math
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+Vec3 = tuple[float, float, float]
+FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
+DIRECTIONS = ("x", "y", "z")
+AIR_KINDS = ("ambient", "workspace")
+SPINDLE = "spindle"
+GEOMETRY_TOLERANCE_MM = 1e-6
+
+
+class MachineFileError(ValueError):
+    """A machine file is invalid; the message names the file, field and value."""
+
+
+@dataclass(frozen=True)
+class Material:
+    """Isotropic material.
+
+    Attributes
+    ----------
+    conductivity_W_mK : thermal conductivity [W/(m K)]
+    density_kg_m3 : density [kg/m^3]
+    specific_heat_J_kgK : specific heat capacity [J/(kg K)]
+    youngs_modulus_Pa : Young's modulus [Pa]
+    poisson_ratio : Poisson's ratio [-]
+    expansion_1_K : linear thermal expansion coefficient [1/K]
+    """
+
+    name: str
+    conductivity_W_mK: float
+    density_kg_m3: float
+    specific_heat_J_kgK: float
+    youngs_modulus_Pa: float
+    poisson_ratio: float
+    expansion_1_K: float
+
+
+@dataclass(frozen=True)
+class Body:
+    """A rigid part of the structure: an axis-aligned box or a group of an imported mesh.
+
+    ``box_mm`` holds the lower and upper corner [mm] at the reference pose.
+    ``mounted_on`` names the body that carries it (``None``: the ground, i.e.
+    the body stands on the supports).  A body moves with every axis that moves
+    it or any body below it in the chain.
+    """
+
+    name: str
+    material: str
+    box_mm: tuple[Vec3, Vec3] | None
+    group: str | None
+    mounted_on: str | None
+
+
+@dataclass(frozen=True)
+class Axis:
+    """A linear feed axis.
+
+    Attributes
+    ----------
+    direction : index 0, 1, 2 for x, y, z
+    moves : the body the axis drives (it carries everything mounted on it)
+    travel_mm : (min, max) axis position [mm]; the geometry is given at 0 mm
+    max_feed_mm_min : feed at load factor 1 [mm/min]
+    segment_bounds_mm : rail segment boundaries [mm], ascending, from min to max travel
+    """
+
+    name: str
+    direction: int
+    moves: str
+    travel_mm: tuple[float, float]
+    max_feed_mm_min: float
+    segment_bounds_mm: tuple[float, ...]
+
+    @property
+    def n_segments(self) -> int:
+        return len(self.segment_bounds_mm) - 1
+
+    @property
+    def mid_mm(self) -> float:
+        return 0.5 * (self.travel_mm[0] + self.travel_mm[1])
+
+
+@dataclass(frozen=True)
+class HeatSource:
+    """A heat source.
+
+    ``kind`` is ``"fixed"`` (a patch on ``body`` that moves with it) or ``"moving"``
+    (a nut or guide carriage travelling with ``axis``: its heat enters the
+    carrier body along the rail, split over the axis' rail segments).
+    ``power_W`` is the power at load factor 1; the power at factor f is
+    ``power_W * f**exponent`` unless ``power_table`` gives (factor, fraction) pairs.
+    """
+
+    name: str
+    kind: str
+    body: str
+    axis: str | None
+    driver: str | None
+    position_mm: Vec3
+    size_mm: Vec3
+    power_W: float
+    exponent: float
+    power_table: tuple[tuple[float, float], ...] | None
+
+
+@dataclass(frozen=True)
+class Surface:
+    """Part of a convection zone: faces of a box body (optionally clipped) or a mesh group."""
+
+    body: str | None
+    faces: tuple[str, ...]
+    region_mm: tuple[Vec3, Vec3] | None
+    group: str | None
+
+
+@dataclass(frozen=True)
+class Zone:
+    """A convection zone: exposed surfaces that exchange heat with one air temperature.
+
+    ``h_W_m2K`` is the heat-transfer coefficient [W/(m^2 K)]; ``air`` says whether
+    the air is the workshop ambient or a workspace zone behind the enclosure.
+    ``rest`` zones take every exposed surface no other zone claims.
+    """
+
+    name: str
+    h_W_m2K: float
+    air: str
+    surfaces: tuple[Surface, ...]
+    rest: bool
+
+
+@dataclass(frozen=True)
+class Point:
+    """A named point attached to a body (sensor, TCP, table reference) [mm at reference pose]."""
+
+    name: str
+    body: str
+    position_mm: Vec3
+
+
+@dataclass(frozen=True)
+class Support:
+    """A point support of the ground body fixing displacement in the listed directions."""
+
+    name: str
+    body: str
+    position_mm: Vec3
+    directions: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class MeshSettings:
+    """How the FE mesh is made: box bodies are meshed with ``element_size_mm``; ``file`` imports a mesh."""
+
+    element_size_mm: float
+    file: Path | None
+
+
+@dataclass(frozen=True)
+class Machine:
+    """A validated machine definition (see ``models/README.md``)."""
+
+    name: str
+    description: str
+    source: str
+    sha256: str
+    reference_temperature_degC: float
+    spindle_max_speed_rpm: float
+    materials: dict[str, Material]
+    bodies: tuple[Body, ...]
+    axes: tuple[Axis, ...]
+    heat_sources: tuple[HeatSource, ...]
+    zones: tuple[Zone, ...]
+    sensors: tuple[Point, ...]
+    tcp: Point
+    table_reference: Point
+    supports: tuple[Support, ...]
+    mesh: MeshSettings
+
+    def body(self, name: str) -> Body:
+        for b in self.bodies:
+            if b.name == name:
+                return b
+        raise KeyError(name)
+
+    def axis(self, name: str) -> Axis:
+        for a in self.axes:
+            if a.name == name:
+                return a
+        raise KeyError(name)
+
+    def default_pose_mm(self) -> dict[str, float]:
+        """Mid travel of every axis [mm]."""
+        return {a.name: a.mid_mm for a in self.axes}
+
+    def check_pose(self, pose_mm: dict[str, float]) -> dict[str, float]:
+        """Complete a pose with mid-travel defaults and check it lies within travel."""
+        names = {a.name for a in self.axes}
+        for k in pose_mm:
+            if k not in names:
+                raise MachineFileError(f"{self.source}: pose names axis {k!r}, which the machine has not (axes: {sorted(names)})")
+        full = self.default_pose_mm() | dict(pose_mm)
+        for a in self.axes:
+            lo, hi = a.travel_mm
+            if not lo - 1e-9 <= full[a.name] <= hi + 1e-9:
+                raise MachineFileError(
+                    f"{self.source}: pose {a.name} = {full[a.name]} mm is outside the travel [{lo}, {hi}] mm"
+                )
+        return full
+
+    def body_offset_mm(self, body: str, pose_mm: dict[str, float]) -> np.ndarray:
+        """Translation [mm] of a body at a pose against the reference pose (all axes at 0)."""
+        off = np.zeros(3)
+        moved_by = {a.moves: a for a in self.axes}
+        name: str | None = body
+        seen = set()
+        while name is not None:
+            if name in seen:  # guarded by validation; keeps a bad object from looping
+                raise MachineFileError(f"{self.source}: bodies form a mounting cycle through {name!r}")
+            seen.add(name)
+            if name in moved_by:
+                a = moved_by[name]
+                off[a.direction] += pose_mm.get(a.name, 0.0)
+            name = self.body(name).mounted_on
+        return off
+
+    def heat_inputs(self) -> tuple[str, ...]:
+        """Names of the heat inputs in the loads CSV, without the ``_W`` suffix."""
+        names: list[str] = []
+        for s in self.heat_sources:
+            if s.kind == "fixed":
+                names.append(s.name)
+            else:
+                n = self.axis(s.axis).n_segments
+                names.extend(f"{s.name}[{k + 1}]" for k in range(n))
+        return tuple(names)
+
+    def source_power_W(self, source: HeatSource, factor: float | np.ndarray) -> np.ndarray:
+        """Power of a source at load factor ``factor`` (0 standstill .. 1 max speed) [W]."""
+        f = np.clip(np.asarray(factor, dtype=float), 0.0, 1.0)
+        if source.power_table is not None:
+            xs, ys = zip(*source.power_table)
+            return source.power_W * np.interp(f, xs, ys)
+        return source.power_W * f**source.exponent
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def bundled_machines() -> list[str]:
+    """Names of the machine files shipped with the package."""
+    root = resources.files("hybridcomp.models") / "machines"
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def resolve_machine_path(name_or_path: str | Path) -> Path:
+    """A bundled machine name or a path to a TOML file."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise MachineFileError(f"{p}: machine file not found")
+        return p
+    root = resources.files("hybridcomp.models") / "machines"
+    cand = root / f"{name_or_path}.toml"
+    if not cand.is_file():
+        raise MachineFileError(
+            f"machine {str(name_or_path)!r} is neither a file nor a bundled machine (bundled: {bundled_machines()})"
+        )
+    return Path(str(cand))
+
+
+def load_machine(name_or_path: str | Path) -> Machine:
+    """Load and validate a machine file (bundled name or path).
+
+    Raises
+    ------
+    MachineFileError
+        naming the file, the field and the offending value.
+    """
+    path = resolve_machine_path(name_or_path)
+    raw = path.read_bytes()
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise MachineFileError(f"{path}: not valid TOML: {exc}") from None
+    return parse_machine(data, source=str(path), sha256=hashlib.sha256(raw).hexdigest(), base_dir=path.parent)
+
+
+class _Reader:
+    """Reads one TOML table, tracking which keys were used."""
+
+    def __init__(self, src: str, where: str, table: Any):
+        if not isinstance(table, dict):
+            raise MachineFileError(f"{src}: field {where!r} must be a table, got {table!r}")
+        self.src, self.where, self.t = src, where, dict(table)
+        self.used: set[str] = set()
+
+    def _name(self, key: str) -> str:
+        return f"{self.where}.{key}" if self.where else key
+
+    def err(self, key: str, msg: str) -> MachineFileError:
+        return MachineFileError(f"{self.src}: field {self._name(key)!r} {msg}")
+
+    def get(self, key: str, default: Any = ..., kind: type | tuple = object) -> Any:
+        self.used.add(key)
+        if key not in self.t:
+            if default is ...:
+                raise self.err(key, "is required")
+            return default
+        v = self.t[key]
+        if kind is not object and not isinstance(v, kind) or (kind in (float, (int, float)) and isinstance(v, bool)):
+            raise self.err(key, f"has the wrong type: {v!r}")
+        return v
+
+    def number(self, key: str, default: Any = ..., positive: bool = False, nonneg: bool = False) -> float:
+        v = self.get(key, default, (int, float))
+        if v is None:
+            return v
+        v = float(v)
+        if not math.isfinite(v):
+            raise self.err(key, f"must be finite, got {v!r}")
+        if positive and v <= 0:
+            raise self.err(key, f"must be positive, got {v!r}")
+        if nonneg and v < 0:
+            raise self.err(key, f"must not be negative, got {v!r}")
+        return v
+
+    def vec3(self, key: str, default: Any = ..., positive: bool = False) -> Vec3:
+        v = self.get(key, default, (list, tuple))
+        if v is None:
+            return v
+        if len(v) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+            raise self.err(key, f"must be three numbers [mm], got {v!r}")
+        if positive and min(v) <= 0:
+            raise self.err(key, f"must be positive in every direction, got {v!r}")
+        return (float(v[0]), float(v[1]), float(v[2]))
+
+    def box(self, key: str, default: Any = ..., flat_ok: bool = False) -> tuple[Vec3, Vec3] | None:
+        v = self.get(key, default, (list, tuple))
+        if v is None:
+            return None
+        if len(v) != 2:
+            raise self.err(key, f"must be [[x0, y0, z0], [x1, y1, z1]] in mm, got {v!r}")
+        sub = _Reader(self.src, self._name(key), {"lo": v[0], "hi": v[1]})
+        lo, hi = sub.vec3("lo"), sub.vec3("hi")
+        if any(h < l or (h == l and not flat_ok) for l, h in zip(lo, hi)):
+            raise self.err(key, f"must have its second corner above the first in x, y and z, got {v!r}")
+        return lo, hi
+
+    def finish(self) -> None:
+        extra = [k for k in self.t if k not in self.used]
+        if extra:
+            k = extra[0]
+            hint = difflib.get_close_matches(k, sorted(self.used), n=1)
+            more = f" (did you mean {hint[0]!r}?)" if hint else f" (known: {sorted(self.used)})"
+            raise MachineFileError(f"{self.src}: field {self._name(k)!r} is not a known field{more}")
+
+    def tables(self, key: str, required: bool = True) -> list[tuple[str, dict]]:
+        v = self.get(key, ... if required else [], list)
+        out = []
+        for i, t in enumerate(v):
+            out.append((f"{self._name(key)}[{i}]", t))
+        return out
+
+
+def _name_of(rd: _Reader) -> str:
+    name = rd.get("name", kind=str)
+    if not name or not all(c.isalnum() or c in "_-" for c in name):
+        raise rd.err("name", f"must be letters, digits, '_' or '-', got {name!r}")
+    return name
+
+
+def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_dir: Path | None = None) -> Machine:
+    """Build a validated :class:`Machine` from parsed TOML."""
+    top = _Reader(source, "", data)
+
+    m = _Reader(source, "machine", top.get("machine", kind=dict))
+    name = _name_of(m)
+    description = m.get("description", "", str)
+    t_ref = m.number("reference_temperature_degC", 20.0)
+    m.finish()
+
+    sp = _Reader(source, "spindle", top.get("spindle", {}, dict))
+    spindle_rpm = sp.number("max_speed_rpm", 0.0, nonneg=True)
+    sp.finish()
+
+    materials: dict[str, Material] = {}
+    mats = top.get("materials", kind=dict)
+    for mname, mt in mats.items():
+        r = _Reader(source, f"materials.{mname}", mt)
+        nu = r.number("poisson_ratio")
+        if not 0.0 <= nu < 0.5:
+            raise r.err("poisson_ratio", f"must be in [0, 0.5), got {nu!r}")
+        materials[mname] = Material(
+            name=mname,
+            conductivity_W_mK=r.number("conductivity_W_mK", positive=True),
+            density_kg_m3=r.number("density_kg_m3", positive=True),
+            specific_heat_J_kgK=r.number("specific_heat_J_kgK", positive=True),
+            youngs_modulus_Pa=r.number("youngs_modulus_GPa", positive=True) * 1e9,
+            poisson_ratio=nu,
+            expansion_1_K=r.number("expansion_1_K", nonneg=True),
+        )
+        r.finish()
+    if not materials:
+        raise top.err("materials", "must define at least one material")
+
+    msh = _Reader(source, "mesh", top.get("mesh", {}, dict))
+    h_mm = msh.number("element_size_mm", 50.0, positive=True)
+    mfile = msh.get("file", None, str)
+    msh.finish()
+    mesh_path = None
+    if mfile is not None:
+        mesh_path = Path(mfile) if Path(mfile).is_absolute() else (base_dir or Path(".")) / mfile
+        if not mesh_path.is_file():
+            raise msh.err("file", f"names a mesh that does not exist: {mfile!r} (looked at {mesh_path})")
+
+    bodies: list[Body] = []
+    for where, t in top.tables("bodies"):
+        r = _Reader(source, where, t)
+        bname = _name_of(r)
+        mat = r.get("material", kind=str)
+        if mat not in materials:
+            raise r.err("material", f"names an unknown material {mat!r} (defined: {sorted(materials)})")
+        box = r.box("box_mm", None)
+        group = r.get("group", None, str)
+        if mesh_path is None and box is None:
+            raise r.err("box_mm", "is required when the machine has no [mesh] file")
+        if mesh_path is not None and box is not None:
+            raise r.err("box_mm", "cannot be combined with an imported [mesh] file; name the mesh group with 'group'")
+        if mesh_path is not None and group is None:
+            group = bname
+        bodies.append(Body(bname, mat, box, group, r.get("mounted_on", None, str)))
+        r.finish()
+    _unique(source, "bodies", [b.name for b in bodies])
+    body_names = {b.name for b in bodies}
+    for i, b in enumerate(bodies):
+        if b.mounted_on is not None and b.mounted_on not in body_names:
+            raise MachineFileError(f"{source}: field 'bodies[{i}].mounted_on' names an unknown body {b.mounted_on!r}")
+    _check_mount_tree(source, bodies)
+
+    axes: list[Axis] = []
+    for where, t in top.tables("axes", required=False):
+        r = _Reader(source, where, t)
+        aname = _name_of(r)
+        if aname == SPINDLE:
+            raise r.err("name", f"must not be {SPINDLE!r}, which names the spindle drive")
+        d = r.get("direction", kind=str)
+        if d not in DIRECTIONS:
+            raise r.err("direction", f"must be one of {DIRECTIONS}, got {d!r}")
+        moves = r.get("moves", kind=str)
+        if moves not in body_names:
+            raise r.err("moves", f"names an unknown body {moves!r}")
+        tr = r.get("travel_mm", kind=list)
+        if len(tr) != 2 or not all(isinstance(x, (int, float)) for x in tr) or tr[1] <= tr[0]:
+            raise r.err("travel_mm", f"must be [min, max] with max > min, got {tr!r}")
+        if not tr[0] <= 0 <= tr[1]:
+            raise r.err("travel_mm", f"must contain 0 mm, the reference pose the geometry is given at, got {tr!r}")
+        feed = r.number("max_feed_mm_min", positive=True)
+        nseg = r.get("segments", None, int)
+        bounds = r.get("segment_bounds_mm", None, list)
+        if (nseg is None) == (bounds is None):
+            raise r.err("segments", "or 'segment_bounds_mm' must be given (exactly one of them)")
+        if nseg is not None:
+            if nseg < 1:
+                raise r.err("segments", f"must be at least 1, got {nseg!r}")
+            bounds = list(np.linspace(tr[0], tr[1], nseg + 1))
+        else:
+            if (
+                len(bounds) < 2
+                or abs(bounds[0] - tr[0]) > 1e-9
+                or abs(bounds[-1] - tr[1]) > 1e-9
+                or any(b <= a for a, b in zip(bounds, bounds[1:]))
+            ):
+                raise r.err("segment_bounds_mm", f"must ascend from the travel min to max {tr!r}, got {bounds!r}")
+        axes.append(Axis(aname, DIRECTIONS.index(d), moves, (float(tr[0]), float(tr[1])), feed, tuple(float(b) for b in bounds)))
+        r.finish()
+    _unique(source, "axes", [a.name for a in axes])
+    _unique(source, "axes[].moves", [a.moves for a in axes])
+    axis_names = {a.name for a in axes}
+    for i, a in enumerate(axes):
+        if bodies_by(bodies)[a.moves].mounted_on is None:
+            raise MachineFileError(f"{source}: field 'axes[{i}].moves' names {a.moves!r}, a body on the ground, which cannot move")
+
+    sources: list[HeatSource] = []
+    for where, t in top.tables("heat_sources", required=False):
+        r = _Reader(source, where, t)
+        sname = _name_of(r)
+        kind = r.get("kind", "fixed", str)
+        if kind not in ("fixed", "moving"):
+            raise r.err("kind", f"must be 'fixed' or 'moving', got {kind!r}")
+        driver = r.get("driver", None, str)
+        axis = r.get("axis", None, str) if kind == "moving" else None
+        if kind == "moving":
+            if axis is None:
+                raise r.err("axis", "is required for a moving source")
+            if axis not in axis_names:
+                raise r.err("axis", f"names an unknown axis {axis!r} (axes: {sorted(axis_names)})")
+            driver = driver or axis
+            carrier = bodies_by(bodies)[[a for a in axes if a.name == axis][0].moves].mounted_on
+            body = r.get("body", carrier, str)
+            if body != carrier:
+                raise r.err("body", f"of a moving source must be the body carrying the rail of axis {axis} ({carrier!r}), got {body!r}")
+        else:
+            body = r.get("body", kind=str)
+        if body not in body_names:
+            raise r.err("body", f"names an unknown body {body!r}")
+        if driver is not None and driver not in axis_names | {SPINDLE}:
+            raise r.err("driver", f"must be an axis name or {SPINDLE!r}, got {driver!r}")
+        if driver == SPINDLE and spindle_rpm <= 0:
+            raise r.err("driver", "is 'spindle' but [spindle] max_speed_rpm is not set")
+        table = r.get("power_table", None, list)
+        if table is not None:
+            ok = all(isinstance(p, list) and len(p) == 2 and all(isinstance(x, (int, float)) for x in p) for p in table)
+            xs = [p[0] for p in table] if ok else []
+            if not ok or len(table) < 2 or xs[0] != 0 or xs[-1] != 1 or any(b <= a for a, b in zip(xs, xs[1:])) or any(p[1] < 0 for p in table):
+                raise r.err("power_table", f"must be [[0, p0], ..., [1, p1]] with ascending factors and fractions >= 0, got {table!r}")
+            table = tuple((float(a), float(b)) for a, b in table)
+        sources.append(
+            HeatSource(
+                name=sname,
+                kind=kind,
+                body=body,
+                axis=axis,
+                driver=driver,
+                position_mm=r.vec3("position_mm"),
+                size_mm=r.vec3("size_mm", (20.0, 20.0, 20.0), positive=True),
+                power_W=r.number("power_W", nonneg=True),
+                exponent=r.number("exponent", 1.0, positive=True),
+                power_table=table,
+            )
+        )
+        r.finish()
+    _unique(source, "heat_sources", [s.name for s in sources])
+
+    zones: list[Zone] = []
+    for where, t in top.tables("zones", required=False):
+        r = _Reader(source, where, t)
+        zname = _name_of(r)
+        h = r.number("h_W_m2K")
+        if h <= 0:
+            raise r.err("h_W_m2K", f"must be positive, got {h!r}")
+        air = r.get("air", "ambient", str)
+        if air not in AIR_KINDS:
+            raise r.err("air", f"must be one of {AIR_KINDS}, got {air!r}")
+        rest = r.get("rest", False, bool)
+        surfs = []
+        for swhere, st in r.tables("surfaces", required=not rest):
+            sr = _Reader(source, swhere, st)
+            group = sr.get("group", None, str)
+            body = sr.get("body", None, str)
+            faces = tuple(sr.get("faces", list(FACES) if body else [], list))
+            if group is None and body is None:
+                raise sr.err("body", "or 'group' is required")
+            if body is not None and body not in body_names:
+                raise sr.err("body", f"names an unknown body {body!r}")
+            if group is not None and mesh_path is None:
+                raise sr.err("group", "needs an imported [mesh] file")
+            for f in faces:
+                if f not in FACES:
+                    raise sr.err("faces", f"must list faces of {FACES}, got {f!r}")
+            surfs.append(Surface(body, faces, sr.box("region_mm", None, flat_ok=True), group))
+            sr.finish()
+        zones.append(Zone(zname, h, air, tuple(surfs), rest))
+        r.finish()
+    _unique(source, "zones", [z.name for z in zones])
+    if sum(z.rest for z in zones) > 1:
+        raise top.err("zones", "may have only one zone with rest = true")
+
+    def point(where: str, t: dict, named: bool = True) -> Point:
+        r = _Reader(source, where, t)
+        pname = _name_of(r) if named else where
+        body = r.get("body", None, str)
+        if body is not None and body not in body_names:
+            raise r.err("body", f"names an unknown body {body!r}")
+        pos = r.vec3("position_mm")
+        r.finish()
+        return Point(pname, body or "", pos)
+
+    sensors = tuple(point(w, t) for w, t in top.tables("sensors", required=False))
+    _unique(source, "sensors", [s.name for s in sensors])
+    tcp = point("tcp", top.get("tcp", kind=dict), named=False)
+    table_ref = point("table_reference", top.get("table_reference", kind=dict), named=False)
+
+    supports: list[Support] = []
+    for where, t in top.tables("supports"):
+        r = _Reader(source, where, t)
+        dirs = r.get("directions", kind=list)
+        if not dirs or any(d not in DIRECTIONS for d in dirs) or len(set(dirs)) != len(dirs):
+            raise r.err("directions", f"must list distinct directions of {DIRECTIONS}, got {dirs!r}")
+        body = r.get("body", None, str)
+        if body is not None and body not in body_names:
+            raise r.err("body", f"names an unknown body {body!r}")
+        supports.append(Support(_name_of(r), body or "", r.vec3("position_mm"), tuple(DIRECTIONS.index(d) for d in dirs)))
+        r.finish()
+    _unique(source, "supports", [s.name for s in supports])
+    top.finish()
+
+    machine = Machine(
+        name=name,
+        description=description,
+        source=source,
+        sha256=sha256,
+        reference_temperature_degC=t_ref,
+        spindle_max_speed_rpm=spindle_rpm,
+        materials=materials,
+        bodies=tuple(bodies),
+        axes=tuple(axes),
+        heat_sources=tuple(sources),
+        zones=tuple(zones),
+        sensors=sensors,
+        tcp=tcp,
+        table_reference=table_ref,
+        supports=tuple(supports),
+        mesh=MeshSettings(h_mm, mesh_path),
+    )
+    return _validate_geometry(machine)
+
+
+def bodies_by(bodies) -> dict[str, Body]:
+    return {b.name: b for b in bodies}
+
+
+def _unique(source: str, field: str, names: list[str]) -> None:
+    seen = set()
+    for n in names:
+        if n in seen:
+            raise MachineFileError(f"{source}: field {field!r} has the name {n!r} twice")
+        seen.add(n)
+
+
+def _check_mount_tree(source: str, bodies: list[Body]) -> None:
+    by = bodies_by(bodies)
+    for b in bodies:
+        seen = [b.name]
+        cur = b.mounted_on
+        while cur is not None:
+            if cur in seen:
+                raise MachineFileError(f"{source}: field 'bodies.mounted_on' forms a cycle {' -> '.join(seen + [cur])}")
+            seen.append(cur)
+            cur = by[cur].mounted_on
+
+
+# --------------------------------------------------------------------------- geometry checks
+
+
+def _inside(box: tuple[Vec3, Vec3], p, tol: float = GEOMETRY_TOLERANCE_MM) -> bool:
+    lo, hi = np.asarray(box[0]), np.asarray(box[1])
+    p = np.asarray(p)
+    return bool(np.all(p >= lo - tol) and np.all(p <= hi + tol))
+
+
+def _overlap(a: tuple[Vec3, Vec3], b: tuple[Vec3, Vec3]) -> np.ndarray:
+    """Per-direction overlap length of two boxes [mm] (negative: a gap)."""
+    return np.minimum(np.asarray(a[1]), np.asarray(b[1])) - np.maximum(np.asarray(a[0]), np.asarray(b[0]))
+
+
+def box_at_pose(machine: Machine, body: Body, pose_mm: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    off = machine.body_offset_mm(body.name, pose_mm)
+    return np.asarray(body.box_mm[0]) + off, np.asarray(body.box_mm[1]) + off
+
+
+def contact_graph(machine: Machine, pose_mm: dict[str, float]) -> dict[str, set[str]]:
+    """Which box bodies share a face of positive area at a pose."""
+    boxes = {b.name: box_at_pose(machine, b, pose_mm) for b in machine.bodies}
+    g: dict[str, set[str]] = {n: set() for n in boxes}
+    for a, b in itertools.combinations(boxes, 2):
+        ov = _overlap(boxes[a], boxes[b])
+        touching = np.sum(np.abs(ov) <= GEOMETRY_TOLERANCE_MM) == 1 and np.sum(ov > GEOMETRY_TOLERANCE_MM) == 2
+        if touching:
+            g[a].add(b)
+            g[b].add(a)
+    return g
+
+
+def check_pose_geometry(machine: Machine, pose_mm: dict[str, float]) -> None:
+    """Bodies must not overlap and must form one connected structure at ``pose_mm``."""
+    if machine.mesh.file is not None:
+        return
+    boxes = {b.name: box_at_pose(machine, b, pose_mm) for b in machine.bodies}
+    for a, b in itertools.combinations(boxes, 2):
+        ov = _overlap(boxes[a], boxes[b])
+        if np.all(ov > GEOMETRY_TOLERANCE_MM):
+            raise MachineFileError(
+                f"{machine.source}: field 'bodies' has overlapping bodies {a!r} and {b!r} at pose {pose_mm} "
+                f"(overlap {np.round(ov, 3).tolist()} mm)"
+            )
+    g = contact_graph(machine, pose_mm)
+    start = machine.bodies[0].name
+    seen, todo = {start}, [start]
+    while todo:
+        for n in g[todo.pop()]:
+            if n not in seen:
+                seen.add(n)
+                todo.append(n)
+    loose = [b.name for b in machine.bodies if b.name not in seen]
+    if loose:
+        raise MachineFileError(
+            f"{machine.source}: field 'bodies' leaves {loose} without face contact to {start!r} at pose {pose_mm}: "
+            "a loose body is a mechanism, not a statically determinate structure"
+        )
+
+
+def _locate(machine: Machine, where: str, p: Point | Support | HeatSource, box_ok) -> str:
+    """The body a point lies in (checking a named body); raises when outside every body."""
+    pos = p.position_mm
+    if p.body:
+        if not box_ok(machine.body(p.body), pos):
+            raise MachineFileError(f"{machine.source}: field {where + '.position_mm'!r} = {list(pos)} mm is outside its body {p.body!r}")
+        return p.body
+    for b in machine.bodies:
+        if box_ok(b, pos):
+            return b.name
+    raise MachineFileError(f"{machine.source}: field {where + '.position_mm'!r} = {list(pos)} mm is outside every body")
+
+
+def _validate_geometry(machine: Machine) -> Machine:
+    src = machine.source
+    ref = {a.name: 0.0 for a in machine.axes}
+    if machine.mesh.file is None:
+        box_ok = lambda b, p: _inside(b.box_mm, p)  # noqa: E731
+        # overlap and connectivity at the reference pose and at every combination of travel ends
+        choices = [sorted({a.travel_mm[0], 0.0, a.travel_mm[1]}) for a in machine.axes]
+        for combo in itertools.product(*choices):
+            check_pose_geometry(machine, dict(zip([a.name for a in machine.axes], combo)))
+        sensors = tuple(
+            dataclasses.replace(s, body=_locate(machine, f"sensors[{i}]", s, box_ok)) for i, s in enumerate(machine.sensors)
+        )
+        tcp = dataclasses.replace(machine.tcp, body=_locate(machine, "tcp", machine.tcp, box_ok))
+        tref = dataclasses.replace(machine.table_reference, body=_locate(machine, "table_reference", machine.table_reference, box_ok))
+        supports = tuple(
+            dataclasses.replace(s, body=_locate(machine, f"supports[{i}]", s, box_ok)) for i, s in enumerate(machine.supports)
+        )
+        for i, s in enumerate(machine.heat_sources):
+            _check_source_inside(machine, i, s)
+        machine = dataclasses.replace(machine, sensors=sensors, tcp=tcp, table_reference=tref, supports=supports)
+        for i, s in enumerate(machine.supports):
+            if machine.body(s.body).mounted_on is not None:
+                raise MachineFileError(
+                    f"{src}: field 'supports[{i}].body' is {s.body!r}, which is mounted on another body; supports hold a ground body"
+                )
+    else:
+        for what, pts in (("sensors", machine.sensors), ("supports", machine.supports)):
+            for i, p in enumerate(pts):
+                if not p.body:
+                    raise MachineFileError(f"{src}: field '{what}[{i}].body' is required with an imported mesh")
+        for what, p in (("tcp", machine.tcp), ("table_reference", machine.table_reference)):
+            if not p.body:
+                raise MachineFileError(f"{src}: field '{what}.body' is required with an imported mesh")
+    check_statically_determinate(machine)
+    _ = ref
+    return machine
+
+
+def _check_source_inside(machine: Machine, i: int, s: HeatSource) -> None:
+    """The source's centre must lie in its body, for a moving source over the whole travel."""
+    b = machine.body(s.body)
+    where = f"heat_sources[{i}].position_mm"
+    if s.kind == "fixed":
+        if not _inside(b.box_mm, s.position_mm):
+            raise MachineFileError(f"{machine.source}: field {where!r} = {list(s.position_mm)} mm is outside its body {s.body!r}")
+        return
+    a = machine.axis(s.axis)
+    for end in a.travel_mm:
+        p = np.asarray(s.position_mm, float)
+        p[a.direction] += end
+        # the rail patch lies in the carrier body, which does not move with this axis
+        if not _inside(b.box_mm, p):
+            raise MachineFileError(
+                f"{machine.source}: field {where!r} = {list(s.position_mm)} mm leaves its carrier body {s.body!r} "
+                f"at {a.name} = {end} mm (rail point {p.round(3).tolist()} mm)"
+            )
+
+
+def check_statically_determinate(machine: Machine) -> None:
+    """Supports must remove exactly the six rigid-body motions: six constraints of rank six."""
+    rows = []
+    for s in machine.supports:
+        x = np.asarray(s.position_mm) * 1e-3
+        for d in s.directions:
+            e = np.zeros(3)
+            e[d] = 1.0
+            # displacement at x under translation t and rotation w: t + w × x; its component along e
+            rows.append(np.concatenate([e, np.cross(x, e)]))
+    n = len(rows)
+    rank = np.linalg.matrix_rank(np.asarray(rows), tol=1e-9) if rows else 0
+    if n != 6 or rank != 6:
+        kind = "a mechanism (rigid-body motion left free)" if rank < 6 else "over-constrained (constraint stresses)"
+        raise MachineFileError(
+            f"{machine.source}: field 'supports' has {n} constraints of rank {rank}: {kind}; "
+            "a statically determinate support needs six independent ones (e.g. 3-2-1)"
+        )

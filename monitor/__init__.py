@@ -1,0 +1,1 @@
+"""The monitoring daemon (not built yet)."""

@@ -1,0 +1,1 @@
+"""Krylov reduced-order structure model (not built yet)."""
