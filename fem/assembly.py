@@ -107,7 +107,7 @@ def lame(youngs_modulus_Pa, poisson_ratio):
 def _gradients(basis: skfem.CellBasis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Scalar basis gradients G[a, i, e, q], values P[a, e, q] and weights dx[e, q]."""
     G = np.array([basis.basis[a][0].grad for a in range(basis.Nbfun)])
-    P = np.array([basis.basis[a][0].value for a in range(basis.Nbfun)])
+    P = np.array([np.asarray(basis.basis[a][0]) for a in range(basis.Nbfun)])
     return G, P, basis.dx
 
 

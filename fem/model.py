@@ -189,6 +189,38 @@ def _point_rows(machine: Machine, mm: MachineMesh, basis, points) -> sp.csr_matr
     return assembly.probe_matrix(basis, np.array(pts).T, np.array(cells))
 
 
+def _support_dofs(machine: Machine, mm: MachineMesh) -> np.ndarray:
+    """Node-interleaved displacement DOFs fixed by the supports (the node nearest each support point)."""
+    fixed = []
+    for s in machine.supports:
+        x = (np.asarray(s.position_mm) + machine.body_offset_mm(s.body, mm.pose_mm)) * MM
+        nodes_of_body = np.unique(mm.mesh.t[:, mm.body_of_element == mm.body_names.index(s.body)])
+        node = nodes_of_body[np.argmin(np.sum((mm.mesh.p[:, nodes_of_body] - x[:, None]) ** 2, axis=0))]
+        fixed.extend(3 * int(node) + d for d in s.directions)
+    fixed = np.asarray(sorted(set(fixed)))
+    if fixed.size != 6:
+        raise MachineFileError(
+            f"{machine.source}: field 'supports' lands {fixed.size} constraints on mesh nodes instead of 6; "
+            "refine the mesh or move the supports apart"
+        )
+    return fixed
+
+
+def solve_supported(Ku: sp.spmatrix, rhs: np.ndarray, fixed: np.ndarray, points_m: np.ndarray) -> tuple[np.ndarray, str]:
+    """Solve ``Ku u = rhs`` (columns) with the ``fixed`` DOFs held at zero.
+
+    Fixed rows and columns become identity rows, which keeps the node-interleaved
+    numbering the nested-dissection ordering and AMG rely on.
+    """
+    keep = np.ones(Ku.shape[0])
+    keep[fixed] = 0.0
+    P = sp.diags(keep)
+    Kc = (P @ Ku @ P + sp.diags(1.0 - keep)).tocsr()
+    b = np.array(rhs, dtype=float, copy=True)
+    b[fixed] = 0.0
+    return solve_spd_few(Kc, b, points_m.T, block=3, near_null=assembly.rigid_body_modes(points_m))
+
+
 def drift_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.ndarray]) -> tuple[np.ndarray, str]:
     """Rows g_x, g_y, g_z [m/K] with drift = G (T - T_ref), by three adjoint solves."""
     Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
@@ -198,21 +230,7 @@ def drift_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.ndar
     E = np.zeros((3 * n, 3))
     for d in range(3):
         E[d::3, d] = (P[0] - P[1]).toarray().ravel()
-    fixed = []
-    for s in machine.supports:
-        x = (np.asarray(s.position_mm) + machine.body_offset_mm(s.body, mm.pose_mm)) * MM
-        nodes_of_body = np.unique(mm.mesh.t[:, mm.body_of_element == mm.body_names.index(s.body)])
-        node = nodes_of_body[np.argmin(np.sum((mm.mesh.p[:, nodes_of_body] - x[:, None]) ** 2, axis=0))]
-        fixed.extend(3 * int(node) + d for d in s.directions)
-    fixed = np.asarray(sorted(set(fixed)))
-    if fixed.size != 6:
-        raise MachineFileError(f"{machine.source}: field 'supports' lands {fixed.size} constraints on mesh nodes instead of 6; refine the mesh or move the supports apart")
-    free = np.setdiff1d(np.arange(3 * n), fixed)
-    Kf = Ku[free][:, free]
-    rbm = assembly.rigid_body_modes(mm.mesh.p)[free]
-    lam_f, backend = solve_spd_few(Kf, E[free], mm.mesh.p.T, block=3, near_null=rbm)
-    lam = np.zeros((3 * n, 3))
-    lam[free] = lam_f
+    lam, backend = solve_supported(Ku, E, _support_dofs(machine, mm), mm.mesh.p)
     return np.asarray(Fth.T @ lam).T, backend
 
 

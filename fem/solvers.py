@@ -29,11 +29,12 @@ import scipy.sparse.linalg as sla
 
 log = logging.getLogger(__name__)
 
-_FORCE = os.environ.get("HYBRIDCOMP_SOLVER", "")  # "superlu" forces the pip-only path (for benchmarks)
+# HYBRIDCOMP_SOLVER limits the backends for benchmarks: "amg" (no CHOLMOD), "superlu" (scipy only)
+_FORCE = os.environ.get("HYBRIDCOMP_SOLVER", "")
 
 
 def have_cholmod() -> bool:
-    if _FORCE == "superlu":
+    if _FORCE in ("amg", "superlu"):
         return False
     try:
         import sksparse.cholmod  # noqa: F401

@@ -56,10 +56,90 @@ def steady_state(model: ThermoElasticModel, u: np.ndarray) -> np.ndarray:
     return f(model.input_matrix() @ np.asarray(u, float))
 
 
-def step_factor(model: ThermoElasticModel, dt_s: float, theta: float) -> Factor:
-    """The cached factorisation of M/Δt + θA."""
-    key = ("step", round(float(dt_s), 9), float(theta))
-    return _factor(model, key, lambda: model.M / dt_s + theta * model.A())
+def integrate(
+    M,
+    A,
+    Bu: np.ndarray,
+    outputs: tuple,
+    time_s: np.ndarray,
+    inputs: np.ndarray,
+    theta: float = 1.0,
+    x0: np.ndarray | None = None,
+    coords: np.ndarray | None = None,
+    cache: dict | None = None,
+    store_steps: tuple[int, ...] | None = None,
+    progress: bool = False,
+) -> tuple[list[np.ndarray], dict[int, np.ndarray], dict]:
+    """θ-method for ``M x' + A x = Bu u(t)`` on any sparse SPD pair (M, A).
+
+    Parameters
+    ----------
+    M, A : sparse SPD matrices (n × n)
+    Bu : input matrix (n × nu); ``inputs`` (nt × nu) are its inputs at ``time_s``
+    outputs : matrices (r × n) evaluated at every step
+    x0 : initial state (default zero)
+    coords : (n, 3) node coordinates for the fill-reducing ordering
+    cache : dict for factorisations keyed by (Δt, θ), kept across calls
+
+    Returns
+    -------
+    per output an (nt × r) array, the stored states, and timings [s]
+    """
+    t = np.asarray(time_s, float)
+    U = np.asarray(inputs, float)
+    if t.ndim != 1 or t.size < 1:
+        raise ValueError("time_s must be a non-empty vector")
+    if np.any(np.diff(t) <= 0):
+        k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
+        raise ValueError(f"time_s must increase strictly; step {k} goes from {t[k - 1]} s to {t[k]} s")
+    if U.shape != (t.size, Bu.shape[1]):
+        raise ValueError(f"inputs must be ({t.size}, {Bu.shape[1]}), got {U.shape}")
+    if not 0.5 <= theta <= 1.0:
+        raise ValueError(f"theta must be in [0.5, 1] for an unconditionally stable scheme, got {theta}")
+    n = M.shape[0]
+    x = np.zeros(n) if x0 is None else np.asarray(x0, float).copy()
+    if x.shape != (n,):
+        raise ValueError(f"initial state must have {n} entries, got {x.shape}")
+    cache = {} if cache is None else cache
+    store = set(store_steps or ())
+    nt = t.size
+    ys = [np.empty((nt, O.shape[0])) for O in outputs]
+    for y, O in zip(ys, outputs):
+        y[0] = O @ x
+    fields: dict[int, np.ndarray] = {0: x.copy()} if 0 in store else {}
+    t_factor = t_solve = 0.0
+    t0_all = time.perf_counter()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=nt - 1, unit="step", desc="transient", leave=False)
+    dts = np.diff(t)
+    for k in range(1, nt):
+        dt = float(dts[k - 1])
+        key = ("step", round(dt, 9), float(theta))
+        tf = time.perf_counter()
+        if key not in cache:
+            cache[key] = factorize_spd(M / dt + theta * A, coords)
+            cache[("Mdt", key[1])] = (M / dt).tocsr()
+        f, Mdt = cache[key], cache[("Mdt", key[1])]
+        t_factor += time.perf_counter() - tf
+        rhs = Mdt @ x + Bu @ (theta * U[k] + (1 - theta) * U[k - 1])
+        if theta != 1.0:
+            rhs -= (1 - theta) * (A @ x)
+        ts = time.perf_counter()
+        x = f(rhs)
+        t_solve += time.perf_counter() - ts
+        for y, O in zip(ys, outputs):
+            y[k] = O @ x
+        if k in store:
+            fields[k] = x.copy()
+        if bar is not None:
+            bar.update()
+    if bar is not None:
+        bar.close()
+    total = time.perf_counter() - t0_all
+    return ys, fields, {"factorisation": t_factor, "triangular_solves": t_solve, "stepping_total": total - t_factor}
 
 
 def simulate(
@@ -81,72 +161,41 @@ def simulate(
     initial : ``"steady"`` (steady state of the first inputs), ``"reference"`` (x = 0) or a state [K]
     store_steps : indices of steps whose full field is kept
     """
-    t = np.asarray(time_s, float)
     U = np.asarray(inputs, float)
-    if t.ndim != 1 or t.size < 1:
-        raise ValueError("time_s must be a non-empty vector")
-    if np.any(np.diff(t) <= 0):
-        k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
-        raise ValueError(f"time_s must increase strictly; step {k} goes from {t[k - 1]} s to {t[k]} s")
-    if U.shape != (t.size, len(model.input_names)):
-        raise ValueError(f"inputs must be ({t.size}, {len(model.input_names)}), got {U.shape}")
-    if not 0.5 <= theta <= 1.0:
-        raise ValueError(f"theta must be in [0.5, 1] for an unconditionally stable scheme, got {theta}")
-    Bu = model.input_matrix()
+    if U.ndim != 2 or U.shape[1] != len(model.input_names):
+        raise ValueError(f"inputs must have {len(model.input_names)} columns ({model.input_names}), got shape {U.shape}")
     if isinstance(initial, str):
         if initial == "steady":
-            x = steady_state(model, U[0])
+            x0 = steady_state(model, U[0])
         elif initial == "reference":
-            x = np.zeros(model.n)
+            x0 = np.zeros(model.n)
         else:
             raise ValueError(f"initial must be 'steady', 'reference' or a state vector, got {initial!r}")
     else:
-        x = np.asarray(initial, float).copy()
-        if x.shape != (model.n,):
-            raise ValueError(f"initial state must have {model.n} entries, got {x.shape}")
-    store = set(store_steps or ())
-    C, G = model.C, model.G
-    nt = t.size
-    sens = np.empty((nt, C.shape[0]))
-    drift = np.empty((nt, 3))
-    fields: dict[int, np.ndarray] = {}
-    sens[0], drift[0] = C @ x, G @ x
-    if 0 in store:
-        fields[0] = x.copy()
-    t_factor = 0.0
-    t_solve = 0.0
-    t0_all = time.perf_counter()
-    A = model.A()
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=nt - 1, unit="step", desc="transient", leave=False)
-    dts = np.diff(t)
-    for k in range(1, nt):
-        dt = dts[k - 1]
-        tf = time.perf_counter()
-        f = step_factor(model, dt, theta)
-        Mdt = model._cache.setdefault(("Mdt", round(float(dt), 9)), model.M / dt)
-        t_factor += time.perf_counter() - tf
-        rhs = Mdt @ x + Bu @ (theta * U[k] + (1 - theta) * U[k - 1])
-        if theta != 1.0:
-            rhs -= (1 - theta) * (A @ x)
-        ts = time.perf_counter()
-        x = f(rhs)
-        t_solve += time.perf_counter() - ts
-        sens[k], drift[k] = C @ x, G @ x
-        if k in store:
-            fields[k] = x.copy()
-        if bar is not None:
-            bar.update()
-    if bar is not None:
-        bar.close()
-    total = time.perf_counter() - t0_all
+        x0 = np.asarray(initial, float)
+    (sens, drift), fields, timings = integrate(
+        model.M,
+        model.A(),
+        model.input_matrix(),
+        (model.C, model.G),
+        time_s,
+        U,
+        theta=theta,
+        x0=x0,
+        coords=model.coords_m,
+        cache=model._cache,
+        store_steps=store_steps,
+        progress=progress,
+    )
     return SimulationResult(
-        time_s=t,
+        time_s=np.asarray(time_s, float),
         sensors_degC=sens + model.reference_temperature_degC,
         drift_um=drift * 1e6,
         fields_K=fields,
-        timings_s={"factorisation": t_factor, "triangular_solves": t_solve, "stepping_total": total - t_factor},
+        timings_s=timings,
     )
+
+
+def step_factor_for_benchmark(model: ThermoElasticModel, dt_s: float, theta: float) -> Factor:
+    """The cached factorisation of M/Δt + θA that :func:`simulate` used (for timing the bare solves)."""
+    return model._cache[("step", round(float(dt_s), 9), float(theta))]

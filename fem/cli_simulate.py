@@ -1,0 +1,137 @@
+"""``hybridcomp simulate``: a load case on the FE model → ``DIR/outputs.csv``.
+
+Everything is checked (machine file, pose, loads CSV) before anything is
+written, so a bad input leaves no half-written output directory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
+from hybridcomp.models.machine import MachineFileError, load_machine
+
+log = logging.getLogger(__name__)
+
+
+def parse_pose(text: str | None) -> dict[str, float]:
+    """``"X=100,Y=-50"`` → {"X": 100.0, "Y": -50.0} [mm]."""
+    if not text:
+        return {}
+    pose = {}
+    for part in text.split(","):
+        if "=" not in part:
+            raise ValueError(f"--pose: {part!r} is not AXIS=POSITION_MM")
+        k, v = part.split("=", 1)
+        try:
+            pose[k.strip()] = float(v)
+        except ValueError:
+            raise ValueError(f"--pose: position {v!r} of axis {k.strip()!r} is not a number") from None
+    return pose
+
+
+def resample(loads: Loads, dt_s: float) -> Loads:
+    """Loads at a uniform step ``dt_s`` [s] by linear interpolation (the end time is kept)."""
+    t0, t1 = loads.time_s[0], loads.time_s[-1]
+    t = np.arange(t0, t1, dt_s)
+    t = np.append(t, t1) if t1 - t[-1] > 1e-9 * max(1.0, abs(t1)) else t
+    values = np.column_stack([np.interp(t, loads.time_s, loads.values[:, j]) for j in range(loads.values.shape[1])])
+    return Loads(t, values, loads.names)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
+    p.add_argument("--loads", required=True, type=Path,
+                   help="BC time series CSV: time_s, <source>[<segment>]_W, <zone>_degC; a missing column is zero power "
+                   "or the reference temperature, an unknown column is an error")
+    p.add_argument("--out", required=True, type=Path, help="output directory (outputs.csv, run.json, fields, picture)")
+    p.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
+    p.add_argument("--element-size-mm", type=float, help="largest element edge [mm] (default: from the machine file)")
+    p.add_argument("--dt", type=float, help="time step [s]; default: the loads CSV's own times")
+    p.add_argument("--theta", type=float, default=1.0, help="θ of the θ-method: 1 backward Euler (default), 0.5 Crank-Nicolson")
+    p.add_argument("--initial", choices=("steady", "reference"), default="steady",
+                   help="initial state: steady state of the first loads row (default) or the reference temperature")
+    p.add_argument("--fields", type=int, default=0, metavar="N",
+                   help="also write the full temperature and displacement field at N evenly spaced steps")
+    p.add_argument("--field-format", choices=("vtu", "xdmf"), default="vtu", help="field file format (xdmf needs h5py)")
+    p.add_argument("--png", action="store_true", help="render temperature on the deformed machine at the last step (needs pyvista)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        machine = load_machine(args.machine)
+        pose = machine.check_pose(parse_pose(args.pose))
+        loads = read_loads(args.loads, machine)
+        if args.dt is not None:
+            if not args.dt > 0:
+                raise ValueError(f"--dt must be positive, got {args.dt}")
+            loads = resample(loads, args.dt)
+        if len(loads.time_s) < 2:
+            raise LoadsFileError(f"{args.loads}: needs at least two rows (a start and an end time)")
+        if args.element_size_mm is not None and not args.element_size_mm > 0:
+            raise ValueError(f"--element-size-mm must be positive, got {args.element_size_mm}")
+        if not 0.5 <= args.theta <= 1.0:
+            raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
+    except (MachineFileError, LoadsFileError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.fem.transient import simulate
+
+    t0 = time.perf_counter()
+    progress = not args.no_progress
+    if progress:
+        print(f"meshing and assembling {machine.name} at {pose} ...", file=sys.stderr)
+    try:
+        model = build_model(machine, pose, args.element_size_mm)
+    except MachineFileError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    nt = len(loads.time_s)
+    store = ()
+    if args.fields > 0:
+        store = tuple(sorted(set(np.linspace(0, nt - 1, args.fields).round().astype(int).tolist())))
+    if args.png:
+        store = tuple(sorted(set(store) | {nt - 1}))
+    res = simulate(model, loads.time_s, loads.as_inputs(machine.reference_temperature_degC), theta=args.theta,
+                   initial=args.initial, store_steps=store, progress=progress)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    write_outputs(out / "outputs.csv", res.time_s, model.sensor_names, res.sensors_degC, res.drift_um)
+    files = ["outputs.csv"]
+    if args.fields > 0:
+        from hybridcomp.fem.export import write_fields
+
+        paths = write_fields(model, out / "fields", {k: res.fields_K[k] for k in store if k in res.fields_K},
+                             res.time_s, fmt=args.field_format)
+        files += [str(p.relative_to(out)) for p in paths]
+    if args.png:
+        from hybridcomp.fem.export import render_png
+
+        png = render_png(model, res.fields_K[nt - 1], out / "machine.png",
+                         title=f"{machine.name} at t = {res.time_s[-1] / 3600:.2f} h, pose {pose}")
+        files.append(png.name)
+    info = {
+        "machine": machine.name,
+        "machine_file": Path(machine.source).name,
+        "machine_sha256": machine.sha256,
+        "pose_mm": pose,
+        "nodes": model.n,
+        "elements": int(model.mesh.mesh.t.shape[1]),
+        "steps": nt - 1,
+        "theta": args.theta,
+        "timings_s": {**model.timings_s, **res.timings_s, "total": time.perf_counter() - t0},
+        "files": files,
+    }
+    (out / "run.json").write_text(json.dumps(info, indent=2))
+    print(f"wrote {out / 'outputs.csv'} ({nt} rows, {model.n} nodes, {info['timings_s']['total']:.1f} s)", file=sys.stderr)
+    return 0

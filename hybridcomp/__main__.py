@@ -1,0 +1,5 @@
+import sys
+
+from hybridcomp.cli import main
+
+sys.exit(main())

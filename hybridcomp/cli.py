@@ -1,0 +1,45 @@
+"""The ``hybridcomp`` command: a thin dispatcher to the subcommands beside each package."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from importlib import import_module
+
+# subcommand -> module with add_arguments(parser) and run(args) -> int
+SUBCOMMANDS = {
+    "simulate": ("hybridcomp.fem.cli_simulate", "simulate a load case on the FE model and write outputs.csv"),
+    "example-loads": ("hybridcomp.fem.cli_example_loads", "write a reproducible example loads CSV for a machine"),
+    "machine": ("hybridcomp.models.cli", "check a machine file and print its inputs, sensors and mesh size"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="hybridcomp",
+        description="Hybrid thermal error compensation for machine tools: FE model, reduced structure model, "
+        "characteristic diagrams, monitoring and diagnosis.",
+    )
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in SUBCOMMANDS.items():
+        sp = sub.add_parser(name, help=help_text, description=help_text)
+        import_module(module).add_arguments(sp)
+        sp.set_defaults(_module=module)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 2
+    level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    return import_module(args._module).run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
