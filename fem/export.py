@@ -87,12 +87,31 @@ def write_fields(model: ThermoElasticModel, out_dir: str | Path, steps: dict[int
     return written
 
 
+def _select_offscreen_backend() -> None:
+    """Pick VTK's EGL or OSMesa window without an X server; fail clearly where VTK would segfault."""
+    import ctypes.util
+    import os
+
+    if os.environ.get("DISPLAY") or os.environ.get("VTK_DEFAULT_OPENGL_WINDOW"):
+        return
+    if ctypes.util.find_library("EGL"):
+        os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkEGLRenderWindow"
+    elif ctypes.util.find_library("OSMesa"):
+        os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkOSOpenGLRenderWindow"
+    else:
+        raise RuntimeError(
+            "off-screen rendering needs Mesa's EGL or OSMesa "
+            "(Debian: apt-get install libegl1 libgl1-mesa-dri libosmesa6); the PNG was not made"
+        )
+
+
 def render_png(model: ThermoElasticModel, state_K: np.ndarray, path: str | Path, title: str = "",
                warp_scale: float | None = None, size: tuple[int, int] = (1400, 1000)) -> Path:
     """Off-screen PNG: temperature on the deformed machine (deformation exaggerated).
 
     Needs pyvista (extra ``plot``) and an off-screen OpenGL (Mesa EGL or OSMesa).
     """
+    _select_offscreen_backend()
     try:
         import pyvista as pv
     except ImportError:
@@ -111,7 +130,7 @@ def render_png(model: ThermoElasticModel, state_K: np.ndarray, path: str | Path,
     pl.add_mesh(grid.extract_feature_edges(), color="grey", opacity=0.25)
     pl.add_mesh(warped, scalars="temperature_degC", cmap="inferno", show_edges=False,
                 scalar_bar_args={"title": "temperature [°C]", "color": "black"})
-    pl.add_text(f"{title}\ndeformation x{scale:.0f}, max |u| = {umax_mm * 1e3:.1f} µm", font_size=11, color="black")
+    pl.add_text(f"{title}\ndeformation x{scale:.0f}, largest displacement {umax_mm * 1e3:.1f} µm", font_size=11, color="black")
     pl.camera_position = "iso"
     pl.camera.azimuth = 200
     pl.camera.elevation = 10

@@ -74,6 +74,12 @@ class MachineMesh:
                 bad = np.flatnonzero((cells < 0) | (self.body_of_element[np.maximum(cells, 0)] != want))
                 for j in bad:
                     cells[j] = self._neighbour_in_body(pts[:, j], want)
+        elif isinstance(self.mesh, skfem.MeshTet):
+            # imported tetrahedra: an exact containment test among the elements of the body
+            # (of every body without ``body``), so that a point on the face between two bodies
+            # gets an element of its own body, never a neighbour's element it would extrapolate
+            want = None if body is None else self.body_names.index(body)
+            cells = self._nearest_in_body(pts, want)
         else:
             finder = self.mesh.element_finder()
             cells = np.full(pts.shape[1], -1)
@@ -241,8 +247,12 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
         m = meshio.read(path)
     except Exception as exc:  # meshio raises many kinds
         raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} could not be read: {exc}") from None
-    if any(abs(v) > 1e-12 for v in pose.values()) and any(a.mid_mm != pose[a.name] for a in machine.axes):
-        log.warning("an imported mesh is used at the pose it was made for; pose %s only moves points, not bodies", pose)
+    moved = {k: v for k, v in pose.items() if abs(v) > 1e-12}
+    if moved:
+        raise MachineFileError(
+            f"{machine.source}: field 'mesh.file' {path.name!r} is drawn at the reference pose (every axis at 0 mm) and cannot "
+            f"be meshed at {moved}; supply one mesh file per pose"
+        )
     tets = [i for i, c in enumerate(m.cells) if c.type == "tetra"]
     if not tets:
         raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} has no tetrahedra")

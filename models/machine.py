@@ -215,7 +215,9 @@ class Machine:
         raise KeyError(name)
 
     def default_pose_mm(self) -> dict[str, float]:
-        """Mid travel of every axis [mm]."""
+        """Mid travel of every axis [mm]; the reference pose (all 0 mm) for an imported mesh, which is drawn there."""
+        if self.mesh.file is not None:
+            return {a.name: 0.0 for a in self.axes}
         return {a.name: a.mid_mm for a in self.axes}
 
     def check_pose(self, pose_mm: dict[str, float]) -> dict[str, float]:
@@ -311,14 +313,40 @@ def load_machine(name_or_path: str | Path) -> Machine:
     return parse_machine(data, source=str(path), sha256=hashlib.sha256(raw).hexdigest(), base_dir=path.parent)
 
 
-class _Reader:
-    """Reads one TOML table, tracking which keys were used."""
+KEYS = {
+    "top": ("machine", "spindle", "mesh", "materials", "bodies", "axes", "heat_sources", "zones", "sensors", "tcp",
+            "table_reference", "supports"),
+    "machine": ("name", "description", "reference_temperature_degC"),
+    "spindle": ("max_speed_rpm",),
+    "mesh": ("element_size_mm", "file"),
+    "material": ("conductivity_W_mK", "density_kg_m3", "specific_heat_J_kgK", "youngs_modulus_GPa", "poisson_ratio",
+                 "expansion_1_K"),
+    "body": ("name", "material", "box_mm", "group", "mounted_on"),
+    "axis": ("name", "direction", "moves", "travel_mm", "max_feed_mm_min", "segments", "segment_bounds_mm"),
+    "heat_source": ("name", "kind", "body", "axis", "driver", "position_mm", "size_mm", "power_W", "exponent",
+                    "power_table"),
+    "zone": ("name", "h_W_m2K", "air", "rest", "surfaces"),
+    "surface": ("body", "faces", "region_mm", "group"),
+    "point": ("name", "body", "position_mm"),
+    "anchor": ("body", "position_mm"),
+    "support": ("name", "body", "position_mm", "directions"),
+    "box": ("lo", "hi"),
+}
 
-    def __init__(self, src: str, where: str, table: Any):
+
+class _Reader:
+    """Reads one TOML table of a known kind; an unknown key is an error before anything else."""
+
+    def __init__(self, src: str, where: str, table: Any, kind: str):
         if not isinstance(table, dict):
             raise MachineFileError(f"{src}: field {where!r} must be a table, got {table!r}")
         self.src, self.where, self.t = src, where, dict(table)
-        self.used: set[str] = set()
+        self.keys = KEYS[kind]
+        for k in self.t:
+            if k not in self.keys:
+                hint = difflib.get_close_matches(k, self.keys, n=1)
+                more = f" (did you mean {hint[0]!r}?)" if hint else f" (known: {', '.join(self.keys)})"
+                raise MachineFileError(f"{src}: field {self._name(k)!r} is not a known field{more}")
 
     def _name(self, key: str) -> str:
         return f"{self.where}.{key}" if self.where else key
@@ -327,13 +355,14 @@ class _Reader:
         return MachineFileError(f"{self.src}: field {self._name(key)!r} {msg}")
 
     def get(self, key: str, default: Any = ..., kind: type | tuple = object) -> Any:
-        self.used.add(key)
+        assert key in self.keys, key
         if key not in self.t:
             if default is ...:
                 raise self.err(key, "is required")
             return default
         v = self.t[key]
-        if kind is not object and not isinstance(v, kind) or (kind in (float, (int, float)) and isinstance(v, bool)):
+        wants_bool = kind is bool or (isinstance(kind, tuple) and bool in kind)
+        if (kind is not object and not isinstance(v, kind)) or (isinstance(v, bool) and not wants_bool):
             raise self.err(key, f"has the wrong type: {v!r}")
         return v
 
@@ -354,7 +383,7 @@ class _Reader:
         v = self.get(key, default, (list, tuple))
         if v is None:
             return v
-        if len(v) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+        if len(v) != 3 or not all(_is_number(x) for x in v):
             raise self.err(key, f"must be three numbers [mm], got {v!r}")
         if positive and min(v) <= 0:
             raise self.err(key, f"must be positive in every direction, got {v!r}")
@@ -366,19 +395,14 @@ class _Reader:
             return None
         if len(v) != 2:
             raise self.err(key, f"must be [[x0, y0, z0], [x1, y1, z1]] in mm, got {v!r}")
-        sub = _Reader(self.src, self._name(key), {"lo": v[0], "hi": v[1]})
+        sub = _Reader(self.src, self._name(key), {"lo": v[0], "hi": v[1]}, "box")
         lo, hi = sub.vec3("lo"), sub.vec3("hi")
         if any(h < l or (h == l and not flat_ok) for l, h in zip(lo, hi)):
             raise self.err(key, f"must have its second corner above the first in x, y and z, got {v!r}")
         return lo, hi
 
     def finish(self) -> None:
-        extra = [k for k in self.t if k not in self.used]
-        if extra:
-            k = extra[0]
-            hint = difflib.get_close_matches(k, sorted(self.used), n=1)
-            more = f" (did you mean {hint[0]!r}?)" if hint else f" (known: {sorted(self.used)})"
-            raise MachineFileError(f"{self.src}: field {self._name(k)!r} is not a known field{more}")
+        """Kept as the end-of-table marker; unknown keys are rejected on construction."""
 
     def tables(self, key: str, required: bool = True) -> list[tuple[str, dict]]:
         v = self.get(key, ... if required else [], list)
@@ -386,6 +410,10 @@ class _Reader:
         for i, t in enumerate(v):
             out.append((f"{self._name(key)}[{i}]", t))
         return out
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def _name_of(rd: _Reader) -> str:
@@ -397,22 +425,22 @@ def _name_of(rd: _Reader) -> str:
 
 def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_dir: Path | None = None) -> Machine:
     """Build a validated :class:`Machine` from parsed TOML."""
-    top = _Reader(source, "", data)
+    top = _Reader(source, "", data, "top")
 
-    m = _Reader(source, "machine", top.get("machine", kind=dict))
+    m = _Reader(source, "machine", top.get("machine", kind=dict), "machine")
     name = _name_of(m)
     description = m.get("description", "", str)
     t_ref = m.number("reference_temperature_degC", 20.0)
     m.finish()
 
-    sp = _Reader(source, "spindle", top.get("spindle", {}, dict))
+    sp = _Reader(source, "spindle", top.get("spindle", {}, dict), "spindle")
     spindle_rpm = sp.number("max_speed_rpm", 0.0, nonneg=True)
     sp.finish()
 
     materials: dict[str, Material] = {}
     mats = top.get("materials", kind=dict)
     for mname, mt in mats.items():
-        r = _Reader(source, f"materials.{mname}", mt)
+        r = _Reader(source, f"materials.{mname}", mt, "material")
         nu = r.number("poisson_ratio")
         if not 0.0 <= nu < 0.5:
             raise r.err("poisson_ratio", f"must be in [0, 0.5), got {nu!r}")
@@ -429,7 +457,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
     if not materials:
         raise top.err("materials", "must define at least one material")
 
-    msh = _Reader(source, "mesh", top.get("mesh", {}, dict))
+    msh = _Reader(source, "mesh", top.get("mesh", {}, dict), "mesh")
     h_mm = msh.number("element_size_mm", 50.0, positive=True)
     mfile = msh.get("file", None, str)
     msh.finish()
@@ -441,7 +469,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
 
     bodies: list[Body] = []
     for where, t in top.tables("bodies"):
-        r = _Reader(source, where, t)
+        r = _Reader(source, where, t, "body")
         bname = _name_of(r)
         mat = r.get("material", kind=str)
         if mat not in materials:
@@ -450,12 +478,16 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         group = r.get("group", None, str)
         if mesh_path is None and box is None:
             raise r.err("box_mm", "is required when the machine has no [mesh] file")
+        if mesh_path is None and group is not None:
+            raise r.err("group", f"= {group!r} needs an imported [mesh] file; box bodies have no groups")
         if mesh_path is not None and box is not None:
             raise r.err("box_mm", "cannot be combined with an imported [mesh] file; name the mesh group with 'group'")
         if mesh_path is not None and group is None:
             group = bname
         bodies.append(Body(bname, mat, box, group, r.get("mounted_on", None, str)))
         r.finish()
+    if not bodies:
+        raise top.err("bodies", "must define at least one body")
     _unique(source, "bodies", [b.name for b in bodies])
     body_names = {b.name for b in bodies}
     for i, b in enumerate(bodies):
@@ -465,7 +497,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
 
     axes: list[Axis] = []
     for where, t in top.tables("axes", required=False):
-        r = _Reader(source, where, t)
+        r = _Reader(source, where, t, "axis")
         aname = _name_of(r)
         if aname == SPINDLE:
             raise r.err("name", f"must not be {SPINDLE!r}, which names the spindle drive")
@@ -476,7 +508,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         if moves not in body_names:
             raise r.err("moves", f"names an unknown body {moves!r}")
         tr = r.get("travel_mm", kind=list)
-        if len(tr) != 2 or not all(isinstance(x, (int, float)) for x in tr) or tr[1] <= tr[0]:
+        if len(tr) != 2 or not all(_is_number(x) for x in tr) or tr[1] <= tr[0]:
             raise r.err("travel_mm", f"must be [min, max] with max > min, got {tr!r}")
         if not tr[0] <= 0 <= tr[1]:
             raise r.err("travel_mm", f"must contain 0 mm, the reference pose the geometry is given at, got {tr!r}")
@@ -491,7 +523,8 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
             bounds = list(np.linspace(tr[0], tr[1], nseg + 1))
         else:
             if (
-                len(bounds) < 2
+                not all(_is_number(b) for b in bounds)
+                or len(bounds) < 2
                 or abs(bounds[0] - tr[0]) > 1e-9
                 or abs(bounds[-1] - tr[1]) > 1e-9
                 or any(b <= a for a, b in zip(bounds, bounds[1:]))
@@ -508,12 +541,14 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
 
     sources: list[HeatSource] = []
     for where, t in top.tables("heat_sources", required=False):
-        r = _Reader(source, where, t)
+        r = _Reader(source, where, t, "heat_source")
         sname = _name_of(r)
         kind = r.get("kind", "fixed", str)
         if kind not in ("fixed", "moving"):
             raise r.err("kind", f"must be 'fixed' or 'moving', got {kind!r}")
         driver = r.get("driver", None, str)
+        if kind == "fixed" and "axis" in t:
+            raise r.err("axis", f"= {t['axis']!r} is only for moving sources; a fixed source names its 'driver'")
         axis = r.get("axis", None, str) if kind == "moving" else None
         if kind == "moving":
             if axis is None:
@@ -535,7 +570,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
             raise r.err("driver", "is 'spindle' but [spindle] max_speed_rpm is not set")
         table = r.get("power_table", None, list)
         if table is not None:
-            ok = all(isinstance(p, list) and len(p) == 2 and all(isinstance(x, (int, float)) for x in p) for p in table)
+            ok = all(isinstance(p, list) and len(p) == 2 and all(_is_number(x) for x in p) for p in table)
             xs = [p[0] for p in table] if ok else []
             if not ok or len(table) < 2 or xs[0] != 0 or xs[-1] != 1 or any(b <= a for a, b in zip(xs, xs[1:])) or any(p[1] < 0 for p in table):
                 raise r.err("power_table", f"must be [[0, p0], ..., [1, p1]] with ascending factors and fractions >= 0, got {table!r}")
@@ -559,7 +594,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
 
     zones: list[Zone] = []
     for where, t in top.tables("zones", required=False):
-        r = _Reader(source, where, t)
+        r = _Reader(source, where, t, "zone")
         zname = _name_of(r)
         h = r.number("h_W_m2K")
         if h <= 0:
@@ -568,12 +603,16 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         if air not in AIR_KINDS:
             raise r.err("air", f"must be one of {AIR_KINDS}, got {air!r}")
         rest = r.get("rest", False, bool)
+        if rest and "surfaces" in t:
+            raise r.err("surfaces", "cannot be combined with rest = true (a rest zone takes every unclaimed surface)")
         surfs = []
         for swhere, st in r.tables("surfaces", required=not rest):
-            sr = _Reader(source, swhere, st)
+            sr = _Reader(source, swhere, st, "surface")
             group = sr.get("group", None, str)
             body = sr.get("body", None, str)
             faces = tuple(sr.get("faces", list(FACES) if body else [], list))
+            if body is not None and not faces:
+                raise sr.err("faces", "must list at least one face (omit it for all six)")
             if group is None and body is None:
                 raise sr.err("body", "or 'group' is required")
             if body is not None and body not in body_names:
@@ -592,7 +631,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         raise top.err("zones", "may have only one zone with rest = true")
 
     def point(where: str, t: dict, named: bool = True) -> Point:
-        r = _Reader(source, where, t)
+        r = _Reader(source, where, t, "point" if named else "anchor")
         pname = _name_of(r) if named else where
         body = r.get("body", None, str)
         if body is not None and body not in body_names:
@@ -608,7 +647,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
 
     supports: list[Support] = []
     for where, t in top.tables("supports"):
-        r = _Reader(source, where, t)
+        r = _Reader(source, where, t, "support")
         dirs = r.get("directions", kind=list)
         if not dirs or any(d not in DIRECTIONS for d in dirs) or len(set(dirs)) != len(dirs):
             raise r.err("directions", f"must list distinct directions of {DIRECTIONS}, got {dirs!r}")
@@ -745,6 +784,7 @@ def _validate_geometry(machine: Machine) -> Machine:
         box_ok = lambda b, p: _inside(b.box_mm, p)  # noqa: E731
         # overlap and connectivity at the reference pose and at every combination of travel ends
         choices = [sorted({a.travel_mm[0], 0.0, a.travel_mm[1]}) for a in machine.axes]
+        check_pose_geometry(machine, ref)
         for combo in itertools.product(*choices):
             check_pose_geometry(machine, dict(zip([a.name for a in machine.axes], combo)))
         sensors = tuple(
@@ -758,11 +798,6 @@ def _validate_geometry(machine: Machine) -> Machine:
         for i, s in enumerate(machine.heat_sources):
             _check_source_inside(machine, i, s)
         machine = dataclasses.replace(machine, sensors=sensors, tcp=tcp, table_reference=tref, supports=supports)
-        for i, s in enumerate(machine.supports):
-            if machine.body(s.body).mounted_on is not None:
-                raise MachineFileError(
-                    f"{src}: field 'supports[{i}].body' is {s.body!r}, which is mounted on another body; supports hold a ground body"
-                )
     else:
         for what, pts in (("sensors", machine.sensors), ("supports", machine.supports)):
             for i, p in enumerate(pts):
@@ -771,8 +806,12 @@ def _validate_geometry(machine: Machine) -> Machine:
         for what, p in (("tcp", machine.tcp), ("table_reference", machine.table_reference)):
             if not p.body:
                 raise MachineFileError(f"{src}: field '{what}.body' is required with an imported mesh")
+    for i, s in enumerate(machine.supports):
+        if machine.body(s.body).mounted_on is not None:
+            raise MachineFileError(
+                f"{src}: field 'supports[{i}].body' is {s.body!r}, which is mounted on another body; supports hold a ground body"
+            )
     check_statically_determinate(machine)
-    _ = ref
     return machine
 
 

@@ -1,0 +1,134 @@
+"""The loads-CSV contract and ``hybridcomp simulate`` end to end (in-process, coarse mesh)."""
+
+from __future__ import annotations
+
+import csv
+
+import meshio
+import numpy as np
+import pytest
+
+from hybridcomp.cli import main
+from hybridcomp.fem.loads import LoadsFileError, example_loads, read_loads, write_loads
+from hybridcomp.models import load_machine
+from hybridcomp.models.machine import resolve_machine_path
+
+COARSE = ["--element-size-mm", "150", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return load_machine("vmc800")
+
+
+def write_csv(path, header, rows):
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows(rows)
+    return path
+
+
+def test_missing_columns_mean_zero_power_and_reference_temperature(machine, tmp_path):
+    p = write_csv(tmp_path / "l.csv", ["time_s", "y_nut[2]_W", "ambient_degC"], [[0, 5, 21], [60, 6, 22]])
+    loads = read_loads(p, machine)
+    j = loads.names.index("y_nut[2]_W")
+    np.testing.assert_array_equal(loads.values[:, j], [5, 6])
+    others = [k for k, n in enumerate(loads.names) if n.endswith("_W") and k != j]
+    assert not loads.values[:, others].any()
+    np.testing.assert_array_equal(loads.values[:, loads.names.index("ambient_degC")], [21, 22])
+    np.testing.assert_array_equal(loads.values[:, loads.names.index("floor_degC")], [20, 20])
+    U = loads.as_inputs(20.0)
+    np.testing.assert_array_equal(U[:, loads.names.index("ambient_degC")], [1, 2])
+
+
+@pytest.mark.parametrize(
+    "header,rows,match",
+    [
+        (["time_s", "x_nutt[1]_W"], [[0, 1]], r"l\.csv: column 'x_nutt\[1\]_W' is not an input of machine 'vmc800'"),
+        (["time_s", "x_motor_W"], [[0, 1], [60, 1], [30, 1]], r"l\.csv: line 4: time_s 30\.0 does not increase after 60\.0"),
+        (["time_s", "x_motor_W"], [[0, 1], [60, "nan"]], r"l\.csv: line 3, column 'x_motor_W': value nan is not finite"),
+        (["time_s", "x_motor_W"], [[0, -1]], r"l\.csv: line 2, column 'x_motor_W': a heat power cannot be negative, got -1"),
+        (["time_s", "x_motor_W"], [[0, "abc"]], r"l\.csv: line 2: value 'abc' is not a number"),
+        (["x_motor_W"], [[1]], r"l\.csv: column 'time_s' is missing"),
+        (["time_s", "x_motor_W", "x_motor_W"], [[0, 1, 1]], r"l\.csv: column 'x_motor_W' appears twice"),
+    ],
+)
+def test_bad_loads_are_named(machine, tmp_path, header, rows, match):
+    p = write_csv(tmp_path / "l.csv", header, rows)
+    with pytest.raises(LoadsFileError, match=match):
+        read_loads(p, machine)
+
+
+def test_simulate_cli_writes_the_output_contract(machine, tmp_path):
+    loads = example_loads(machine, duration_h=2.0, dt_s=300.0)
+    write_loads(tmp_path / "loads.csv", loads)
+    out = tmp_path / "run"
+    rc = main(["simulate", "--machine", "vmc800", "--loads", str(tmp_path / "loads.csv"), "--out", str(out), "--fields", "2", *COARSE])
+    assert rc == 0
+    with (out / "outputs.csv").open() as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["time_s", *(f"T{i}_degC" for i in range(1, 9)), "dx_um", "dy_um", "dz_um"]
+    assert len(rows) - 1 == len(loads.time_s)
+    data = np.array(rows[1:], dtype=float)
+    np.testing.assert_allclose(data[:, 0], loads.time_s)
+    assert np.all(np.isfinite(data))
+    assert data[-1, 1] > data[0, 1]  # the spindle sensor warms up during the first two hours
+    # the VTU fields read back with the temperatures of the outputs at the sensor points' neighbourhood
+    vtus = sorted((out / "fields").glob("*.vtu"))
+    assert len(vtus) == 2
+    m = meshio.read(vtus[-1])
+    T = m.point_data["temperature_degC"]
+    assert T.min() <= data[-1, 1:9].min() + 1e-6 and T.max() >= data[-1, 1:9].max() - 1e-6
+    assert m.point_data["displacement_um"].shape == (len(T), 3)
+    assert np.ptp(m.points, axis=0).max() > 1000  # written in mm
+
+
+def test_simulate_cli_resamples_with_dt(machine, tmp_path):
+    write_csv(tmp_path / "l.csv", ["time_s", "spindle_motor_W"], [[0, 0], [3600, 100]])
+    out = tmp_path / "o"
+    assert main(["simulate", "--loads", str(tmp_path / "l.csv"), "--out", str(out), "--dt", "600", *COARSE]) == 0
+    t = np.loadtxt(out / "outputs.csv", delimiter=",", skiprows=1)[:, 0]
+    np.testing.assert_allclose(t, np.arange(0, 3601, 600))
+
+
+@pytest.mark.parametrize(
+    "args,match",
+    [
+        (["--loads", "{bad}"], "is not an input of machine"),
+        (["--loads", "{good}", "--pose", "X=900"], "pose X = 900.0 mm is outside the travel"),
+        (["--loads", "{good}", "--pose", "Q=1"], "pose names axis 'Q'"),
+        (["--loads", "{good}", "--dt", "-5"], "--dt must be positive"),
+        (["--loads", "{good}", "--machine", "{typo}"], "'machine.nmae' is not a known field"),
+        (["--loads", "{good}", "--machine", "nosuchmachine"], "neither a file nor a bundled machine"),
+    ],
+)
+def test_simulate_cli_bad_input_writes_nothing(tmp_path, capsys, args, match):
+    good = write_csv(tmp_path / "good.csv", ["time_s", "x_motor_W"], [[0, 1], [60, 1]])
+    bad = write_csv(tmp_path / "bad.csv", ["time_s", "x_motor_typo_W"], [[0, 1], [60, 1]])
+    typo = tmp_path / "typo.toml"
+    typo.write_text(resolve_machine_path("vmc800").read_text().replace('name = "vmc800"', 'nmae = "vmc800"', 1))
+    args = [a.format(good=good, bad=bad, typo=typo) for a in args]
+    out = tmp_path / "out"
+    rc = main(["simulate", "--out", str(out), *COARSE, *args])
+    assert rc == 2
+    assert match in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_help_explains_the_contract(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["simulate", "--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert "<source>[<segment>]_W" in text and "unknown column is an error" in text
+
+
+def test_machine_and_example_loads_commands(tmp_path, capsys):
+    assert main(["machine"]) == 0
+    assert "vmc800" in capsys.readouterr().out
+    assert main(["machine", "vmc800", "--mesh", "--element-size-mm", "200"]) == 0
+    assert "nodes" in capsys.readouterr().out
+    assert main(["example-loads", "--hours", "1", "--out", str(tmp_path / "l.csv")]) == 0
+    loads = read_loads(tmp_path / "l.csv", load_machine("vmc800"))
+    assert loads.time_s[-1] == 3600
