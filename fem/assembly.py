@@ -31,6 +31,14 @@ def element_for(mesh: skfem.Mesh) -> skfem.Element:
 
 
 def cell_basis(mesh: skfem.Mesh) -> skfem.CellBasis:
+    """P1 basis with the quadrature that is exact for its mass and stiffness forms.
+
+    scikit-fem's default for trilinear hexahedra is 4×4×4 points; on the
+    axis-aligned boxes of the tensor mesher the integrands are at most
+    quadratic per direction, so 2×2×2 Gauss points are exact and 8× cheaper.
+    """
+    if isinstance(mesh, skfem.MeshHex):
+        return skfem.Basis(mesh, element_for(mesh), intorder=3)
     return skfem.Basis(mesh, element_for(mesh))
 
 
@@ -150,7 +158,7 @@ def thermal_load_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio
     G, P, dx = _gradients(basis)
     lam, mu = lame(youngs_modulus_Pa, poisson_ratio)
     beta = np.broadcast_to((3 * lam + 2 * mu) * np.asarray(expansion_1_K, float), (basis.nelems,))
-    Fe = np.einsum("aieq,beq,eq,e->eaib", G, P, dx, beta)  # (e, a, i, b)
+    Fe = np.einsum("aieq,beq,eq->eaib", G, P, dx * beta[:, None], optimize=True)  # (e, a, i, b)
     nb = G.shape[0]
     t = basis.mesh.t
     rows = np.repeat((3 * t.T[:, :, None] + np.arange(3)).reshape(t.shape[1], 3 * nb), nb, axis=1).ravel()

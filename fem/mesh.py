@@ -115,7 +115,73 @@ class MachineMesh:
                                 return int(c)
         return -1
 
-    def _nearest_in_body(self, p: np.ndarray, want: int, tol_m: float = 1e-6) -> int:
+    def _nearest_in_body(self, p: np.ndarray, want: int | None, tol_m: float = 1e-6):
+        """Element of body ``want`` (``None``: any body) containing the point ``p`` [m]; -1: none.
+
+        ``p`` is one point (3,) (returns an int) or many (3 × n) (returns an array).
+        A point up to ``tol_m`` outside an element (round-off on its faces) still
+        counts as inside; of several such elements the one the point lies deepest
+        in wins.  Tetrahedra are tested exactly, by the signed distances to their
+        four face planes: a k-d tree of the body's element centroids proposes the
+        16 nearest, and a point none of them holds is tested against every element
+        whose centroid is close enough to possibly hold it.  Other element types
+        (a non-tensor hexahedral mesh) keep the bounding-box test of the element
+        with the nearest centroid, for a single point.
+        """
+        if isinstance(self.mesh, skfem.MeshTet):
+            from scipy.spatial import cKDTree
+
+            mesh = self.mesh
+            pts = np.asarray(p, dtype=float)
+            P = pts.reshape(3, -1)
+            found = np.full(P.shape[1], -1)
+            # per body: its elements, a k-d tree of their centroids and the largest centroid-vertex
+            # distance; kept on the (frozen) instance, which find_elements calls for every patch
+            cache = self.__dict__.setdefault("_tet_search", {})
+            if want not in cache:
+                els = np.arange(mesh.t.shape[1]) if want is None else np.flatnonzero(self.body_of_element == want)
+                V = mesh.p[:, mesh.t[:, els]]
+                cent = V.mean(axis=1)
+                reach = float(np.sqrt(np.sum((V - cent[:, None]) ** 2, axis=0)).max()) if len(els) else 0.0
+                cache[want] = (els, cKDTree(cent.T) if len(els) else None, reach)
+            els, tree, reach = cache[want]
+            if tree is None or P.shape[1] == 0:
+                return int(found[0]) if pts.ndim == 1 else found
+
+            def depth(q: np.ndarray, e: np.ndarray) -> np.ndarray:
+                """Signed distance [m] of point q[:, i] into tetrahedron e[i] (negative: outside)."""
+                V = mesh.p[:, mesh.t[:, e]]  # 3 × 4 × len(e)
+                d = np.full((4, len(e)), -np.inf)
+                for i in range(4):
+                    a, b, c = (V[:, j] for j in range(4) if j != i)
+                    n = np.cross(b - a, c - a, axis=0)
+                    side = np.sum(n * (V[:, i] - a), axis=0)  # > 0: n points into the element
+                    size = np.linalg.norm(n, axis=0) * np.sign(side)
+                    ok = side != 0  # a flat element holds nothing
+                    d[i, ok] = np.sum(n[:, ok] * (q[:, ok] - a[:, ok]), axis=0) / size[ok]
+                return d.min(axis=0)
+
+            def best(pt: np.ndarray, e: np.ndarray) -> None:
+                """Keep, per point index, the candidate element the point lies deepest in."""
+                chunks = np.array_split(np.arange(len(pt)), max(1, len(pt) // 200_000))  # bounded memory
+                dep = np.concatenate([depth(P[:, pt[c]], e[c]) for c in chunks])
+                good = dep >= -tol_m
+                pt, e, dep = pt[good], e[good], dep[good]
+                order = np.lexsort((-dep, pt))
+                first = np.unique(pt[order], return_index=True)[1]
+                found[pt[order][first]] = e[order][first]
+
+            k = min(16, len(els))
+            nn = tree.query(P.T, k)[1].reshape(P.shape[1], k)
+            best(np.repeat(np.arange(P.shape[1]), k), els[nn].ravel())
+            rest = np.flatnonzero(found < 0)
+            if rest.size:
+                # a containing element's centroid lies within ``reach`` of the point
+                near = tree.query_ball_point(P[:, rest].T, reach + tol_m)
+                counts = np.array([len(c) for c in near], dtype=int)
+                if counts.sum():
+                    best(np.repeat(rest, counts), els[np.concatenate([np.asarray(c, dtype=int) for c in near])])
+            return int(found[0]) if pts.ndim == 1 else found
         els = np.flatnonzero(self.body_of_element == want)
         cent = self.mesh.p[:, self.mesh.t[:, els]].mean(axis=1)
         j = els[np.argmin(np.sum((cent - p[:, None]) ** 2, axis=0))]
@@ -262,23 +328,38 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
     used = np.unique(t)
     remap = np.full(m.points.shape[0], -1)
     remap[used] = np.arange(len(used))
-    mesh = skfem.MeshTet(np.ascontiguousarray(m.points[used].T * MM), remap[t])
+    # C-contiguous arrays: skfem would otherwise copy them and log about it
+    mesh = skfem.MeshTet(np.ascontiguousarray(m.points[used, :3].T * MM), np.ascontiguousarray(remap[t]))
     sets = _cell_sets(m)
     body_of_element = np.full(mesh.t.shape[1], -1)
-    g2l = {int(g): i for i, g in enumerate(tet_global)}
+    g2l = np.full(offsets[-1], -1)  # global cell index -> tetrahedron index (-1: not a tetrahedron)
+    g2l[tet_global] = np.arange(len(tet_global))
     for bi, b in enumerate(machine.bodies):
+        where = f"{machine.source}: field 'bodies[{bi}].group' {b.group!r}"
         if b.group not in sets:
-            raise MachineFileError(f"{machine.source}: field 'bodies[{bi}].group' {b.group!r} is not a group of {path.name} (groups: {sorted(sets)})")
-        idx = [g2l[int(g)] for g in sets[b.group] if int(g) in g2l]
+            raise MachineFileError(f"{where} is not a group of {path.name} (groups: {sorted(sets)})")
+        idx = g2l[sets[b.group]]
+        idx = idx[idx >= 0]
+        if idx.size == 0:
+            raise MachineFileError(f"{where} holds no tetrahedra in {path.name}: a body must be a volume group")
+        taken = body_of_element[idx]
+        if (taken >= 0).any():
+            other = machine.bodies[int(taken[taken >= 0][0])].name
+            raise MachineFileError(f"{where} shares {(taken >= 0).sum()} tetrahedra with the group of body {other!r} in {path.name}")
         body_of_element[idx] = bi
     if (body_of_element < 0).any():
         raise MachineFileError(f"{machine.source}: field 'mesh.file' has {(body_of_element < 0).sum()} tetrahedra in no body group")
     # boundary facets per surface group: match triangles by their sorted node triples
     bf = mesh.boundary_facets()
     key = {tuple(sorted(mesh.facets[:, f])): f for f in bf}
+    tri_blocks = [i for i, c in enumerate(m.cells) if c.type == "triangle"]
+    tri_local = np.full(offsets[-1], -1)  # global cell index -> row of ``tri`` (-1: not a triangle)
+    if tri_blocks:
+        tri = np.concatenate([m.cells[i].data for i in tri_blocks])
+        tri_local[np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in tri_blocks])] = np.arange(len(tri))
     zones = {}
     claimed = set()
-    for z in machine.zones:
+    for zi, z in enumerate(machine.zones):
         if z.rest:
             continue
         fs = []
@@ -287,18 +368,24 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
                 raise MachineFileError(f"{machine.source}: field 'zones' zone {z.name!r} needs 'group' surfaces with an imported mesh")
             if s.group not in sets:
                 raise MachineFileError(f"{machine.source}: field 'zones' group {s.group!r} is not in {path.name} (groups: {sorted(sets)})")
-            tri = np.concatenate([m.cells[i].data for i in range(len(m.cells)) if m.cells[i].type == "triangle"])
-            tri_off = [i for i in range(len(m.cells)) if m.cells[i].type == "triangle"]
-            glob_tri = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in tri_off])
-            pos = {int(g): k for k, g in enumerate(glob_tri)}
-            for g in sets[s.group]:
-                k = pos.get(int(g))
-                if k is None:
-                    continue
-                f = key.get(tuple(sorted(remap[tri[k]])))
+            rows = tri_local[sets[s.group]]
+            rows = rows[rows >= 0]
+            if rows.size == 0:
+                raise MachineFileError(
+                    f"{machine.source}: field 'zones[{zi}].surfaces' group {s.group!r} holds no triangles in {path.name}: "
+                    "a zone surface must be a surface group"
+                )
+            nodes = remap[tri[rows]]
+            for r in nodes[(nodes >= 0).all(axis=1)]:
+                f = key.get(tuple(sorted(r)))
                 if f is not None:
                     fs.append(f)
         fs = np.unique(np.asarray(fs, dtype=int))
+        if fs.size == 0:
+            raise MachineFileError(
+                f"{machine.source}: field 'zones' zone {z.name!r} has no exposed surface: "
+                f"none of its triangles is a boundary facet of {path.name}"
+            )
         if claimed & set(fs.tolist()):
             raise MachineFileError(f"{machine.source}: field 'zones' zone {z.name!r} shares surfaces with another zone")
         claimed |= set(fs.tolist())
@@ -306,6 +393,10 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
     for z in machine.zones:
         if z.rest:
             zones[z.name] = np.asarray([f for f in bf if f not in claimed], dtype=int)
+            if zones[z.name].size == 0:
+                raise MachineFileError(
+                    f"{machine.source}: field 'zones' zone {z.name!r} has no exposed surface: other zones claim every boundary facet"
+                )
     names = tuple(b.name for b in machine.bodies)
     return MachineMesh(mesh, body_of_element, names, zones, pose)
 
@@ -319,4 +410,15 @@ def _cell_sets(m) -> dict[str, np.ndarray]:
             continue
         idx = [offsets[i] + np.asarray(b, dtype=int) for i, b in enumerate(blocks) if b is not None and len(b)]
         out[name] = np.concatenate(idx) if idx else np.zeros(0, int)
+    # gmsh physical groups without cell sets: meshio's MSH 2.2 reader gives the names only in
+    # field_data ({name: [tag, dim]}) and the tags in cell_data["gmsh:physical"], one array
+    # per block.  Tags are unique per dimension only, so the block's dimension must match.
+    phys = (m.cell_data or {}).get("gmsh:physical")
+    if phys is not None and len(phys) == len(m.cells):
+        for name, tag_dim in (m.field_data or {}).items():
+            if len(out.get(name, ())) or name.startswith("gmsh:") or np.size(tag_dim) != 2:
+                continue
+            tag, dim = (int(v) for v in np.ravel(tag_dim))
+            idx = [offsets[i] + np.flatnonzero(np.asarray(phys[i]) == tag) for i, c in enumerate(m.cells) if c.dim == dim]
+            out[name] = np.concatenate(idx).astype(int) if idx else np.zeros(0, int)
     return out

@@ -149,11 +149,13 @@ def factorize_spd(A: sp.spmatrix, coords: np.ndarray | None = None, block: int =
 
 
 def solve_spd_few(
-    A: sp.spmatrix, rhs: np.ndarray, coords: np.ndarray, block: int = 1, near_null: np.ndarray | None = None, rtol: float = 1e-11
+    A: sp.spmatrix, rhs: np.ndarray, coords: np.ndarray, block: int = 1, near_null: np.ndarray | None = None, rtol: float = 1e-8
 ) -> tuple[np.ndarray, str]:
     """Solve ``A X = rhs`` for a few columns (adjoint solves): direct or AMG-CG.
 
-    ``near_null`` (n × k) are the rigid-body modes for AMG on elasticity.
+    ``near_null`` (n × k) are the rigid-body modes for AMG on elasticity.  ``rtol``
+    is the AMG-CG relative residual: 1e-8 gave drift rows within 2e-9 of CHOLMOD's
+    on the 65k-node demonstrator.
     """
     rhs = np.asarray(rhs, float)
     cols = rhs.reshape(rhs.shape[0], -1)

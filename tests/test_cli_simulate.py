@@ -132,3 +132,25 @@ def test_machine_and_example_loads_commands(tmp_path, capsys):
     assert main(["example-loads", "--hours", "1", "--out", str(tmp_path / "l.csv")]) == 0
     loads = read_loads(tmp_path / "l.csv", load_machine("vmc800"))
     assert loads.time_s[-1] == 3600
+
+
+def test_xdmf_time_series_round_trip(machine, tmp_path):
+    pytest.importorskip("h5py", reason="XDMF export needs h5py (extra 'xdmf')")
+    from hybridcomp.fem.export import write_fields
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.fem.transient import simulate
+
+    model = build_model(machine, None, 200.0)
+    loads = example_loads(machine, duration_h=1.0, dt_s=600.0)
+    res = simulate(model, loads.time_s, loads.as_inputs(20.0), store_steps=(0, 3, 6))
+    (path,) = write_fields(model, tmp_path, res.fields_K, res.time_s, fmt="xdmf", with_displacement=False)
+    with meshio.xdmf.TimeSeriesReader(path) as r:
+        points, cells = r.read_points_cells()
+        times = []
+        for k in range(r.num_steps):
+            t, pdata, _ = r.read_data(k)
+            times.append(t)
+            step = [0, 3, 6][k]
+            np.testing.assert_allclose(pdata["temperature_degC"], res.fields_K[step] + 20.0, rtol=1e-12)
+    np.testing.assert_allclose(times, res.time_s[[0, 3, 6]])
+    assert len(points) == model.n
