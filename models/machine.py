@@ -401,9 +401,6 @@ class _Reader:
             raise self.err(key, f"must have its second corner above the first in x, y and z, got {v!r}")
         return lo, hi
 
-    def finish(self) -> None:
-        """Kept as the end-of-table marker; unknown keys are rejected on construction."""
-
     def tables(self, key: str, required: bool = True) -> list[tuple[str, dict]]:
         v = self.get(key, ... if required else [], list)
         out = []
@@ -431,11 +428,9 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
     name = _name_of(m)
     description = m.get("description", "", str)
     t_ref = m.number("reference_temperature_degC", 20.0)
-    m.finish()
 
     sp = _Reader(source, "spindle", top.get("spindle", {}, dict), "spindle")
     spindle_rpm = sp.number("max_speed_rpm", 0.0, nonneg=True)
-    sp.finish()
 
     materials: dict[str, Material] = {}
     mats = top.get("materials", kind=dict)
@@ -453,14 +448,12 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
             poisson_ratio=nu,
             expansion_1_K=r.number("expansion_1_K", nonneg=True),
         )
-        r.finish()
     if not materials:
         raise top.err("materials", "must define at least one material")
 
     msh = _Reader(source, "mesh", top.get("mesh", {}, dict), "mesh")
     h_mm = msh.number("element_size_mm", 50.0, positive=True)
     mfile = msh.get("file", None, str)
-    msh.finish()
     mesh_path = None
     if mfile is not None:
         mesh_path = Path(mfile) if Path(mfile).is_absolute() else (base_dir or Path(".")) / mfile
@@ -485,7 +478,6 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         if mesh_path is not None and group is None:
             group = bname
         bodies.append(Body(bname, mat, box, group, r.get("mounted_on", None, str)))
-        r.finish()
     if not bodies:
         raise top.err("bodies", "must define at least one body")
     _unique(source, "bodies", [b.name for b in bodies])
@@ -531,7 +523,6 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
             ):
                 raise r.err("segment_bounds_mm", f"must ascend from the travel min to max {tr!r}, got {bounds!r}")
         axes.append(Axis(aname, DIRECTIONS.index(d), moves, (float(tr[0]), float(tr[1])), feed, tuple(float(b) for b in bounds)))
-        r.finish()
     _unique(source, "axes", [a.name for a in axes])
     _unique(source, "axes[].moves", [a.moves for a in axes])
     axis_names = {a.name for a in axes}
@@ -589,7 +580,6 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
                 power_table=table,
             )
         )
-        r.finish()
     _unique(source, "heat_sources", [s.name for s in sources])
 
     zones: list[Zone] = []
@@ -623,9 +613,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
                 if f not in FACES:
                     raise sr.err("faces", f"must list faces of {FACES}, got {f!r}")
             surfs.append(Surface(body, faces, sr.box("region_mm", None, flat_ok=True), group))
-            sr.finish()
         zones.append(Zone(zname, h, air, tuple(surfs), rest))
-        r.finish()
     _unique(source, "zones", [z.name for z in zones])
     if sum(z.rest for z in zones) > 1:
         raise top.err("zones", "may have only one zone with rest = true")
@@ -637,7 +625,6 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         if body is not None and body not in body_names:
             raise r.err("body", f"names an unknown body {body!r}")
         pos = r.vec3("position_mm")
-        r.finish()
         return Point(pname, body or "", pos)
 
     sensors = tuple(point(w, t) for w, t in top.tables("sensors", required=False))
@@ -655,9 +642,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         if body is not None and body not in body_names:
             raise r.err("body", f"names an unknown body {body!r}")
         supports.append(Support(_name_of(r), body or "", r.vec3("position_mm"), tuple(DIRECTIONS.index(d) for d in dirs)))
-        r.finish()
     _unique(source, "supports", [s.name for s in supports])
-    top.finish()
 
     machine = Machine(
         name=name,

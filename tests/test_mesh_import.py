@@ -78,6 +78,7 @@ def _imported_toml(text: str, msh_name: str) -> str:
     """The vmc800 machine file rewritten for an imported mesh whose groups carry the body and zone names."""
     out: list[str] = []
     table = None
+    zone = None  # the name of the [[zones]] table being read
     skipping = False
     for line in text.splitlines():
         s = line.split("#")[0].strip()
