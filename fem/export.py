@@ -6,6 +6,7 @@ person opening them in ParaView reads the units of the machine drawing.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from pathlib import Path
 
@@ -74,7 +75,8 @@ def write_fields(model: ThermoElasticModel, out_dir: str | Path, steps: dict[int
             raise RuntimeError("XDMF export needs h5py: pip install 'hybridcomp[xdmf]'") from None
         path = out_dir / "fields.xdmf"
         base = _meshio(model, {})
-        with meshio.xdmf.TimeSeriesWriter(path) as w:
+        # meshio writes the .h5 beside the working directory, not beside the .xdmf: write from out_dir
+        with contextlib.chdir(out_dir), meshio.xdmf.TimeSeriesWriter(path.name) as w:
             w.write_points_cells(base.points, base.cells)
             for k, u in zip(keys, disp):
                 pdata = {"temperature_degC": steps[k] + t_ref}
