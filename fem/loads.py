@@ -124,7 +124,7 @@ def write_loads(path: str | Path, loads: Loads) -> None:
         w = csv.writer(fh)
         w.writerow(["time_s", *loads.names])
         for t, row in zip(loads.time_s, loads.values):
-            w.writerow([f"{t:g}", *(f"{v:.6g}" for v in row)])
+            w.writerow([f"{t:.12g}", *(f"{v:.6g}" for v in row)])
 
 
 def write_outputs(path: str | Path, time_s: np.ndarray, sensor_names, sensors_degC: np.ndarray, drift_um: np.ndarray) -> None:
@@ -135,7 +135,7 @@ def write_outputs(path: str | Path, time_s: np.ndarray, sensor_names, sensors_de
         w = csv.writer(fh)
         w.writerow(["time_s", *(f"{s}_degC" for s in sensor_names), "dx_um", "dy_um", "dz_um"])
         for k in range(len(time_s)):
-            w.writerow([f"{time_s[k]:g}", *(f"{v:.6f}" for v in sensors_degC[k]), *(f"{v:.6f}" for v in drift_um[k])])
+            w.writerow([f"{time_s[k]:.12g}", *(f"{v:.6f}" for v in sensors_degC[k]), *(f"{v:.6f}" for v in drift_um[k])])
 
 
 def example_loads(machine: Machine, duration_h: float = 16.0, dt_s: float = 60.0, seed: int = 0) -> Loads:

@@ -12,6 +12,8 @@ SUBCOMMANDS = {
     "simulate": ("hybridcomp.fem.cli_simulate", "simulate a load case on the FE model and write outputs.csv"),
     "example-loads": ("hybridcomp.fem.cli_example_loads", "write a reproducible example loads CSV for a machine"),
     "machine": ("hybridcomp.models.cli", "check a machine file and print its inputs, sensors and mesh size"),
+    "histogram": ("hybridcomp.histogram.cli", "turn a trace CSV or G-code into load factors, histograms and a loads CSV"),
+    "scenario": ("hybridcomp.histogram.cli_scenario", "write a bundled scenario (basic load cases, job-shop day): G-code, trace, loads"),
 }
 
 

@@ -1,0 +1,41 @@
+"""``hybridcomp scenario {basic,jobshop}``: write a bundled scenario's G-code, trace and loads CSV."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S
+from hybridcomp.histogram.scenarios import SCENARIOS, write_scenario
+from hybridcomp.histogram.trace import TraceFileError
+from hybridcomp.models.machine import MachineFileError, load_machine
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("name", choices=SCENARIOS,
+                   help="basic: each axis alone at max feed over its full travel, and the spindle alone at max speed; "
+                   "jobshop: a 16 h day of eight workpieces with pauses")
+    p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
+    p.add_argument("--out", required=True, type=Path, help="output directory")
+    p.add_argument("--increment", type=float, default=DEFAULT_INCREMENT_S,
+                   help=f"increment of the loads CSV [s] (default {DEFAULT_INCREMENT_S:g})")
+    p.add_argument("--rate-hz", type=float, default=10.0, help="sampling rate of the trace [Hz] (default 10)")
+    p.add_argument("--power", choices=("factor", "mean"), default="mean",
+                   help="heat power per increment (see hybridcomp histogram --help)")
+    p.add_argument("--hours", type=float, default=8.0, help="basic: duration of each load case [h] (default 8)")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        machine = load_machine(args.machine)
+        for opt in ("increment", "rate_hz", "hours"):
+            if not getattr(args, opt) > 0:
+                raise ValueError(f"--{opt.replace('_', '-')} must be positive, got {getattr(args, opt)}")
+        files = write_scenario(args.name, machine, args.out, args.increment, args.rate_hz, args.hours, args.power)
+    except (MachineFileError, TraceFileError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for f in files.values():
+        print(f"wrote {f}", file=sys.stderr)
+    return 0
