@@ -16,20 +16,7 @@ from hybridcomp.models.machine import resolve_machine_path
 COARSE = ["--element-size-mm", "150", "--no-progress"]
 
 
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("vmc800")
-
-
-def write_csv(path, header, rows):
-    with path.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        w.writerows(rows)
-    return path
-
-
-def test_missing_columns_mean_zero_power_and_reference_temperature(machine, tmp_path):
+def test_missing_columns_mean_zero_power_and_reference_temperature(machine, tmp_path, write_csv):
     p = write_csv(tmp_path / "l.csv", ["time_s", "y_nut[2]_W", "ambient_degC"], [[0, 5, 21], [60, 6, 22]])
     loads = read_loads(p, machine)
     j = loads.names.index("y_nut[2]_W")
@@ -54,7 +41,7 @@ def test_missing_columns_mean_zero_power_and_reference_temperature(machine, tmp_
         (["time_s", "x_motor_W", "x_motor_W"], [[0, 1, 1]], r"l\.csv: column 'x_motor_W' appears twice"),
     ],
 )
-def test_bad_loads_are_named(machine, tmp_path, header, rows, match):
+def test_bad_loads_are_named(machine, tmp_path, header, rows, match, write_csv):
     p = write_csv(tmp_path / "l.csv", header, rows)
     with pytest.raises(LoadsFileError, match=match):
         read_loads(p, machine)
@@ -84,7 +71,7 @@ def test_simulate_cli_writes_the_output_contract(machine, tmp_path):
     assert np.ptp(m.points, axis=0).max() > 1000  # written in mm
 
 
-def test_simulate_cli_resamples_with_dt(machine, tmp_path):
+def test_simulate_cli_resamples_with_dt(machine, tmp_path, write_csv):
     write_csv(tmp_path / "l.csv", ["time_s", "spindle_motor_W"], [[0, 0], [3600, 100]])
     out = tmp_path / "o"
     assert main(["simulate", "--loads", str(tmp_path / "l.csv"), "--out", str(out), "--dt", "600", *COARSE]) == 0
@@ -103,7 +90,7 @@ def test_simulate_cli_resamples_with_dt(machine, tmp_path):
         (["--loads", "{good}", "--machine", "nosuchmachine"], "neither a file nor a bundled machine"),
     ],
 )
-def test_simulate_cli_bad_input_writes_nothing(tmp_path, capsys, args, match):
+def test_simulate_cli_bad_input_writes_nothing(tmp_path, capsys, args, match, write_csv):
     good = write_csv(tmp_path / "good.csv", ["time_s", "x_motor_W"], [[0, 1], [60, 1]])
     bad = write_csv(tmp_path / "bad.csv", ["time_s", "x_motor_typo_W"], [[0, 1], [60, 1]])
     typo = tmp_path / "typo.toml"

@@ -16,14 +16,8 @@ import pytest
 from hybridcomp.fem.export import displacement_fields
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.transient import simulate, steady_state
-from hybridcomp.models import load_machine
 
 H_MM = 150.0  # coarse: ~2,000 nodes
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("vmc800")
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,6 @@ that answer, not with an earlier run of the code.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 
 import numpy as np
@@ -28,12 +27,6 @@ from hybridcomp.histogram import (
     write_bcs,
     write_trace,
 )
-from hybridcomp.models import load_machine
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("vmc800")
 
 
 def triangle(t, lo, hi, speed_mm_min, start=None):
@@ -44,14 +37,6 @@ def triangle(t, lo, hi, speed_mm_min, start=None):
     s0 = 0.0 if start is None else (start - lo) / v
     ph = ((np.asarray(t) + s0) % period) / period
     return np.where(ph < 0.5, lo + 2 * ph * L, hi - 2 * (ph - 0.5) * L)
-
-
-def write_csv(path, header, rows):
-    with path.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        w.writerows(rows)
-    return path
 
 
 # --------------------------------------------------------------------------- exact factors and fractions
@@ -237,13 +222,13 @@ HEADER = ["time_s", "x_mm", "y_mm", "z_mm", "spindle_rpm"]
         (HEADER, [[0, 0, 0, 0, 0]], r"t\.csv: needs at least two valid samples"),
     ],
 )
-def test_bad_traces_are_named(machine, tmp_path, header, rows, match):
+def test_bad_traces_are_named(machine, tmp_path, header, rows, match, write_csv):
     p = write_csv(tmp_path / "t.csv", header, rows)
     with pytest.raises(TraceFileError, match=match):
         increments_from_trace(p, machine)
 
 
-def test_a_few_nan_rows_are_dropped_with_a_counted_warning(machine, tmp_path):
+def test_a_few_nan_rows_are_dropped_with_a_counted_warning(machine, tmp_path, write_csv):
     rows = [[0.1 * i, 0, 0, 0, 6000] for i in range(3001)]
     rows[1000][1] = "nan"
     rows[2000][2] = ""

@@ -9,16 +9,10 @@ import pytest
 
 from hybridcomp.fem.loads import input_columns, read_loads
 from hybridcomp.histogram.scenarios import jobshop_program
-from hybridcomp.models import load_machine
 
 from hybridcomp.cli import main
 
 PNG = b"\x89PNG\r\n\x1a\n"
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("vmc800")
 
 
 def read_rows(path):

@@ -21,12 +21,6 @@ from hybridcomp.histogram.scenarios import (
     jobshop_program,
     part_program,
 )
-from hybridcomp.models import load_machine
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("vmc800")
 
 
 @pytest.fixture(scope="module")
