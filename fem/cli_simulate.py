@@ -63,6 +63,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--field-format", choices=("vtu", "xdmf"), default="vtu", help="field file format (xdmf needs h5py)")
     p.add_argument("--png", action="store_true", help="render temperature on the deformed machine at the last step (needs pyvista)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--rom", type=Path, metavar="ROM.npz",
+                   help="simulate with this reduced model (from 'hybridcomp reduce') instead of FE: exact stepping, "
+                   "same outputs.csv; the ROM must come from the --machine file as it is now")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -83,6 +86,10 @@ def run(args: argparse.Namespace) -> int:
     except (MachineFileError, LoadsFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if getattr(args, "rom", None) is not None:
+        from hybridcomp.rom.cli_simulate import run_rom
+
+        return run_rom(args, machine, pose, loads)
 
     from hybridcomp.fem.model import build_model
     from hybridcomp.fem.transient import simulate

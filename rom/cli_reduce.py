@@ -1,0 +1,94 @@
+"""``hybridcomp reduce``: a machine's FE model (or exported matrices) → a reduced model ``ROM.npz``.
+
+Everything is checked before the (minutes-long) reduction starts, so a bad
+input fails at once and writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from hybridcomp.models.machine import MachineFileError, load_machine
+
+
+def _h_range(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--h-range must be LOW,HIGH factors of nominal, e.g. 0.5,2; got {text!r}") from None
+    return lo, hi
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
+    p.add_argument("--matrices", type=Path, metavar="FILE",
+                   help="reduce an exported system E x' = A x + B u, y = C x instead: a .mat file (variables E, A, B, C) "
+                   "or a directory of Matrix Market files E.mtx, A.mtx, B.mtx, C.mtx")
+    p.add_argument("--out", required=True, type=Path, help="reduced model to write (.npz with JSON metadata)")
+    p.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
+    p.add_argument("--element-size-mm", type=float, help="largest element edge [mm] (default: from the machine file)")
+    p.add_argument("--order", type=int, help="reduce to exactly this order instead of to the tolerances")
+    p.add_argument("--tol-K", type=float, default=0.05,
+                   help="sensor-temperature tolerance [K] against FE on the check load case (default 0.05); "
+                   "with --matrices: the transfer-function tolerance per unit input, in output units")
+    p.add_argument("--tol-um", type=float, default=0.2, help="TCP-drift tolerance [µm] (default 0.2)")
+    p.add_argument("--h-range", type=_h_range, default=(0.5, 2.0), metavar="LOW,HIGH",
+                   help="heat-transfer coefficients the model must cover, as factors of nominal (default 0.5,2)")
+    p.add_argument("--check-loads", type=Path, help="loads CSV of the FE check (default: the 16 h example day at 60 s)")
+    p.add_argument("--no-basis", action="store_true", help="do not store the basis V (smaller file, no full-field reconstruction)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hybridcomp.fem.cli_simulate import parse_pose
+    from hybridcomp.fem.loads import LoadsFileError, read_loads
+    from hybridcomp.rom.external import MatrixFileError
+    from hybridcomp.rom.reduced import save_rom
+
+    t0 = time.perf_counter()
+    try:
+        if args.order is not None and args.order < 1:
+            raise ValueError(f"--order must be a positive integer, got {args.order}")
+        if not (args.tol_K > 0 and args.tol_um > 0):
+            raise ValueError(f"--tol-K and --tol-um must be positive, got {args.tol_K} and {args.tol_um}")
+        lo, hi = args.h_range
+        if not 0 < lo <= 1 <= hi:
+            raise ValueError(f"--h-range must satisfy 0 < LOW ≤ 1 ≤ HIGH, got {lo},{hi}")
+        if args.element_size_mm is not None and not args.element_size_mm > 0:
+            raise ValueError(f"--element-size-mm must be positive, got {args.element_size_mm}")
+        if args.matrices is not None:
+            from hybridcomp.rom.external import reduce_matrices
+
+            rom = reduce_matrices(args.matrices, tol=None if args.order else args.tol_K, order=args.order,
+                                  keep_basis=not args.no_basis)
+        else:
+            machine = load_machine(args.machine)
+            pose = machine.check_pose(parse_pose(args.pose))
+            check = read_loads(args.check_loads, machine) if args.check_loads else None
+            if check is not None and len(check.time_s) < 2:
+                raise LoadsFileError(f"{args.check_loads}: needs at least two rows")
+    except (MachineFileError, LoadsFileError, MatrixFileError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.matrices is None:
+        from hybridcomp.fem.model import build_model
+        from hybridcomp.rom.machine import reduce_model
+
+        print(f"meshing and assembling {machine.name} at {pose} ...", file=sys.stderr)
+        model = build_model(machine, pose, args.element_size_mm)
+        print(f"reducing {model.n} nodes ...", file=sys.stderr)
+        rom = reduce_model(model, tol_K=args.tol_K, tol_um=args.tol_um, order=args.order, h_range=args.h_range,
+                           check_loads=check, keep_basis=not args.no_basis)
+    save_rom(args.out, rom)
+    summary = {"out": str(args.out), "order": rom.order, "seconds": round(time.perf_counter() - t0, 2)}
+    if "check" in rom.meta:
+        c = rom.meta["check"]
+        summary.update(max_sensor_error_K=max(c["max_sensor_error_K"]), max_drift_error_um=max(c["max_drift_error_um"]),
+                       passed=c["passed"])
+    else:
+        summary["estimate"] = rom.meta.get("estimate")
+    print(json.dumps(summary))
+    return 0

@@ -1,0 +1,164 @@
+"""Systems exported from other FE codes (ANSYS, Abaqus): ``E x' = A x + B u, y = C x``.
+
+Accepted files:
+
+* a MATLAB ``.mat`` file with variables ``E``, ``A``, ``B``, ``C`` (sparse or dense);
+* Matrix Market files: a directory holding ``E.mtx``, ``A.mtx``, ``B.mtx``,
+  ``C.mtx`` (or the path of any one of them).
+
+The reductor keeps the reduced system symmetric and stable by a one-sided
+Galerkin projection, which needs ``E`` symmetric positive definite and ``A``
+symmetric negative definite (a thermal capacity and minus a conductivity with
+some convection or fixed temperature); anything else is refused with the name
+of the variable.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from hybridcomp.rom.krylov import ReductionError, ThermalSystem
+
+NAMES = ("E", "A", "B", "C")
+
+
+class MatrixFileError(ValueError):
+    """An exported system is unreadable or not symmetric/definite; the message names the file and variable."""
+
+
+def _files(path: Path) -> dict[str, Path]:
+    if path.is_dir():
+        folder = path
+    elif path.suffix.lower() == ".mtx":
+        folder = path.parent
+    else:
+        raise MatrixFileError(f"{path}: expected a .mat file, a .mtx file or a directory of E.mtx, A.mtx, B.mtx, C.mtx")
+    out = {}
+    for v in NAMES:
+        p = folder / f"{v}.mtx"
+        if not p.is_file():
+            raise MatrixFileError(f"{folder}: Matrix Market file {p.name!r} for variable {v!r} is missing")
+        out[v] = p
+    return out
+
+
+def read_matrices(path: str | Path) -> tuple[dict[str, object], str]:
+    """Read E, A, B, C from a .mat file or Matrix Market files; returns them and the SHA-256 of the file(s)."""
+    path = Path(path)
+    if not path.exists():
+        raise MatrixFileError(f"{path}: no such file or directory")
+    hsh = hashlib.sha256()
+    if path.suffix.lower() == ".mat":
+        import scipy.io
+
+        raw = path.read_bytes()
+        hsh.update(raw)
+        try:
+            data = scipy.io.loadmat(path)
+        except (ValueError, OSError, NotImplementedError) as exc:
+            raise MatrixFileError(f"{path}: cannot read MATLAB file: {exc}") from None
+        missing = [v for v in NAMES if v not in data]
+        if missing:
+            found = sorted(k for k in data if not k.startswith("__"))
+            raise MatrixFileError(f"{path}: variable {missing[0]!r} is missing (found: {found})")
+        mats = {v: data[v] for v in NAMES}
+    else:
+        import scipy.io
+
+        mats = {}
+        for v, p in _files(path).items():
+            hsh.update(p.read_bytes())
+            try:
+                mats[v] = scipy.io.mmread(p)
+            except (ValueError, OSError) as exc:
+                raise MatrixFileError(f"{p}: cannot read Matrix Market file for {v!r}: {exc}") from None
+    return mats, hsh.hexdigest()
+
+
+def system_from_matrices(mats: dict[str, object], source: str = "<matrices>") -> ThermalSystem:
+    """A :class:`ThermalSystem` (M = E, K = −A, no zones) from exported matrices, after checking them."""
+    E = sp.csr_matrix(mats["E"], dtype=float)
+    A = sp.csr_matrix(mats["A"], dtype=float)
+    B = mats["B"].toarray() if sp.issparse(mats["B"]) else np.asarray(mats["B"], float)
+    C = mats["C"].toarray() if sp.issparse(mats["C"]) else np.asarray(mats["C"], float)
+    n = E.shape[0]
+    B = B.reshape(n, -1) if B.ndim == 1 else B
+    C = C.reshape(1, -1) if C.ndim == 1 else C
+    for v, got, want in (("E", E.shape, (n, n)), ("A", A.shape, (n, n)), ("B", B.shape[0], n), ("C", C.shape[1], n)):
+        if got != want:
+            raise MatrixFileError(f"{source}: variable {v!r} has shape {got}, expected {want} (E is {n} × {n})")
+    for v, X in (("E", E), ("A", A)):
+        asym = abs(X - X.T).max() if X.nnz else 0.0
+        if asym > 1e-10 * max(abs(X).max(), 1e-300):
+            raise MatrixFileError(f"{source}: variable {v!r} is not symmetric (max |{v} - {v}^T| = {asym:.3g}); "
+                                  "the reductor needs symmetric E and A")
+    if not (np.all(np.isfinite(E.data)) and np.all(np.isfinite(A.data)) and np.all(np.isfinite(B)) and np.all(np.isfinite(C))):
+        raise MatrixFileError(f"{source}: the matrices contain NaN or infinite values")
+    if np.any(E.diagonal() <= 0):
+        raise MatrixFileError(f"{source}: variable 'E' must be positive definite, but its diagonal has entries ≤ 0")
+    if np.any(A.diagonal() >= 0):
+        raise MatrixFileError(f"{source}: variable 'A' must be negative definite, but its diagonal has entries ≥ 0")
+    try:
+        return ThermalSystem(
+            M=E, K=sp.csr_matrix(-A), H=(), h=np.zeros(0), B=B, Hb=np.zeros((n, 0)), C=C,
+            input_names=tuple(f"u{j + 1}" for j in range(B.shape[1])),
+            output_names=tuple(f"y{i + 1}" for i in range(C.shape[0])),
+        )
+    except ReductionError as exc:
+        raise MatrixFileError(f"{source}: {exc}") from None
+
+
+def reduce_matrices(
+    path: str | Path,
+    *,
+    tol: float | None = None,
+    order: int | None = None,
+    fastest_time_s: float = 60.0,
+    keep_basis: bool = False,
+):
+    """Reduce an exported system to an order or to a tolerance.
+
+    Parameters
+    ----------
+    path : ``.mat`` file or Matrix Market file/directory
+    tol : largest transfer-function error per unit input over the candidate
+        frequencies, in the output's units (the same for every output)
+    order : reduce to exactly this order instead
+    fastest_time_s : shortest time scale to resolve [s]
+    keep_basis : keep V (n × r) for reconstructing full states
+
+    Returns
+    -------
+    :class:`~hybridcomp.rom.reduced.ReducedModel` whose ``meta['matrices']``
+    holds the file name and its SHA-256.
+    """
+    from hybridcomp.rom.krylov import Reductor, project
+    from hybridcomp.rom.reduced import ReducedModel
+
+    if (tol is None) == (order is None):
+        raise ValueError("give exactly one of tol and order")
+    if tol is not None and not tol > 0:
+        raise ValueError(f"tol must be positive, got {tol}")
+    path = Path(path)
+    mats, sha = read_matrices(path)
+    system = system_from_matrices(mats, str(path))
+    q = system.C.shape[0]
+    reductor = Reductor(system, np.full(q, tol if tol is not None else 1.0), np.ones(system.B.shape[1]),
+                        np.zeros((1, 0)), fastest_time_s=fastest_time_s)
+    red = reductor.reduce(target=1.0, order=order)
+    P = project(system, red.V)
+    meta = {
+        "matrices": {"file": path.name, "sha256": sha},
+        "nodes": system.n,
+        "order": red.V.shape[1],
+        "tol": tol,
+        "estimate": (red.estimate if tol is None else red.estimate * tol) if np.isfinite(red.estimate) else None,
+        "expansion_points": [{"s_1_s": p.s, "moments": p.moments, "complete": p.complete} for p in red.points],
+    }
+    return ReducedModel(M=P["M"], K=P["K"], H=P["H"], h_W_m2K=np.zeros(0), B=P["B"], Hb=P["Hb"], C=P["C"],
+                        input_names=system.input_names, output_names=system.output_names,
+                        V=red.V if keep_basis else None, meta=meta)
