@@ -51,6 +51,21 @@ def input_columns(machine: Machine) -> tuple[str, ...]:
     return tuple(f"{q}_W" for q in machine.heat_inputs()) + tuple(f"{z.name}_degC" for z in machine.zones)
 
 
+def full_power_inputs(machine: Machine) -> np.ndarray:
+    """Model inputs with every source at its full power [W] (a moving source spread evenly over its
+    rail segments) and every air temperature at the reference (rise 0 K), in ``input_columns`` order."""
+    names = input_columns(machine)
+    u = np.zeros(len(names))
+    for s in machine.heat_sources:
+        if s.kind == "fixed":
+            u[names.index(f"{s.name}_W")] = s.power_W
+        else:
+            n = machine.axis(s.axis).n_segments
+            for k in range(n):
+                u[names.index(f"{s.name}[{k + 1}]_W")] = s.power_W / n
+    return u
+
+
 def read_loads(path: str | Path, machine: Machine) -> Loads:
     """Read and check a loads CSV against a machine."""
     path = Path(path)

@@ -12,8 +12,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-
 from hybridcomp.fem.export import displacement_fields
+from hybridcomp.fem.loads import full_power_inputs, input_columns
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.transient import simulate, steady_state
 
@@ -38,16 +38,8 @@ def air_rise(model, dT_K: float) -> np.ndarray:
 
 
 def full_power(model) -> np.ndarray:
-    m = model.machine
-    u = np.zeros(len(model.input_names))
-    for s in m.heat_sources:
-        if s.kind == "fixed":
-            u[model.heat_names.index(s.name)] = s.power_W
-        else:
-            n = m.axis(s.axis).n_segments
-            for k in range(n):
-                u[model.heat_names.index(f"{s.name}[{k + 1}]")] = s.power_W / n
-    return u
+    assert tuple(model.input_names) == input_columns(model.machine)
+    return full_power_inputs(model.machine)
 
 
 @pytest.mark.parametrize("pose", [{}, {"X": 300.0, "Y": -200.0, "Z": 250.0}])
@@ -107,8 +99,8 @@ def test_adjoint_drift_rows_equal_direct_displacement(model):
     """G x from the three adjoint solves equals TCP minus table of the directly solved displacement."""
     x = steady_state(model, full_power(model))
     u = displacement_fields(model, [x])[0]  # (n, 3) [m]
-    from hybridcomp.fem.model import _point_rows
     from hybridcomp.fem import assembly
+    from hybridcomp.fem.model import _point_rows
 
     basis = assembly.cell_basis(model.mesh.mesh)
     P = _point_rows(model.machine, model.mesh, basis, [model.machine.tcp, model.machine.table_reference])

@@ -16,17 +16,36 @@ import pytest
 import scipy.io
 import scipy.linalg as la
 import scipy.sparse as sp
-
-from hybridcomp.cli import main
-from hybridcomp.fem.loads import example_loads, write_loads
+from hybridcomp.fem.loads import (
+    example_loads,
+    full_power_inputs,
+    input_columns,
+    write_loads,
+)
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.transient import steady_state
 from hybridcomp.models import load_machine
 from hybridcomp.models.machine import resolve_machine_path
-from hybridcomp.rom import ReducedModel, RomFileError, RomInputError, load_rom, load_state, save_rom, save_state
+from hybridcomp.rom import (
+    ReducedModel,
+    RomFileError,
+    RomInputError,
+    load_rom,
+    load_state,
+    save_rom,
+    save_state,
+)
 from hybridcomp.rom.external import MatrixFileError, reduce_matrices
 from hybridcomp.rom.krylov import Reductor, factor_spd, project
-from hybridcomp.rom.machine import compare, fe_reference, inputs_from_columns, reduce_model, system_from_model
+from hybridcomp.rom.machine import (
+    compare,
+    fe_reference,
+    inputs_from_columns,
+    reduce_model,
+    system_from_model,
+)
+
+from hybridcomp.cli import main
 
 H_MM = 150.0
 TOL_K, TOL_UM = 0.05, 0.2
@@ -53,16 +72,8 @@ def rom(model, loads):
 
 
 def full_power(model) -> np.ndarray:
-    m = model.machine
-    u = np.zeros(len(model.input_names))
-    for s in m.heat_sources:
-        if s.kind == "fixed":
-            u[model.heat_names.index(s.name)] = s.power_W
-        else:
-            n = m.axis(s.axis).n_segments
-            for k in range(n):
-                u[model.heat_names.index(f"{s.name}[{k + 1}]")] = s.power_W / n
-    return u
+    assert tuple(model.input_names) == input_columns(model.machine)
+    return full_power_inputs(model.machine)
 
 
 def rel(a, b) -> float:
