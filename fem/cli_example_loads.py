@@ -8,10 +8,11 @@ from pathlib import Path
 
 from hybridcomp.fem.loads import example_loads, write_loads
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.cli import add_machine_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
+    add_machine_argument(p)
     p.add_argument("--hours", type=float, default=16.0, help="duration [h] (default 16)")
     p.add_argument("--dt", type=float, default=60.0, help="row spacing [s] (default 60)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the block pattern")

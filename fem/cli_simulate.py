@@ -17,6 +17,7 @@ import numpy as np
 
 from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.cli import add_machine_argument
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,7 @@ def resample(loads: Loads, dt_s: float) -> Loads:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
+    add_machine_argument(p)
     p.add_argument("--loads", required=True, type=Path,
                    help="BC time series CSV: time_s, <source>[<segment>]_W, <zone>_degC; a missing column is zero power "
                    "or the reference temperature, an unknown column is an error")

@@ -10,6 +10,7 @@ taken from its named cell sets.  Coordinates inside are metres.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -244,7 +245,7 @@ def mesh_machine(machine: Machine, pose_mm: dict[str, float] | None = None, elem
     mm = MachineMesh(mesh, body_of_element, names, {}, pose, grid, cell_of_grid)
     zones = _box_zone_facets(machine, mm)
     log.info("meshed %s at %s: %d nodes, %d hexahedra", machine.name, pose, mesh.p.shape[1], mesh.t.shape[1])
-    return MachineMesh(mesh, body_of_element, names, zones, pose, grid, cell_of_grid)
+    return dataclasses.replace(mm, zone_facets=zones)
 
 
 def _facet_normals(mesh: skfem.Mesh, facets: np.ndarray) -> np.ndarray:

@@ -43,17 +43,18 @@ class SimulationResult:
     timings_s: dict = field(default_factory=dict)
 
 
-def _factor(model: ThermoElasticModel, key: tuple, build) -> Factor:
-    if key not in model._cache:
+def _cached_factor(cache: dict, key: tuple, build, coords) -> Factor:
+    """The factorisation of ``build()`` under ``key`` in ``cache``, made on first use."""
+    if key not in cache:
         t0 = time.perf_counter()
-        model._cache[key] = factorize_spd(build(), model.coords_m)
-        log.debug("factorised %s in %.2f s (%s)", key, time.perf_counter() - t0, model._cache[key].backend)
-    return model._cache[key]
+        cache[key] = factorize_spd(build(), coords)
+        log.debug("factorised %s in %.2f s (%s)", key, time.perf_counter() - t0, cache[key].backend)
+    return cache[key]
 
 
 def steady_state(model: ThermoElasticModel, u: np.ndarray) -> np.ndarray:
     """Temperature rise [K] at steady state for constant inputs ``u``."""
-    f = _factor(model, ("steady",), model.A)
+    f = _cached_factor(model._cache, ("steady",), model.A, model.coords_m)
     return f(model.input_matrix() @ np.asarray(u, float))
 
 
@@ -126,10 +127,10 @@ def integrate(
         dt = float(dts[k - 1])
         key = ("step", round(dt, 9), float(theta))
         tf = time.perf_counter()
-        if key not in cache:
-            cache[key] = factorize_spd(M / dt + theta * A, coords)
+        f = _cached_factor(cache, key, lambda: M / dt + theta * A, coords)
+        if ("Mdt", key[1]) not in cache:
             cache[("Mdt", key[1])] = (M / dt).tocsr()
-        f, Mdt = cache[key], cache[("Mdt", key[1])]
+        Mdt = cache[("Mdt", key[1])]
         t_factor += time.perf_counter() - tf
         rhs = Mdt @ x + Bu @ (theta * U[k] + (1 - theta) * U[k - 1])
         if theta != 1.0:

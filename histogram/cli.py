@@ -29,6 +29,7 @@ from hybridcomp.histogram.increments import (
 from hybridcomp.histogram.signature import SignatureLayout, write_signatures
 from hybridcomp.histogram.trace import TraceFileError, TraceWarning
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.cli import add_machine_argument
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", type=Path, metavar="TRACE_OR_GCODE",
                    help="trace CSV (time_s, x_mm, ..., spindle_rpm, optional Tamb_degC) or G-code programme "
                    f"(by suffix: .csv is a trace, {', '.join(GCODE_SUFFIXES)} G-code; see --format)")
-    p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
+    add_machine_argument(p)
     p.add_argument("--increment", type=float, default=DEFAULT_INCREMENT_S,
                    help=f"increment length [s] (default {DEFAULT_INCREMENT_S:g})")
     p.add_argument("--out", required=True, type=Path, help="loads CSV to write (the input of hybridcomp simulate)")

@@ -10,13 +10,14 @@ from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S
 from hybridcomp.histogram.scenarios import SCENARIOS, write_scenario
 from hybridcomp.histogram.trace import TraceFileError
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.cli import add_machine_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("name", choices=SCENARIOS,
                    help="basic: each axis alone at max feed over its full travel, and the spindle alone at max speed; "
                    "jobshop: a 16 h day of eight workpieces with pauses")
-    p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
+    add_machine_argument(p)
     p.add_argument("--out", required=True, type=Path, help="output directory")
     p.add_argument("--increment", type=float, default=DEFAULT_INCREMENT_S,
                    help=f"increment of the loads CSV [s] (default {DEFAULT_INCREMENT_S:g})")

@@ -8,6 +8,11 @@ import sys
 from hybridcomp.models.machine import MachineFileError, bundled_machines, load_machine
 
 
+def add_machine_argument(p: argparse.ArgumentParser) -> None:
+    """The ``--machine NAME_OR_PATH`` option every subcommand that loads a machine shares."""
+    p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("machine", nargs="?", help="bundled machine name or path to a machine TOML; none: list bundled machines")
     p.add_argument("--mesh", action="store_true", help="also mesh it at mid travel and report nodes and elements")

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.cli import add_machine_argument
 
 
 def _h_range(text: str) -> tuple[float, float]:
@@ -24,7 +25,7 @@ def _h_range(text: str) -> tuple[float, float]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
+    add_machine_argument(p)
     p.add_argument("--matrices", type=Path, metavar="FILE",
                    help="reduce an exported system E x' = A x + B u, y = C x instead: a .mat file (variables E, A, B, C) "
                    "or a directory of Matrix Market files E.mtx, A.mtx, B.mtx, C.mtx")
