@@ -15,6 +15,7 @@ SUBCOMMANDS = {
     "histogram": ("hybridcomp.histogram.cli", "turn a trace CSV or G-code into load factors, histograms and a loads CSV"),
     "scenario": ("hybridcomp.histogram.cli_scenario", "write a bundled scenario (basic load cases, job-shop day): G-code, trace, loads"),
     "reduce": ("hybridcomp.rom.cli_reduce", "reduce a machine's FE model (or exported matrices) to a real-time ROM.npz"),
+    "batch": ("hybridcomp.fem.cli_batch", "run a directory of load cases on the FE model: local process pool or Dask cluster"),
 }
 
 

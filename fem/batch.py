@@ -1,0 +1,531 @@
+"""Batches of FE load cases: serially, on a local process pool, or on a Dask cluster.
+
+One machine at one pose, many load cases (CD training data, CD regeneration,
+the diagnosis' FE confirmation).  The expensive part is the model: meshing,
+assembly, the elastic adjoint solves for the drift rows and the factorisation
+of the stepping matrix.  Each worker process builds it once and keeps it in a
+per-process cache keyed by (machine SHA-256, pose, element size); tasks carry
+only their loads, and the factorisations cached on the model are reused by
+every later case with the same time step.
+
+The executor is a seam, not a framework:
+
+* ``"serial"``: in this process, one case after another;
+* ``"process"`` (default): a :class:`concurrent.futures.ProcessPoolExecutor`
+  whose workers are forked from a clean fork server started with one BLAS /
+  OpenMP thread per worker; a worker that dies breaks the pool, so the
+  unfinished cases are resubmitted on a fresh pool (up to ``max_restarts``);
+* ``"local"``: a Dask ``LocalCluster`` with ``workers`` single-threaded
+  worker processes;
+* ``"tcp://HOST:PORT"`` (any Dask scheduler address): an existing Dask
+  distributed cluster (``dask scheduler`` + ``dask worker``); the scheduler
+  reschedules the cases of a worker that dies;
+* or an object: a ``concurrent.futures.Executor`` or a ``distributed.Client``.
+
+Results are returned to the caller, which writes one outputs CSV per case
+(``OUT/<case>.csv``, the ``outputs.csv`` columns) through a temporary file and
+an atomic rename, so a case is written exactly once and a crash never leaves a
+half-written file; the workers need no shared file system.
+
+Reproducibility: the FE arithmetic is deterministic for a given number of BLAS
+threads, so every executor gives bitwise identical results when its processes
+run the same number of BLAS threads (the pool and ``"local"`` use one; Dask's
+nanny sets one by default).  A run in a process with more BLAS threads differs
+by round-off only (CHOLMOD's supernodal kernels sum in another order; about
+1e-12 µm measured on the demonstrator).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import dataclasses
+import json
+import logging
+import multiprocessing
+import os
+import re
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hybridcomp.fem.cli_simulate import resample
+from hybridcomp.fem.loads import Loads, LoadsFileError, input_columns, read_loads, write_outputs
+from hybridcomp.models.machine import Machine
+
+log = logging.getLogger(__name__)
+
+#: environment of every pool worker: one BLAS / OpenMP thread (2 workers on 2 cores must not oversubscribe)
+WORKER_ENVIRONMENT = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+#: Dask settings for clusters started here: one BLAS thread per worker, and glibc's dynamic mmap threshold
+#: left alone (Dask's default MALLOC_TRIM_THRESHOLD_=65536 made the sparse solves 2.4x slower in workers)
+DASK_CONFIG = {
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    **{f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_ENVIRONMENT.items()},
+}
+
+MAX_CACHED_MODELS = 4
+_CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
+
+
+class BatchError(RuntimeError):
+    """A batch could not be completed; the message names the case and the cause."""
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """What identifies the assembled operators: machine, pose and element size.
+
+    Attributes
+    ----------
+    machine : the validated machine definition
+    pose_mm : axis positions, complete and sorted by axis name [mm]
+    element_size_mm : largest element edge [mm]; None means the machine file's
+    """
+
+    machine: Machine
+    pose_mm: tuple[tuple[str, float], ...]
+    element_size_mm: float | None
+
+    @property
+    def key(self) -> tuple:
+        return (self.machine.sha256 or self.machine.source, self.pose_mm, self.element_size_mm)
+
+
+@dataclass(frozen=True)
+class SimulationOptions:
+    """Options of :func:`hybridcomp.fem.transient.simulate` shared by all cases.
+
+    Attributes
+    ----------
+    theta : θ of the θ-method, in [0.5, 1]
+    initial : ``"steady"`` (steady state of the first loads row) or ``"reference"``
+    dt_s : resample every case to this uniform step [s]; None keeps each case's own times
+    """
+
+    theta: float = 1.0
+    initial: str = "steady"
+    dt_s: float | None = None
+
+
+@dataclass(frozen=True)
+class CaseResult:
+    """Outputs of one load case.
+
+    Attributes
+    ----------
+    name : case name
+    time_s : output times [s]
+    sensor_names : sensor names in column order
+    sensors_degC : sensor temperatures (nt × s) [°C]
+    drift_um : TCP-minus-table drift dx, dy, dz (nt × 3) [µm]
+    worker : ``host:pid`` of the process that computed it
+    built_model : whether this task had to build the operators (False: reused from the worker's cache)
+    compute_s : wall time of the task inside the worker, model build included [s]
+    path : the outputs CSV written for it, if any
+    """
+
+    name: str
+    time_s: np.ndarray
+    sensor_names: tuple[str, ...]
+    sensors_degC: np.ndarray
+    drift_um: np.ndarray
+    worker: str
+    built_model: bool
+    compute_s: float
+    path: Path | None = None
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The outputs-CSV columns: ``time_s``, ``<sensor>_degC`` ..., ``dx_um``, ``dy_um``, ``dz_um``."""
+        cols = {"time_s": self.time_s}
+        cols |= {f"{s}_degC": self.sensors_degC[:, j] for j, s in enumerate(self.sensor_names)}
+        cols |= {f"d{a}_um": self.drift_um[:, j] for j, a in enumerate("xyz")}
+        return cols
+
+
+# --------------------------------------------------------------------------- the worker side
+
+_MODELS: dict[tuple, object] = {}
+_MODELS_LOCK = threading.Lock()
+_SIMULATE_LOCKS: dict[tuple, threading.Lock] = {}
+
+
+def cached_model(spec: ModelSpec):
+    """The assembled model for ``spec`` from this process's cache, built on first use.
+
+    Returns
+    -------
+    (ThermoElasticModel, built, lock): ``built`` says whether this call built it; hold ``lock`` while
+    simulating (the model's factorisation cache is not shared between threads)
+    """
+    from hybridcomp.fem.model import build_model
+
+    with _MODELS_LOCK:
+        model = _MODELS.pop(spec.key, None)
+        built = model is None
+        if built:
+            t0 = time.perf_counter()
+            model = build_model(spec.machine, dict(spec.pose_mm), spec.element_size_mm)
+            log.info("process %d built %s (%d nodes) in %.2f s", os.getpid(), spec.machine.name, model.n,
+                     time.perf_counter() - t0)
+            _SIMULATE_LOCKS.setdefault(spec.key, threading.Lock())
+        _MODELS[spec.key] = model  # most recently used last
+        while len(_MODELS) > MAX_CACHED_MODELS:
+            old = next(iter(_MODELS))
+            del _MODELS[old]
+            _SIMULATE_LOCKS.pop(old, None)
+        lock = _SIMULATE_LOCKS[spec.key]
+    return model, built, lock
+
+
+def clear_model_cache() -> None:
+    """Forget this process's cached models (tests and benchmarks)."""
+    with _MODELS_LOCK:
+        _MODELS.clear()
+        _SIMULATE_LOCKS.clear()
+
+
+def run_case(spec: ModelSpec, options: SimulationOptions, name: str, loads: Loads) -> CaseResult:
+    """Simulate one load case on the cached model of ``spec`` (the task every executor runs)."""
+    from hybridcomp.fem.transient import simulate
+
+    t0 = time.perf_counter()
+    model, built, lock = cached_model(spec)
+    if options.dt_s is not None:
+        loads = resample(loads, options.dt_s)
+    with lock:  # the model's factorisation cache is not shared between threads of one worker
+        res = simulate(model, loads.time_s, loads.as_inputs(model.reference_temperature_degC), theta=options.theta,
+                       initial=options.initial)
+    return CaseResult(
+        name=name,
+        time_s=res.time_s,
+        sensor_names=model.sensor_names,
+        sensors_degC=res.sensors_degC,
+        drift_um=res.drift_um,
+        worker=f"{socket.gethostname()}:{os.getpid()}",
+        built_model=built,
+        compute_s=time.perf_counter() - t0,
+    )
+
+
+def warm_up(spec: ModelSpec) -> str:
+    """Build the model of ``spec`` in this process (run on every worker before a batch); returns ``host:pid``."""
+    cached_model(spec)
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+# --------------------------------------------------------------------------- inputs and outputs
+
+
+def read_loads_dir(directory: str | Path, machine: Machine) -> dict[str, Loads]:
+    """Every ``*.csv`` in ``directory`` as a load case named by the file stem, sorted by name."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise LoadsFileError(f"{directory}: loads directory not found")
+    files = sorted(directory.glob("*.csv"))
+    if not files:
+        raise LoadsFileError(f"{directory}: no loads CSV (*.csv) in the directory")
+    return {p.stem: read_loads(p, machine) for p in files}
+
+
+def check_cases(cases: Mapping[str, Loads], machine: Machine) -> None:
+    """Names usable as file names, loads in the machine's input order, at least two rows each."""
+    expected = input_columns(machine)
+    if not cases:
+        raise ValueError("the batch has no load cases")
+    for name, loads in cases.items():
+        if not isinstance(name, str) or not _CASE_NAME.match(name):
+            raise ValueError(f"load case name {name!r}: use letters, digits and _ . + - (it names the output file)")
+        if not isinstance(loads, Loads):
+            raise TypeError(f"load case {name!r}: expected fem.loads.Loads, got {type(loads).__name__}")
+        if tuple(loads.names) != expected:
+            raise LoadsFileError(f"load case {name!r}: columns {loads.names} are not the inputs of machine "
+                                 f"{machine.name!r} in order {expected} (read it with fem.loads.read_loads)")
+        if loads.values.shape != (len(loads.time_s), len(expected)) or len(loads.time_s) < 2:
+            raise LoadsFileError(f"load case {name!r}: needs at least two rows of {len(expected)} inputs, "
+                                 f"got values of shape {loads.values.shape}")
+        if np.any(np.diff(loads.time_s) <= 0):
+            raise LoadsFileError(f"load case {name!r}: time_s does not increase strictly")
+
+
+def write_case_atomically(out_dir: Path, result: CaseResult) -> Path:
+    """Write ``out_dir/<case>.csv`` through a unique temporary file and an atomic rename."""
+    path = out_dir / f"{result.name}.csv"
+    tmp = out_dir / f".{result.name}.csv.{os.getpid()}.{uuid.uuid4().hex}.tmp"
+    try:
+        write_outputs(tmp, result.time_s, result.sensor_names, result.sensors_degC, result.drift_um)
+        with tmp.open("rb") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+# --------------------------------------------------------------------------- executors
+
+
+def _fork_server_context(threads: int) -> multiprocessing.context.BaseContext:
+    """A fork-server context whose server (and so every worker) starts with ``threads`` BLAS threads.
+
+    Workers fork from a small clean server process instead of this (possibly multi-threaded) one,
+    and the thread variables take effect because the server reads them before any BLAS is loaded.
+    """
+    ctx = multiprocessing.get_context("forkserver")
+    from multiprocessing import forkserver
+
+    running = getattr(forkserver._forkserver, "_forkserver_pid", None) is not None
+    if running:
+        log.debug("fork server already running; its BLAS thread settings are kept")
+        return ctx
+    saved = {k: os.environ.get(k) for k in WORKER_ENVIRONMENT}
+    os.environ.update({k: str(threads) for k in WORKER_ENVIRONMENT})
+    try:
+        forkserver.ensure_running()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return ctx
+
+
+def _run_futures(executor: cf.Executor, spec, options, cases, done: Callable[[CaseResult], None]) -> None:
+    futures = {executor.submit(run_case, spec, options, name, loads): name for name, loads in cases.items()}
+    try:
+        for f in cf.as_completed(futures):
+            if isinstance(f.exception(), cf.process.BrokenProcessPool):
+                raise f.exception()
+            if f.exception() is not None:
+                raise BatchError(f"load case {futures[f]!r} failed: {f.exception()}") from f.exception()
+            done(f.result())
+    except cf.process.BrokenProcessPool:
+        # harvest what finished before the pool broke, the rest is resubmitted
+        for f in futures:
+            if f.done() and not f.cancelled() and f.exception() is None:
+                done(f.result())
+        raise
+    finally:
+        for f in futures:
+            f.cancel()
+
+
+def _run_process_pool(workers, threads, max_restarts, spec, options, cases, done) -> None:
+    pending = dict(cases)
+
+    def record(r: CaseResult) -> None:
+        if r.name in pending:
+            del pending[r.name]
+            done(r)
+
+    for attempt in range(max_restarts + 1):
+        pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=_fork_server_context(threads))
+        try:
+            _run_futures(pool, spec, options, dict(pending), record)
+            return
+        except cf.process.BrokenProcessPool as exc:
+            log.warning("a worker process died (%s); resubmitting %d unfinished load cases on a new pool",
+                        exc, len(pending))
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+    raise BatchError(f"the process pool broke {max_restarts + 1} times; {len(pending)} load cases unfinished: "
+                     f"{sorted(pending)[:5]}")
+
+
+def _import_distributed():
+    try:
+        import dask
+        import distributed
+    except ImportError:
+        raise ImportError("Dask executors need dask.distributed: pip install 'hybridcomp[dask]'") from None
+    return dask, distributed
+
+
+@contextlib.contextmanager
+def dask_client(address: str, workers: int | None = None, threads: int = 1) -> Iterator:
+    """A Dask client: ``"local"`` starts a LocalCluster of ``workers`` processes, else connect to ``address``."""
+    dask, distributed = _import_distributed()
+    if address == "local":
+        n = workers or os.cpu_count() or 1
+        config = {**DASK_CONFIG, **{f"distributed.nanny.pre-spawn-environ.{k}": str(threads) for k in WORKER_ENVIRONMENT}}
+        with dask.config.set(config):
+            cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                               dashboard_address=None, host="127.0.0.1")
+        try:
+            with distributed.Client(cluster) as client:
+                yield client
+        finally:
+            cluster.close()
+    else:
+        with distributed.Client(address, timeout="30s") as client:
+            yield client
+
+
+def _run_dask(client, spec, options, cases, done, warm: bool) -> None:
+    _, distributed = _import_distributed()
+    if warm:
+        client.run(warm_up, spec)  # build the operators on every worker at once, not on the first case of each
+    [spec_f] = client.scatter([spec], broadcast=True, hash=False)
+    token = uuid.uuid4().hex[:8]
+    futures = {client.submit(run_case, spec_f, options, name, loads, key=f"hybridcomp-case-{name}-{token}", pure=False): name
+               for name, loads in cases.items()}
+    seen: set[str] = set()
+    try:
+        for f in distributed.as_completed(list(futures)):
+            name = futures[f]
+            if f.status != "finished":
+                exc = f.exception()
+                raise BatchError(f"load case {name!r} failed on the Dask cluster: {type(exc).__name__}: {exc}")
+            r = f.result()
+            if name not in seen:
+                seen.add(name)
+                done(r)
+    finally:
+        unfinished = [f for f in futures if not f.done()]
+        if unfinished:
+            client.cancel(unfinished)
+
+
+# --------------------------------------------------------------------------- the batch
+
+
+def run_batch(
+    machine: Machine,
+    loads: Mapping[str, Loads] | str | Path,
+    *,
+    pose_mm: Mapping[str, float] | None = None,
+    element_size_mm: float | None = None,
+    theta: float = 1.0,
+    initial: str = "steady",
+    dt_s: float | None = None,
+    executor: str | object = "process",
+    workers: int | None = None,
+    threads_per_worker: int = 1,
+    out_dir: str | Path | None = None,
+    progress: bool = False,
+    warm: bool = True,
+    max_restarts: int = 3,
+    on_result: Callable[[CaseResult], None] | None = None,
+) -> dict[str, CaseResult]:
+    """Simulate many load cases of one machine at one pose.
+
+    Parameters
+    ----------
+    machine : the machine (``models.load_machine``)
+    loads : case name → :class:`~hybridcomp.fem.loads.Loads`, or a directory of loads CSVs (case = file stem)
+    pose_mm : axis positions [mm]; missing axes at mid travel
+    element_size_mm : largest element edge [mm]; default from the machine file
+    theta, initial : as :func:`hybridcomp.fem.transient.simulate`
+    dt_s : resample every case to this uniform time step [s] (default: each case's own times)
+    executor : ``"serial"``, ``"process"`` (default), ``"local"`` (Dask LocalCluster), a Dask scheduler address
+        (``"tcp://HOST:8786"``), a ``concurrent.futures.Executor`` or a ``distributed.Client``
+    workers : worker processes for ``"process"`` and ``"local"`` (default: the number of cores)
+    threads_per_worker : BLAS / OpenMP threads of each worker process started here
+    out_dir : if given, write ``out_dir/<case>.csv`` (outputs-CSV columns) atomically per case and ``batch.json``
+    progress : a progress bar over load cases (tqdm)
+    warm : on Dask, build the operators on every worker before submitting the cases
+    max_restarts : times a broken local process pool is replaced before giving up
+    on_result : called in this process with each result as it arrives
+
+    Returns
+    -------
+    case name → :class:`CaseResult`, in the order of ``loads``
+    """
+    if not 0.5 <= theta <= 1.0:
+        raise ValueError(f"theta must be in [0.5, 1], got {theta}")
+    if initial not in ("steady", "reference"):
+        raise ValueError(f"initial must be 'steady' or 'reference', got {initial!r}")
+    if dt_s is not None and not dt_s > 0:
+        raise ValueError(f"dt_s must be positive, got {dt_s}")
+    if element_size_mm is not None and not element_size_mm > 0:
+        raise ValueError(f"element_size_mm must be positive, got {element_size_mm}")
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    if threads_per_worker < 1:
+        raise ValueError(f"threads_per_worker must be at least 1, got {threads_per_worker}")
+    cases = read_loads_dir(loads, machine) if isinstance(loads, (str, Path)) else dict(loads)
+    check_cases(cases, machine)
+    pose = machine.check_pose(dict(pose_mm or {}))
+    spec = ModelSpec(machine, tuple(sorted((k, float(v)) for k, v in pose.items())),
+                     None if element_size_mm is None else float(element_size_mm))
+    options = SimulationOptions(theta=float(theta), initial=initial, dt_s=dt_s)
+    out = None
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+
+    results: dict[str, CaseResult] = {}
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(cases), unit="case", desc="load cases")
+
+    def done(r: CaseResult) -> None:
+        if r.name in results:  # a case reported twice (a retried task whose first attempt also finished)
+            log.debug("load case %s reported again by %s; kept the first result", r.name, r.worker)
+            return
+        if out is not None:
+            r = dataclasses.replace(r, path=write_case_atomically(out, r))
+        results[r.name] = r
+        if bar is not None:
+            bar.update()
+        if on_result is not None:
+            on_result(r)
+
+    t0 = time.perf_counter()
+    kind = executor if isinstance(executor, str) else type(executor).__name__
+    try:
+        if executor == "serial":
+            for name, case in cases.items():
+                done(run_case(spec, options, name, case))
+        elif executor == "process":
+            _run_process_pool(workers or os.cpu_count() or 1, threads_per_worker, max_restarts, spec, options, cases, done)
+        elif isinstance(executor, str):
+            if executor != "local" and "://" not in executor:
+                raise ValueError(f"executor {executor!r}: use 'serial', 'process', 'local' or a Dask scheduler "
+                                 "address such as tcp://HOST:8786")
+            with dask_client(executor, workers, threads_per_worker) as client:
+                _run_dask(client, spec, options, cases, done, warm)
+        elif isinstance(executor, cf.Executor):
+            _run_futures(executor, spec, options, cases, done)
+        elif type(executor).__module__.startswith("distributed"):
+            _run_dask(executor, spec, options, cases, done, warm)
+        else:
+            raise TypeError(f"executor: expected a name, a concurrent.futures.Executor or a distributed.Client, "
+                            f"got {type(executor).__name__}")
+    finally:
+        if bar is not None:
+            bar.close()
+    wall = time.perf_counter() - t0
+    missing = [n for n in cases if n not in results]
+    if missing:
+        raise BatchError(f"{len(missing)} load cases returned no result: {missing[:5]}")
+    log.info("%d load cases on %s in %.2f s", len(cases), kind, wall)
+    if out is not None:
+        info = {
+            "machine": machine.name,
+            "machine_file": Path(machine.source).name,
+            "machine_sha256": machine.sha256,
+            "pose_mm": pose,
+            "element_size_mm": element_size_mm,
+            "theta": theta,
+            "initial": initial,
+            "dt_s": dt_s,
+            "executor": kind,
+            "wall_s": wall,
+            "cases": {n: {"file": f"{n}.csv", "worker": results[n].worker, "compute_s": results[n].compute_s}
+                      for n in cases},
+        }
+        tmp = out / f".batch.json.{os.getpid()}.tmp"
+        tmp.write_text(json.dumps(info, indent=2))
+        os.replace(tmp, out / "batch.json")
+    return {n: results[n] for n in cases}
