@@ -1,1 +1,11 @@
-"""The monitoring daemon (not built yet)."""
+"""The monitoring daemon: compensation from the active CDs, the structure model watching whether they still fit.
+
+* :mod:`hybridcomp.monitor.decisions` — every decision as a pure function (offset clamp and rate limit,
+  sensor faults, time stamps, keep/switch/regenerate, model drift, reconnect backoff)
+* :mod:`hybridcomp.monitor.config` — the TOML configuration
+* :mod:`hybridcomp.monitor.sources` — replay of a trace CSV, OPC UA client; the injected clock
+* :mod:`hybridcomp.monitor.sinks` — JSON lines, CSV, OPC UA
+* :mod:`hybridcomp.monitor.daemon` — :class:`Monitor` (the state) and :func:`run_monitor` (the asyncio shell)
+* :mod:`hybridcomp.monitor.regeneration` — the background CD generation job
+* :mod:`hybridcomp.monitor.scenario` — the hybrid scenario and drift metrics
+"""

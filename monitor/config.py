@@ -1,0 +1,408 @@
+"""The monitor's TOML configuration: typed, validated, every key checked.
+
+A misspelt key is an error with a did-you-mean hint, never silently ignored.
+Relative paths are relative to the configuration file. See ``monitor/README.md``
+for an annotated example; :func:`example_config` writes one.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from hybridcomp.monitor.decisions import Backoff, SensorRules
+
+
+class ConfigError(ValueError):
+    """The monitor configuration is invalid; the message names the file, the key and the value."""
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    """Where the machine data comes from.
+
+    Attributes
+    ----------
+    kind : ``"replay"`` (a trace CSV) or ``"opcua"`` (an OPC UA server of the machine control)
+    path : trace CSV to replay
+    speed : replay time acceleration [-] (machine seconds per wall second; 0: as fast as possible)
+    start_s : skip samples before this machine time [s]
+    url : OPC UA endpoint, e.g. ``opc.tcp://127.0.0.1:4840``
+    nodes : trace column -> OPC UA node id (``time_s``, ``x_mm`` ..., ``spindle_rpm``, ``T1_degC`` ..., ``Tamb_degC``)
+    publishing_interval_ms : OPC UA subscription publishing interval [ms]
+    stale_s : no sample for this long (wall time) means the connection is checked [s]
+    """
+
+    kind: str = "replay"
+    path: Path | None = None
+    speed: float = 1.0
+    start_s: float = -math.inf
+    url: str = ""
+    nodes: Mapping[str, str] = field(default_factory=dict)
+    publishing_interval_ms: float = 100.0
+    stale_s: float = 5.0
+
+
+@dataclass(frozen=True)
+class SinkConfig:
+    """Where the compensation offsets go.
+
+    Attributes
+    ----------
+    kind : ``"jsonl"``, ``"csv"``, ``"opcua"`` or ``"none"``
+    path : output file (jsonl, csv)
+    url : OPC UA endpoint (opcua)
+    nodes : ``dx_um``/``dy_um``/``dz_um`` -> node id to write (opcua)
+    """
+
+    kind: str = "jsonl"
+    path: Path | None = None
+    url: str = ""
+    nodes: Mapping[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RegenerationConfig:
+    """The background generation of a new CD set.
+
+    Attributes
+    ----------
+    enabled : whether the monitor may generate CD sets
+    job : ``"module:function"`` called in a worker process with a :class:`~hybridcomp.monitor.regeneration.RegenerationRequest`
+    timeout_s : wall-clock limit of one job [s]; a job over it is killed
+    element_size_mm : FE element size for the job [mm]
+    history_s : how much of the recent load history the job gets [s]
+    """
+
+    enabled: bool = True
+    job: str = "hybridcomp.monitor.regeneration:default_job"
+    timeout_s: float = 3600.0
+    element_size_mm: float = 80.0
+    history_s: float = 8 * 3600.0
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    """The whole configuration (see the module docstring and ``monitor/README.md``).
+
+    Attributes
+    ----------
+    machine : machine name or machine file
+    pose_mm : pose of the CDs [mm] (default: the machine's default pose)
+    database : CD database (path of an SQLite file or an SQLAlchemy URL)
+    rom : reduced structure model file (``hybridcomp reduce``)
+    compensation_interval_s : compensation cycle in machine time [s]
+    monitoring_interval_s : monitoring cycle in machine time [s]
+    increment_s : histogram increment [s] (the monitoring interval is a whole multiple of it)
+    threshold_K : |T_actual − T_reference| above which the active CD set no longer fits [K]
+    model_drift_K : |ROM − measured| at a sensor above which a model-drift event is raised [K]
+    max_offset_um : largest compensation offset magnitude [µm]
+    max_step_um : largest change of an offset per compensation cycle [µm]
+    sensors : plausibility rules for the temperature sensors
+    source, sink, regeneration : see their classes
+    reconnect : backoff schedule for a dropped data source or sink
+    prometheus_port : serve Prometheus text metrics on 127.0.0.1 at this port (0: off)
+    source_file : the file the configuration was read from
+    """
+
+    machine: str
+    database: str
+    rom: Path
+    pose_mm: Mapping[str, float] | None = None
+    compensation_interval_s: float = 5.0
+    monitoring_interval_s: float = 900.0
+    increment_s: float = 300.0
+    threshold_K: float = 0.5
+    model_drift_K: float = 1.0
+    max_offset_um: float = 200.0
+    max_step_um: float = 5.0
+    sensors: SensorRules = field(default_factory=SensorRules)
+    source: SourceConfig = field(default_factory=SourceConfig)
+    sink: SinkConfig = field(default_factory=SinkConfig)
+    regeneration: RegenerationConfig = field(default_factory=RegenerationConfig)
+    reconnect: Backoff = field(default_factory=Backoff)
+    prometheus_port: int = 0
+    source_file: str = "<config>"
+
+
+_MONITOR_KEYS = {
+    "machine", "pose_mm", "database", "rom", "compensation_interval_s", "monitoring_interval_s", "increment_s",
+    "threshold_K", "model_drift_K", "prometheus_port",
+}
+_SECTIONS = {
+    "monitor": _MONITOR_KEYS,
+    "compensation": {"max_offset_um", "max_step_um"},
+    "sensors": {"hold_s", "frozen_s", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
+    "source": {"kind", "path", "speed", "start_s", "url", "nodes", "publishing_interval_ms", "stale_s"},
+    "sink": {"kind", "path", "url", "nodes"},
+    "regeneration": {"enabled", "job", "timeout_s", "element_size_mm", "history_s"},
+    "reconnect": {"initial_s", "factor", "max_s", "jitter"},
+}
+SOURCE_KINDS = ("replay", "opcua")
+SINK_KINDS = ("jsonl", "csv", "opcua", "none")
+
+
+def _hint(key: str, allowed) -> str:
+    close = difflib.get_close_matches(key, sorted(allowed), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else f" (allowed: {', '.join(sorted(allowed))})"
+
+
+class _Reader:
+    def __init__(self, src: str, section: str, table: Mapping):
+        self.src, self.section, self.t = src, section, table
+        if not isinstance(table, Mapping):
+            raise ConfigError(f"{src}: [{section}] must be a table, got {table!r}")
+        for k in table:
+            if k not in _SECTIONS[section]:
+                raise ConfigError(f"{src}: unknown key {section}.{k}{_hint(k, _SECTIONS[section])}")
+
+    def err(self, key, msg) -> ConfigError:
+        return ConfigError(f"{self.src}: {self.section}.{key} {msg}")
+
+    def number(self, key, default, *, positive=False, nonneg=False, integer=False):
+        if key not in self.t:
+            return default
+        v = self.t[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or (isinstance(v, float) and math.isnan(v)):
+            raise self.err(key, f"must be a number, got {v!r}")
+        if integer and int(v) != v:
+            raise self.err(key, f"must be a whole number, got {v!r}")
+        if positive and not v > 0:
+            raise self.err(key, f"must be positive, got {v!r}")
+        if nonneg and not v >= 0:
+            raise self.err(key, f"must not be negative, got {v!r}")
+        return int(v) if integer else float(v)
+
+    def string(self, key, default, choices=None):
+        if key not in self.t:
+            return default
+        v = self.t[key]
+        if not isinstance(v, str) or not v:
+            raise self.err(key, f"must be a non-empty string, got {v!r}")
+        if choices and v not in choices:
+            raise self.err(key, f"is {v!r}, must be one of {', '.join(choices)}")
+        return v
+
+    def boolean(self, key, default):
+        if key not in self.t:
+            return default
+        v = self.t[key]
+        if not isinstance(v, bool):
+            raise self.err(key, f"must be true or false, got {v!r}")
+        return v
+
+    def path(self, key, base: Path, default=None):
+        v = self.string(key, None)
+        if v is None:
+            return default
+        p = Path(v)
+        return p if p.is_absolute() else base / p
+
+    def mapping(self, key, value_kind=str):
+        if key not in self.t:
+            return {}
+        v = self.t[key]
+        if not isinstance(v, Mapping):
+            raise self.err(key, f"must be a table, got {v!r}")
+        for k, x in v.items():
+            ok = isinstance(x, str) if value_kind is str else (isinstance(x, (int, float)) and not isinstance(x, bool))
+            if not ok:
+                raise self.err(f"{key}.{k}", f"must be a {'string' if value_kind is str else 'number'}, got {x!r}")
+        return {k: (x if value_kind is str else float(x)) for k, x in v.items()}
+
+
+def _database_url(text: str, base: Path) -> str:
+    if "://" in text:
+        return text
+    p = Path(text)
+    return str(p if p.is_absolute() else base / p)
+
+
+def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None = None) -> MonitorConfig:
+    """Build a :class:`MonitorConfig` from parsed TOML, checking every key and value."""
+    base = Path(base_dir) if base_dir is not None else Path.cwd()
+    for sec in data:
+        if sec not in _SECTIONS:
+            raise ConfigError(f"{source}: unknown section [{sec}]{_hint(sec, _SECTIONS)}")
+    if "monitor" not in data:
+        raise ConfigError(f"{source}: section [monitor] is missing (it needs machine, database and rom)")
+    m = _Reader(source, "monitor", data["monitor"])
+    for req in ("machine", "database", "rom"):
+        if req not in m.t:
+            raise ConfigError(f"{source}: monitor.{req} is missing")
+    machine = m.string("machine", None)
+    mp = base / machine
+    if machine.endswith(".toml") and not Path(machine).is_absolute():
+        machine = str(mp)
+    comp = m.number("compensation_interval_s", 5.0, positive=True)
+    mon = m.number("monitoring_interval_s", 900.0, positive=True)
+    inc = m.number("increment_s", 300.0, positive=True)
+    ratio = mon / inc
+    if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+        raise ConfigError(f"{source}: monitor.monitoring_interval_s {mon:g} must be a whole multiple of monitor.increment_s {inc:g}")
+    if comp > mon:
+        raise ConfigError(f"{source}: monitor.compensation_interval_s {comp:g} is longer than monitor.monitoring_interval_s {mon:g}")
+    pose = m.mapping("pose_mm", float) or None
+
+    c = _Reader(source, "compensation", data.get("compensation", {}))
+    s = _Reader(source, "sensors", data.get("sensors", {}))
+    d = SensorRules()
+    try:
+        rules = SensorRules(
+            hold_s=s.number("hold_s", d.hold_s, nonneg=True),
+            frozen_s=s.number("frozen_s", d.frozen_s, nonneg=True),
+            spike_K=s.number("spike_K", d.spike_K, positive=True),
+            spike_rate_K_s=s.number("spike_rate_K_s", d.spike_rate_K_s, nonneg=True),
+            min_degC=s.number("min_degC", d.min_degC),
+            max_degC=s.number("max_degC", d.max_degC),
+        )
+    except ValueError as exc:
+        raise ConfigError(f"{source}: [sensors] {exc}") from None
+
+    so = _Reader(source, "source", data.get("source", {}))
+    kind = so.string("kind", "replay", SOURCE_KINDS)
+    src = SourceConfig(
+        kind=kind,
+        path=so.path("path", base),
+        speed=so.number("speed", 1.0, nonneg=True),
+        start_s=so.number("start_s", -math.inf),
+        url=so.string("url", ""),
+        nodes=so.mapping("nodes"),
+        publishing_interval_ms=so.number("publishing_interval_ms", 100.0, positive=True),
+        stale_s=so.number("stale_s", 5.0, positive=True),
+    )
+    if kind == "replay" and src.path is None:
+        raise ConfigError(f"{source}: source.path is missing (the trace CSV to replay)")
+    if kind == "opcua":
+        if not src.url:
+            raise ConfigError(f"{source}: source.url is missing (the OPC UA endpoint)")
+        if "time_s" not in src.nodes:
+            raise ConfigError(f"{source}: source.nodes.time_s is missing (the node with the machine time)")
+
+    si = _Reader(source, "sink", data.get("sink", {}))
+    sink = SinkConfig(kind=si.string("kind", "jsonl", SINK_KINDS), path=si.path("path", base), url=si.string("url", ""),
+                      nodes=si.mapping("nodes"))
+    if sink.kind in ("jsonl", "csv") and sink.path is None:
+        raise ConfigError(f"{source}: sink.path is missing (the {sink.kind} file for the offsets)")
+    if sink.kind == "opcua" and not (sink.url and sink.nodes):
+        raise ConfigError(f"{source}: sink.url and sink.nodes are needed for an OPC UA sink")
+    bad = [k for k in sink.nodes if k not in ("dx_um", "dy_um", "dz_um")]
+    if bad:
+        raise ConfigError(f"{source}: sink.nodes.{bad[0]} is not an offset (dx_um, dy_um, dz_um)")
+
+    r = _Reader(source, "regeneration", data.get("regeneration", {}))
+    regen = RegenerationConfig(
+        enabled=r.boolean("enabled", True),
+        job=r.string("job", RegenerationConfig.job),
+        timeout_s=r.number("timeout_s", RegenerationConfig.timeout_s, positive=True),
+        element_size_mm=r.number("element_size_mm", RegenerationConfig.element_size_mm, positive=True),
+        history_s=r.number("history_s", RegenerationConfig.history_s, positive=True),
+    )
+    if ":" not in regen.job:
+        raise ConfigError(f"{source}: regeneration.job {regen.job!r} must be 'module:function'")
+
+    b = _Reader(source, "reconnect", data.get("reconnect", {}))
+    db = Backoff()
+    try:
+        backoff = Backoff(
+            b.number("initial_s", db.initial_s, positive=True), b.number("factor", db.factor, positive=True),
+            b.number("max_s", db.max_s, positive=True), b.number("jitter", db.jitter, nonneg=True),
+        )
+    except ValueError as exc:
+        raise ConfigError(f"{source}: [reconnect] {exc}") from None
+
+    port = m.number("prometheus_port", 0, nonneg=True, integer=True)
+    return MonitorConfig(
+        machine=machine,
+        database=_database_url(m.string("database", None), base),
+        rom=m.path("rom", base),
+        pose_mm=pose,
+        compensation_interval_s=comp,
+        monitoring_interval_s=mon,
+        increment_s=inc,
+        threshold_K=m.number("threshold_K", 0.5, positive=True),
+        model_drift_K=m.number("model_drift_K", 1.0, positive=True),
+        max_offset_um=c.number("max_offset_um", 200.0, positive=True),
+        max_step_um=c.number("max_step_um", 5.0, positive=True),
+        sensors=rules,
+        source=src,
+        sink=sink,
+        regeneration=regen,
+        reconnect=backoff,
+        prometheus_port=port,
+        source_file=source,
+    )
+
+
+def load_config(path: str | Path) -> MonitorConfig:
+    """Read and check a monitor TOML file."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the configuration: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return parse_config(data, str(path), path.parent)
+
+
+EXAMPLE = """\
+# hybridcomp monitor configuration (hybridcomp monitor run --config monitor.toml)
+[monitor]
+machine = "vmc800"                 # bundled machine name or a machine file
+database = "cd.db"                 # SQLite file or any SQLAlchemy URL (postgresql+psycopg://...)
+rom = "vmc800.rom.npz"             # hybridcomp reduce --machine vmc800 --out vmc800.rom.npz
+compensation_interval_s = 5        # machine time between compensation cycles [s]
+monitoring_interval_s = 900        # machine time between monitoring cycles [s]
+increment_s = 300                  # histogram increment [s]
+threshold_K = 0.5                  # |T_actual - T_reference| that trips a switch or a generation [K]
+model_drift_K = 1.0                # |ROM - measured| at a sensor that raises a model-drift event [K]
+prometheus_port = 0                # 0: off; else Prometheus text metrics on 127.0.0.1:port/metrics
+
+[compensation]
+max_offset_um = 200                # offsets are clamped to this magnitude [um]
+max_step_um = 5                    # and change by at most this much per compensation cycle [um]
+
+[sensors]
+hold_s = 60                        # a bad reading is replaced by the last good value this long [s]
+frozen_s = 1800                    # a reading unchanged this long is frozen [s]
+spike_K = 2.0                      # a jump larger than this (plus spike_rate_K_s per second) is a spike [K]
+spike_rate_K_s = 0.01
+min_degC = -10                     # plausible range [degC]
+max_degC = 80
+
+[source]
+kind = "replay"                    # or "opcua"
+path = "jobshop_trace.csv"         # trace CSV (time_s, x_mm, y_mm, z_mm, spindle_rpm, T1_degC..., Tamb_degC)
+speed = 60                         # machine seconds per wall second (0: as fast as possible)
+# kind = "opcua"
+# url = "opc.tcp://127.0.0.1:4840"
+# nodes = { time_s = "ns=2;s=time_s", x_mm = "ns=2;s=x_mm", y_mm = "ns=2;s=y_mm", z_mm = "ns=2;s=z_mm",
+#           spindle_rpm = "ns=2;s=spindle_rpm", T1_degC = "ns=2;s=T1_degC", Tamb_degC = "ns=2;s=Tamb_degC" }
+
+[sink]
+kind = "jsonl"                     # "jsonl", "csv", "opcua" or "none"
+path = "offsets.jsonl"
+
+[regeneration]
+enabled = true
+job = "hybridcomp.monitor.regeneration:default_job"
+timeout_s = 3600                   # wall-clock limit of one generation job [s]
+element_size_mm = 80               # FE mesh of the job [mm]
+history_s = 28800                  # recent load history the job trains on [s]
+
+[reconnect]
+initial_s = 0.5                    # first retry after [s], then x factor up to max_s
+factor = 2.0
+max_s = 30
+jitter = 0.1
+"""
+
+
+def example_config() -> str:
+    """An annotated example configuration (TOML text)."""
+    return EXAMPLE

@@ -1,0 +1,366 @@
+"""Every decision the monitoring daemon makes, as pure functions.
+
+The daemon (:mod:`hybridcomp.monitor.daemon`) is a thin shell that feeds
+these functions and acts on what they return; each is tested on its own
+(``tests/test_monitor_decisions.py``).
+
+* :func:`limit_offsets` — clamp the compensation offsets and limit their change per cycle;
+* :func:`accept_time` — drop samples whose time stamp is repeated or goes backwards;
+* :func:`check_sensor` — NaN, frozen and spiking sensors: hold the last good value for a
+  bounded time, then degrade (the structure model's estimate stands in), recover when the
+  readings are plausible again;
+* :func:`temperature_deviation` — the largest |T_actual − T_reference| over common sensors;
+* :func:`decide` — keep, switch to a stored CD set, regenerate, or warn;
+* :func:`model_drift` — does the structure model still follow the measured sensors;
+* :func:`backoff_delay` — the reconnect schedule for a dropped data source.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+# --------------------------------------------------------------------------- compensation offsets
+
+
+def limit_offsets(
+    target_um: Mapping[str, float],
+    previous_um: Mapping[str, float],
+    max_abs_um: float,
+    max_step_um: float,
+) -> tuple[dict[str, float], bool, bool]:
+    """Clamp offsets to ``±max_abs_um`` and move at most ``max_step_um`` from the previous ones.
+
+    Parameters
+    ----------
+    target_um : offsets the active CDs ask for, per direction (``dx_um`` ...) [µm]
+    previous_um : offsets written in the previous cycle [µm] (a missing direction counts as 0)
+    max_abs_um : largest offset magnitude allowed [µm]
+    max_step_um : largest change per compensation cycle [µm]
+
+    Returns
+    -------
+    the offsets to write [µm], whether any was clamped, whether any was rate limited
+    """
+    if not (max_abs_um >= 0 and max_step_um >= 0):
+        raise ValueError(f"max_abs_um and max_step_um must not be negative, got {max_abs_um}, {max_step_um}")
+    out: dict[str, float] = {}
+    clamped = limited = False
+    for k, v in target_um.items():
+        v = float(v)
+        if not math.isfinite(v):
+            raise ValueError(f"offset {k} is not finite: {v}")
+        c = min(max(v, -max_abs_um), max_abs_um)
+        clamped |= c != v
+        p = float(previous_um.get(k, 0.0))
+        s = min(max(c, p - max_step_um), p + max_step_um)
+        limited |= s != c
+        out[k] = s
+    return out, clamped, limited
+
+
+# --------------------------------------------------------------------------- time stamps
+
+
+def accept_time(last_time_s: float | None, time_s: float) -> str:
+    """Whether a sample's time stamp can be processed after ``last_time_s``.
+
+    Returns
+    -------
+    ``"ok"``, ``"repeated"`` (equal to the last), ``"backwards"`` (before the last) or ``"invalid"`` (NaN/inf)
+    """
+    if not math.isfinite(time_s):
+        return "invalid"
+    if last_time_s is None or time_s > last_time_s:
+        return "ok"
+    return "repeated" if time_s == last_time_s else "backwards"
+
+
+# --------------------------------------------------------------------------- sensors
+
+
+@dataclass(frozen=True)
+class SensorRules:
+    """Plausibility rules for one temperature sensor.
+
+    Attributes
+    ----------
+    hold_s : how long a bad reading is replaced by the last good value before the sensor degrades [s]
+    frozen_s : a reading that has not changed at all for this long is frozen [s]
+    spike_K : a jump larger than this against the last good value is a spike [K] ...
+    spike_rate_K_s : ... plus this rate times the time since the last good value [K/s]
+    min_degC, max_degC : readings outside this range are implausible (open or shorted sensor) [°C]
+    """
+
+    hold_s: float = 60.0
+    frozen_s: float = 1800.0
+    spike_K: float = 2.0
+    spike_rate_K_s: float = 0.01
+    min_degC: float = -10.0
+    max_degC: float = 80.0
+
+    def __post_init__(self):
+        for name in ("hold_s", "frozen_s", "spike_K", "spike_rate_K_s"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"sensor rule {name} must be a non-negative number, got {v!r}")
+        if not self.min_degC < self.max_degC:
+            raise ValueError(f"sensor rule min_degC {self.min_degC!r} must be below max_degC {self.max_degC!r}")
+
+
+@dataclass(frozen=True)
+class SensorState:
+    """What the daemon remembers about one sensor between samples.
+
+    Attributes
+    ----------
+    status : ``"ok"``, ``"holding"`` (a bad reading replaced by the last good value) or ``"degraded"``
+    value_degC : the value in use [°C] (the last good one while holding), NaN before the first
+    good_time_s : time of the last good reading [s]
+    bad_since_s : start of the current run of bad readings [s], NaN when none
+    reason : why the last reading was bad (``"nan"``, ``"spike"``, ``"frozen"``), empty when good
+    raw_degC : the last raw reading [°C] (for the frozen check)
+    raw_since_s : since when the raw reading has not changed [s]
+    """
+
+    status: str = "ok"
+    value_degC: float = math.nan
+    good_time_s: float = math.nan
+    bad_since_s: float = math.nan
+    reason: str = ""
+    raw_degC: float = math.nan
+    raw_since_s: float = math.nan
+
+    def to_dict(self) -> dict:
+        return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in self.__dict__.items()}
+
+    @staticmethod
+    def from_dict(d: Mapping) -> SensorState:
+        return SensorState(**{k: (math.nan if v is None else v) for k, v in d.items()})
+
+
+@dataclass(frozen=True)
+class SensorVerdict:
+    """Result of one sensor check.
+
+    Attributes
+    ----------
+    state : the sensor's new state
+    value_degC : the value to use now [°C] (NaN while degraded: use the structure model's estimate)
+    event : ``None`` or the transition to report (``"holding"``, ``"degraded"``, ``"recovered"``)
+    """
+
+    state: SensorState
+    value_degC: float
+    event: str | None = None
+
+
+def check_sensor(
+    state: SensorState, time_s: float, raw_degC: float, rules: SensorRules, reference_degC: float = math.nan
+) -> SensorVerdict:
+    """Check one reading of a temperature sensor and decide which value to use.
+
+    A reading is bad when it is NaN, outside ``[min_degC, max_degC]``, jumps
+    against the last good value by more than ``spike_K + spike_rate_K_s · (time
+    since it)`` (a spike), or has not changed at all for ``frozen_s`` (a frozen
+    sensor or a dead bus). A bad reading is replaced by the last good value for
+    up to ``hold_s``; after that the sensor is ``"degraded"`` and the value is
+    NaN (the caller substitutes the structure model's estimate, see
+    :func:`substitute`). A good reading ends holding at once. A degraded sensor
+    recovers with the first reading that is plausible: in range, not frozen,
+    and within ``spike_K`` of ``reference_degC`` (the stand-in value) when the
+    caller has one.
+
+    Parameters
+    ----------
+    state : the sensor's state after the previous reading
+    time_s : time of this reading [s]
+    raw_degC : the reading [°C] (NaN for a missing value)
+    rules : thresholds
+    reference_degC : the value the caller uses for a degraded sensor [°C] (NaN: none)
+    """
+    # frozen bookkeeping (exactly repeated raw values)
+    if math.isfinite(raw_degC) and raw_degC == state.raw_degC:
+        raw_since = state.raw_since_s
+    else:
+        raw_since = time_s
+    st = replace(state, raw_degC=raw_degC if math.isfinite(raw_degC) else math.nan, raw_since_s=raw_since)
+
+    reason = ""
+    if not math.isfinite(raw_degC):
+        reason = "nan"
+    elif not rules.min_degC <= raw_degC <= rules.max_degC:
+        reason = "range"
+    elif st.status == "degraded":
+        if math.isfinite(reference_degC) and abs(raw_degC - reference_degC) > rules.spike_K:
+            reason = "spike"
+    elif math.isfinite(st.value_degC):
+        allowed = rules.spike_K + rules.spike_rate_K_s * max(0.0, time_s - st.good_time_s)
+        if abs(raw_degC - st.value_degC) > allowed:
+            reason = "spike"
+    if not reason and math.isfinite(raw_since) and time_s - raw_since >= rules.frozen_s > 0:
+        reason = "frozen"
+
+    if not reason:
+        event = "recovered" if state.status == "degraded" else None
+        new = replace(st, status="ok", value_degC=float(raw_degC), good_time_s=time_s, bad_since_s=math.nan, reason="")
+        return SensorVerdict(new, float(raw_degC), event)
+
+    if st.status == "degraded":
+        return SensorVerdict(replace(st, reason=reason), math.nan, None)
+    bad_since = st.bad_since_s if math.isfinite(st.bad_since_s) else time_s
+    if reason == "frozen":  # the value has been stuck since raw_since: count the hold from there
+        bad_since = min(bad_since, raw_since + rules.frozen_s)
+    if not math.isfinite(st.value_degC) or time_s - bad_since > rules.hold_s:
+        new = replace(st, status="degraded", bad_since_s=bad_since, reason=reason)
+        return SensorVerdict(new, math.nan, "degraded")
+    event = "holding" if st.status == "ok" else None
+    new = replace(st, status="holding", bad_since_s=bad_since, reason=reason)
+    return SensorVerdict(new, st.value_degC, event)
+
+
+def substitute(model_degC: float, bias_K: float) -> float:
+    """Stand-in value of a degraded sensor: the structure model's estimate plus the last known bias [°C].
+
+    ``bias_K`` is measured minus model at the last time the sensor was good [K]
+    (0 when unknown); the model's estimate is NaN when there is none.
+    """
+    return model_degC + (bias_K if math.isfinite(bias_K) else 0.0)
+
+
+# --------------------------------------------------------------------------- monitoring decisions
+
+
+def temperature_deviation(actual_degC: Mapping[str, float], reference_degC: Mapping[str, float]) -> tuple[float, str | None]:
+    """Largest |T_actual − T_reference| over the sensors both name [K], and which sensor.
+
+    NaN entries are skipped; no common finite sensor gives ``(inf, None)`` (no
+    evidence that the set fits).
+    """
+    best, name = -1.0, None
+    for k, r in reference_degC.items():
+        a = actual_degC.get(k)
+        if a is None or not (math.isfinite(a) and math.isfinite(r)):
+            continue
+        d = abs(a - r)
+        if d > best:
+            best, name = d, k
+    return (best, name) if name is not None else (math.inf, None)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A stored CD set the database offers: ids per direction, its load case and its deviation [K]."""
+
+    ids: Mapping[str, int]
+    load_case: str
+    delta_T_K: float
+    distance: float = math.nan
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the monitoring loop does after one interval.
+
+    Attributes
+    ----------
+    action : ``"keep"``, ``"switch"``, ``"regenerate"`` or ``"warn"``
+    reason : one sentence with the numbers
+    delta_T_K : deviation of the active set [K] (inf without an active set)
+    sensor : the sensor with the largest deviation
+    target : the set to switch to (``"switch"``), else None
+    """
+
+    action: str
+    reason: str
+    delta_T_K: float
+    sensor: str | None = None
+    target: Candidate | None = None
+    payload: dict = field(default_factory=dict, compare=False)
+
+
+def decide(
+    delta_T_K: float,
+    sensor: str | None,
+    threshold_K: float,
+    active_ids: Mapping[str, int] | None,
+    candidates: Sequence[Candidate],
+    regeneration_enabled: bool,
+    regeneration_running: bool,
+) -> Decision:
+    """Keep the active CD set, switch to a stored one, regenerate, or warn.
+
+    Parameters
+    ----------
+    delta_T_K : largest |T_actual − T_reference| of the active set [K] (inf: no active set)
+    sensor : the sensor it occurs at
+    threshold_K : deviation above which the active set no longer fits [K]
+    active_ids : ids of the active set per direction, None without one
+    candidates : stored sets that fit the current temperatures, best first (from the database search)
+    regeneration_enabled : whether the monitor may generate a new set
+    regeneration_running : whether a generation job is already under way
+    """
+    if not threshold_K > 0:
+        raise ValueError(f"threshold_K must be positive, got {threshold_K}")
+    active = dict(active_ids) if active_ids else None
+    if active is not None and delta_T_K <= threshold_K:
+        return Decision("keep", f"ΔT {delta_T_K:.3f} K at {sensor} within {threshold_K:g} K", delta_T_K, sensor)
+    what = "no active CD set" if active is None else f"ΔT {delta_T_K:.3f} K at {sensor} above {threshold_K:g} K"
+    for c in candidates:
+        if dict(c.ids) != active:
+            return Decision(
+                "switch", f"{what}; stored set {c.load_case!r} fits with ΔT {c.delta_T_K:.3f} K", delta_T_K, sensor, c
+            )
+    if active is not None and any(dict(c.ids) == active for c in candidates):
+        # the search says the active set fits after all (e.g. over other sensors): keep it
+        return Decision("keep", f"{what}, but the database finds no better set than the active one", delta_T_K, sensor)
+    if regeneration_running:
+        return Decision("warn", f"{what}; no stored set fits, a generation job is already running", delta_T_K, sensor)
+    if regeneration_enabled:
+        return Decision("regenerate", f"{what}; no stored set fits: generating one", delta_T_K, sensor)
+    return Decision("warn", f"{what}; no stored set fits and regeneration is disabled", delta_T_K, sensor)
+
+
+def model_drift(model_degC: Mapping[str, float], measured_degC: Mapping[str, float], threshold_K: float) -> tuple[bool, float, str | None]:
+    """Whether the structure model has drifted from the measured sensors.
+
+    Returns
+    -------
+    drifted (largest |model − measured| above ``threshold_K``), that largest difference [K], the sensor
+    """
+    d, s = temperature_deviation(model_degC, measured_degC)
+    if s is None:
+        return False, math.nan, None
+    return d > threshold_K, d, s
+
+
+# --------------------------------------------------------------------------- reconnecting
+
+
+@dataclass(frozen=True)
+class Backoff:
+    """Reconnect schedule: ``initial_s · factor^attempt`` capped at ``max_s``, with ± ``jitter`` (fraction)."""
+
+    initial_s: float = 0.5
+    factor: float = 2.0
+    max_s: float = 30.0
+    jitter: float = 0.1
+
+    def __post_init__(self):
+        if not (self.initial_s > 0 and self.factor >= 1 and self.max_s >= self.initial_s and 0 <= self.jitter < 1):
+            raise ValueError(
+                f"backoff needs initial_s > 0, factor >= 1, max_s >= initial_s, 0 <= jitter < 1; got {self}"
+            )
+
+
+def backoff_delay(attempt: int, backoff: Backoff, u: float = 0.5) -> float:
+    """Delay before reconnect attempt ``attempt`` (0 for the first retry) [s].
+
+    ``u`` in [0, 1] is the random draw for the jitter (0.5: none), injected so
+    that the schedule is reproducible.
+    """
+    if attempt < 0:
+        raise ValueError(f"attempt must be >= 0, got {attempt}")
+    base = min(backoff.max_s, backoff.initial_s * backoff.factor ** min(attempt, 1000))
+    return base * (1.0 + backoff.jitter * (2.0 * u - 1.0))

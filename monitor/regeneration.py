@@ -1,0 +1,113 @@
+"""The regeneration job: recent load history → BCs → FE → CD fit → database.
+
+The daemon runs a job in a worker process (``daemon.Regenerator``) with a
+timeout and activates the set the job returns, so a job that fails, hangs or
+dies never touches the active set. A job is any importable function
+``job(request: dict) -> {"ids": {"X": id, "Y": id, "Z": id}, "load_case": str}``
+named ``"module:function"`` in the configuration; the request is the JSON form
+of :class:`RegenerationRequest` (plain data: it crosses a process boundary and
+is stored in the database so that a restart can resubmit it).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RegenerationRequest:
+    """What a generation job needs.
+
+    Attributes
+    ----------
+    machine : machine name or file
+    pose_key, pose_mm : the pose of the CDs (database key, axis positions [mm])
+    database : CD database path or URL
+    machine_time_s : machine time of the decision [s]
+    t_reference_degC : the structure model's sensor temperatures at the decision [°C]; the new set's T_reference
+    signature : load-case signature of the last monitoring interval (or None)
+    loads_names : model input names (``*_W`` powers, ``*_degC`` zone air)
+    loads_time_s : end times of the recent increments [s]
+    loads_inputs : model inputs over each of them (powers [W], air rises over the reference [K])
+    reference_temperature_degC : the model's reference temperature [°C]
+    element_size_mm : FE element size for the job [mm]
+    initial_x : reduced state at the start of the history (reserved; the FE starts from steady state)
+    """
+
+    machine: str
+    pose_key: str
+    pose_mm: dict
+    database: str
+    machine_time_s: float
+    t_reference_degC: dict
+    signature: list | None
+    loads_names: list
+    loads_time_s: list
+    loads_inputs: list
+    reference_temperature_degC: float
+    element_size_mm: float
+    initial_x: list | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> RegenerationRequest:
+        names = {f.name for f in fields(RegenerationRequest)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"regeneration request: unknown field(s) {sorted(unknown)}")
+        return RegenerationRequest(**d)
+
+
+def request_loads(req: RegenerationRequest):
+    """The request's load history as a ``fem.loads.Loads`` (°C air, first row = steady start)."""
+    from hybridcomp.fem.loads import Loads
+
+    t = np.asarray(req.loads_time_s, float)
+    U = np.asarray(req.loads_inputs, float)
+    if t.size < 1 or U.shape != (t.size, len(req.loads_names)):
+        raise ValueError(f"regeneration request at {req.machine_time_s} s has no usable load history "
+                         f"({t.size} times, inputs of shape {U.shape})")
+    start = t[0] - (t[1] - t[0] if t.size > 1 else 300.0)
+    V = U.copy()
+    for j, n in enumerate(req.loads_names):
+        if n.endswith("_degC"):
+            V[:, j] += req.reference_temperature_degC
+    return Loads(np.concatenate([[start], t]), np.vstack([V[:1], V]), tuple(req.loads_names))
+
+
+def default_job(request: dict) -> dict:
+    """BCs of the recent history → FE training run → three CDs → database (the daemon activates them).
+
+    Uses ``hybridcomp.chardiag.training`` and ``hybridcomp.chardiag.fit``; the
+    new CDs' T_reference is the structure model's temperatures at the decision.
+    """
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.chardiag.fit import fit_cd_set
+    from hybridcomp.chardiag.training import LoadCase, simulate_load_cases
+    from hybridcomp.models import load_machine
+
+    t0 = time.monotonic()
+    req = RegenerationRequest.from_dict(request)
+    machine = load_machine(req.machine)
+    loads = request_loads(req)
+    name = f"generated@{req.machine_time_s:.0f}s"
+    sig = None if req.signature is None else np.asarray(req.signature, float)
+    data = simulate_load_cases(machine, {name: LoadCase(name, loads, None, sig)}, pose_mm=req.pose_mm or None,
+                               element_size_mm=req.element_size_mm)
+    cds = fit_cd_set(data.columns, machine=machine.name, machine_sha256=machine.sha256,
+                     pose_mm=machine.check_pose(dict(req.pose_mm or {})), load_case=name, signature=sig,
+                     t_reference_degC=req.t_reference_degC, source=name)
+    db = CDDatabase(req.database)
+    try:
+        ids = {d: int(db.add(cd, load_case=name)) for d, cd in cds.items()}
+    finally:
+        db.close()
+    return {"ids": ids, "load_case": name, "wall_s": time.monotonic() - t0}

@@ -1,0 +1,200 @@
+"""Where the compensation offsets go: JSON lines, CSV, OPC UA, memory.
+
+Every sink has ``async write(offset)`` and ``async close()``. An offset row
+is the TCP drift the active CDs predict, after clamping and rate limiting
+(``dx_um``, ``dy_um``, ``dz_um``; the control subtracts it from the
+position), with the machine time, the ids of the active set and flags.
+A sink that cannot write (an OPC UA server away) logs, retries on the next
+cycle and never stops compensation.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from hybridcomp.monitor.decisions import Backoff, backoff_delay
+
+log = logging.getLogger(__name__)
+
+DIRECTIONS = ("dx_um", "dy_um", "dz_um")
+
+
+@dataclass(frozen=True)
+class Offset:
+    """One compensation cycle's output.
+
+    Attributes
+    ----------
+    time_s : machine time [s]
+    dx_um, dy_um, dz_um : offsets written (predicted TCP drift, clamped and rate limited) [µm]
+    active : ids of the active CD set, ``"X=1,Y=2,Z=3"``, empty without one
+    clamped, limited : whether the clamp or the rate limit acted
+    outside : whether an input was outside the CDs' trained range
+    degraded : sensors standing in by the structure model's estimate
+    """
+
+    time_s: float
+    dx_um: float
+    dy_um: float
+    dz_um: float
+    active: str = ""
+    clamped: bool = False
+    limited: bool = False
+    outside: bool = False
+    degraded: str = ""
+
+    def values(self) -> dict[str, float]:
+        return {"dx_um": self.dx_um, "dy_um": self.dy_um, "dz_um": self.dz_um}
+
+
+class MemorySink:
+    """Keeps the offsets in a list (tests, the scenario runner)."""
+
+    def __init__(self):
+        self.rows: list[Offset] = []
+
+    async def write(self, offset: Offset) -> None:
+        self.rows.append(offset)
+
+    async def close(self) -> None:
+        pass
+
+
+class JsonlSink:
+    """Appends one JSON object per cycle to a file (flushed every ``flush_every`` rows and on close)."""
+
+    def __init__(self, path: str | Path, flush_every: int = 100):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = self.path.open("a")
+        self._n = 0
+        self.flush_every = flush_every
+
+    async def write(self, offset: Offset) -> None:
+        self._fh.write(json.dumps(asdict(offset), allow_nan=False) + "\n")
+        self._n += 1
+        if self._n % self.flush_every == 0:
+            self._fh.flush()
+
+    async def close(self) -> None:
+        self._fh.close()
+
+
+class CsvSink:
+    """Appends one CSV row per cycle (header written when the file is new)."""
+
+    FIELDS = ("time_s", *DIRECTIONS, "active", "clamped", "limited", "outside", "degraded")
+
+    def __init__(self, path: str | Path, flush_every: int = 100):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        new = not self.path.exists() or self.path.stat().st_size == 0
+        self._fh = self.path.open("a", newline="")
+        self._w = csv.writer(self._fh)
+        if new:
+            self._w.writerow(self.FIELDS)
+        self._n = 0
+        self.flush_every = flush_every
+
+    async def write(self, offset: Offset) -> None:
+        d = asdict(offset)
+        self._w.writerow([f"{d[k]:.6f}" if isinstance(d[k], float) else int(d[k]) if isinstance(d[k], bool) else d[k]
+                          for k in self.FIELDS])
+        self._n += 1
+        if self._n % self.flush_every == 0:
+            self._fh.flush()
+
+    async def close(self) -> None:
+        self._fh.close()
+
+
+class OpcUaSink:
+    """Writes the offsets to OPC UA nodes of the control (``dx_um`` ... -> node id), as doubles.
+
+    The connection is made lazily and re-made with the backoff after a failure;
+    while it is down, offsets are dropped (the next cycle writes fresh ones) and
+    counted in :attr:`failed`.
+    """
+
+    def __init__(self, url: str, nodes: dict[str, str], backoff: Backoff = Backoff(), clock=None, timeout_s: float = 2.0):
+        from hybridcomp.monitor.sources import WallClock, _asyncua
+
+        self._ua = _asyncua()
+        self.url = url
+        self.nodes = dict(nodes)
+        self.backoff = backoff
+        self.clock = clock or WallClock()
+        self.timeout_s = timeout_s
+        self._client = None
+        self._attempt = 0
+        self._retry_at = -math.inf
+        self.failed = 0
+        self.written = 0
+
+    async def _connect(self):
+        c = self._ua.Client(self.url, timeout=self.timeout_s)
+        await c.connect()
+        self._nodes = {k: c.get_node(v) for k, v in self.nodes.items()}
+        self._client = c
+
+    async def write(self, offset: Offset) -> None:
+        if self._client is None:
+            if self.clock.monotonic() < self._retry_at:
+                self.failed += 1
+                return
+            try:
+                await self._connect()
+                self._attempt = 0
+            except Exception as exc:  # noqa: BLE001 - any failure: retry later
+                self._retry_at = self.clock.monotonic() + backoff_delay(self._attempt, self.backoff)
+                self._attempt += 1
+                self.failed += 1
+                log.warning("OPC UA sink %s: cannot connect (%r); next try in %.1f s", self.url, exc,
+                            self._retry_at - self.clock.monotonic())
+                return
+        ua = self._ua.ua
+        vals = offset.values()
+        try:
+            for k, node in self._nodes.items():
+                await asyncio.wait_for(node.write_value(ua.DataValue(ua.Variant(float(vals[k]), ua.VariantType.Double))),
+                                       self.timeout_s)
+            self.written += 1
+        except Exception as exc:  # noqa: BLE001
+            self.failed += 1
+            log.warning("OPC UA sink %s: write failed (%r); reconnecting", self.url, exc)
+            await self.close()
+
+    async def close(self) -> None:
+        c, self._client = self._client, None
+        if c is not None:
+            try:
+                await asyncio.wait_for(c.disconnect(), 1.0)
+            except Exception:  # noqa: BLE001
+                pass
+
+
+def make_sink(cfg, backoff: Backoff | None = None, clock=None):
+    """The sink of a :class:`~hybridcomp.monitor.config.SinkConfig`."""
+    if cfg.kind == "jsonl":
+        return JsonlSink(cfg.path)
+    if cfg.kind == "csv":
+        return CsvSink(cfg.path)
+    if cfg.kind == "opcua":
+        return OpcUaSink(cfg.url, dict(cfg.nodes), backoff or Backoff(), clock)
+    if cfg.kind == "none":
+        return _NullSink()
+    raise ValueError(f"unknown sink kind {cfg.kind!r}")
+
+
+class _NullSink:
+    async def write(self, offset: Offset) -> None:
+        pass
+
+    async def close(self) -> None:
+        pass

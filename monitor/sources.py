@@ -1,0 +1,317 @@
+"""Data sources of the monitor behind one interface, and the injected clock.
+
+A source is an object with ``async readings(start_after_s)``, an async
+iterator of :class:`Reading` in machine-time order (the daemon still checks
+the order), that raises :class:`SourceDisconnected` when the connection to the
+machine is lost; the daemon then reconnects with a backoff and calls
+``readings`` again.
+
+* :class:`ReplaySource` — a trace CSV replayed with a time acceleration (the default;
+  demos, tests, the soak benchmark);
+* :class:`OpcUaSource` — an OPC UA client (``asyncua``, extra ``opcua``) subscribed to
+  the configured nodes of the machine control;
+* :class:`ListSource` — readings from memory (tests).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import AsyncIterator, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from hybridcomp.histogram.trace import DRIFT, SPINDLE_RPM, TIME, air_columns, position_column, velocity_column
+from hybridcomp.models.machine import Machine
+
+log = logging.getLogger(__name__)
+
+
+class SourceDisconnected(ConnectionError):
+    """The data source lost (or could not make) its connection; the daemon reconnects with a backoff."""
+
+
+class SourceFileError(ValueError):
+    """A replay trace is unusable; the message names the file, line and column."""
+
+
+@dataclass(frozen=True, slots=True)
+class Reading:
+    """One sample of the machine.
+
+    Attributes
+    ----------
+    time_s : machine time [s]
+    position_mm : axis positions in machine axis order [mm]
+    spindle_rpm : spindle speed [1/min]
+    sensors_degC : temperature sensors by name (``T1`` ...) [°C], NaN for a missing value
+    air_degC : measured air by trace column (``Tamb_degC`` ...) [°C]
+    """
+
+    time_s: float
+    position_mm: tuple[float, ...]
+    spindle_rpm: float
+    sensors_degC: Mapping[str, float]
+    air_degC: Mapping[str, float]
+
+
+class WallClock:
+    """The real clock: monotonic seconds, Unix time and asyncio sleep (tests inject their own)."""
+
+    def monotonic(self) -> float:
+        return time.monotonic()
+
+    def unix(self) -> float:
+        return time.time()
+
+    async def sleep(self, seconds: float) -> None:
+        await asyncio.sleep(max(0.0, seconds))
+
+
+@dataclass(frozen=True)
+class TraceColumns:
+    """Where the monitor's quantities are in a trace header."""
+
+    time: int
+    positions: tuple[int, ...]
+    spindle: int | None
+    sensors: tuple[tuple[str, int], ...]
+    air: tuple[tuple[str, int], ...]
+
+
+def trace_columns(header: Sequence[str], machine: Machine, source: str = "<trace>") -> TraceColumns:
+    """Map a trace header to the monitor's quantities; an unknown column is an error naming it."""
+    idx = {h: i for i, h in enumerate(header)}
+    if TIME not in idx:
+        raise SourceFileError(f"{source}: line 1: column {TIME!r} is missing")
+    pos = []
+    for a in machine.axes:
+        c = position_column(a.name)
+        if c not in idx:
+            raise SourceFileError(f"{source}: line 1: column {c!r} (axis {a.name}) is missing")
+        pos.append(idx[c])
+    sensors = tuple((s.name, idx[f"{s.name}_degC"]) for s in machine.sensors if f"{s.name}_degC" in idx)
+    airs = tuple((c, idx[c]) for c in air_columns(machine) if c in idx)
+    known = {TIME, SPINDLE_RPM, *DRIFT, *(position_column(a.name) for a in machine.axes),
+             *(velocity_column(a.name) for a in machine.axes), *(f"{s.name}_degC" for s in machine.sensors),
+             *air_columns(machine)}
+    for h in header:
+        if h not in known:
+            raise SourceFileError(f"{source}: line 1: unknown column {h!r} (machine {machine.name} sensors: "
+                                  f"{', '.join(s.name + '_degC' for s in machine.sensors)})")
+    return TraceColumns(idx[TIME], tuple(pos), idx.get(SPINDLE_RPM), sensors, airs)
+
+
+def _float(text: str) -> float:
+    return float(text) if text.strip() else math.nan
+
+
+def read_replay(path: str | Path, machine: Machine) -> Iterable[Reading]:
+    """Stream the readings of a trace CSV (line by line; memory does not grow with the file).
+
+    NaN and empty fields are passed on as NaN (the daemon's sensor checks deal
+    with them); a field that is not a number is an error naming line and column.
+    """
+    path = Path(path)
+    with path.open() as fh:
+        header = fh.readline().strip().lstrip("\ufeff").split(",")
+        cols = trace_columns(header, machine, str(path))
+        n = len(header)
+        for lineno, line in enumerate(fh, start=2):
+            f = line.rstrip("\r\n").split(",")
+            if len(f) != n:
+                if not line.strip():
+                    continue
+                raise SourceFileError(f"{path}: line {lineno}: {len(f)} fields, the header has {n}")
+            try:
+                yield Reading(
+                    _float(f[cols.time]),
+                    tuple(_float(f[i]) for i in cols.positions),
+                    _float(f[cols.spindle]) if cols.spindle is not None else 0.0,
+                    {name: _float(f[i]) for name, i in cols.sensors},
+                    {name: _float(f[i]) for name, i in cols.air},
+                )
+            except ValueError:
+                bad = next(h for h, x in zip(header, f) if not _is_number(x))
+                raise SourceFileError(f"{path}: line {lineno}: column {bad!r} is not a number: {f[header.index(bad)]!r}") from None
+
+
+def _is_number(x: str) -> bool:
+    try:
+        _float(x)
+        return True
+    except ValueError:
+        return False
+
+
+class ReplaySource:
+    """Replay a trace CSV in machine time accelerated by ``speed`` (0: as fast as possible).
+
+    Parameters
+    ----------
+    path : trace CSV (``time_s``, axis positions, ``spindle_rpm``, ``T1_degC`` ..., ``Tamb_degC`` ...)
+    machine : the machine (column names)
+    speed : machine seconds per wall second [-]
+    clock : the clock to pace with (default :class:`WallClock`)
+    start_s : readings before this machine time are skipped [s]
+    """
+
+    def __init__(self, path: str | Path, machine: Machine, speed: float = 1.0, clock=None, start_s: float = -math.inf):
+        if not speed >= 0:
+            raise ValueError(f"replay speed must not be negative, got {speed}")
+        self.path = Path(path)
+        self.machine = machine
+        self.speed = float(speed)
+        self.clock = clock or WallClock()
+        self.start_s = start_s
+        self.finished = False
+
+    async def readings(self, start_after_s: float | None = None) -> AsyncIterator[Reading]:
+        after = self.start_s if start_after_s is None else max(self.start_s, start_after_s)
+        t0 = w0 = None
+        n = 0
+        for r in read_replay(self.path, self.machine):
+            if r.time_s <= after:  # (NaN times are passed on: the daemon reports them)
+                continue
+            n += 1
+            if self.speed > 0 and math.isfinite(r.time_s):
+                if t0 is None:
+                    t0, w0 = r.time_s, self.clock.monotonic()
+                wait = w0 + (r.time_s - t0) / self.speed - self.clock.monotonic()
+                if wait > 1e-3:
+                    await self.clock.sleep(wait)
+                elif n % 256 == 0:
+                    await asyncio.sleep(0)
+            elif n % 256 == 0:
+                await asyncio.sleep(0)  # let the other tasks (signals, regeneration, metrics) run
+            yield r
+        self.finished = True
+
+
+class ListSource:
+    """Readings from a list (tests); ``fail_after`` raises :class:`SourceDisconnected` after that many readings once."""
+
+    def __init__(self, readings: Sequence[Reading], fail_after: int | None = None):
+        self._readings = list(readings)
+        self.fail_after = fail_after
+        self.finished = False
+        self.connects = 0
+
+    async def readings(self, start_after_s: float | None = None) -> AsyncIterator[Reading]:
+        self.connects += 1
+        for i, r in enumerate(self._readings):
+            if start_after_s is not None and r.time_s <= start_after_s:
+                continue
+            if self.fail_after is not None and i >= self.fail_after:
+                self.fail_after = None
+                raise SourceDisconnected("planted connection loss")
+            await asyncio.sleep(0)
+            yield r
+        self.finished = True
+
+
+def _asyncua():
+    try:
+        import asyncua
+    except ImportError:  # pragma: no cover - depends on the installation
+        raise ImportError("the OPC UA source and sink need asyncua: pip install 'hybridcomp[opcua]'") from None
+    return asyncua
+
+
+class OpcUaSource:
+    """OPC UA client subscribed to the machine control's nodes.
+
+    One :class:`Reading` is emitted per publish batch in which the time node
+    changed, holding the latest value of every node (a batch is delivered at
+    once, so positions, speeds and temperatures written before the time stamp
+    arrive with it). No data for ``stale_s`` wall seconds makes the source read
+    the server state; a failed read (or connect) raises :class:`SourceDisconnected`.
+
+    Parameters
+    ----------
+    url : endpoint, e.g. ``opc.tcp://127.0.0.1:4840``
+    nodes : trace column -> node id; ``time_s`` is required, ``x_mm`` ... per axis, ``spindle_rpm``,
+        ``<sensor>_degC``, air columns
+    machine : the machine (axes, sensors)
+    publishing_interval_ms : subscription publishing interval [ms]
+    stale_s : silence after which the connection is checked [s]
+    """
+
+    def __init__(self, url: str, nodes: Mapping[str, str], machine: Machine, publishing_interval_ms: float = 100.0,
+                 stale_s: float = 5.0, timeout_s: float = 4.0):
+        cols = trace_columns(list(nodes), machine, f"{url} nodes") if nodes else None
+        if cols is None:
+            raise ValueError("OPC UA source needs nodes (at least time_s and the axis positions)")
+        self.url = url
+        self.nodes = dict(nodes)
+        self.machine = machine
+        self.publishing_interval_ms = float(publishing_interval_ms)
+        self.stale_s = float(stale_s)
+        self.timeout_s = float(timeout_s)
+        self.finished = False
+        self._axes = [position_column(a.name) for a in machine.axes]
+        self._sensors = [s.name for s in machine.sensors if f"{s.name}_degC" in nodes]
+        self._air = [c for c in air_columns(machine) if c in nodes]
+
+    def _reading(self, v: Mapping[str, float]) -> Reading:
+        g = lambda k: float(v.get(k, math.nan)) if v.get(k) is not None else math.nan  # noqa: E731
+        return Reading(
+            g(TIME), tuple(g(c) for c in self._axes), g(SPINDLE_RPM) if SPINDLE_RPM in self.nodes else 0.0,
+            {s: g(f"{s}_degC") for s in self._sensors}, {c: g(c) for c in self._air},
+        )
+
+    async def readings(self, start_after_s: float | None = None) -> AsyncIterator[Reading]:
+        ua = _asyncua()
+        client = ua.Client(self.url, timeout=self.timeout_s)
+        try:
+            await client.connect()
+        except (OSError, asyncio.TimeoutError, ua.ua.UaError) as exc:
+            raise SourceDisconnected(f"{self.url}: cannot connect: {exc!r}") from None
+        try:
+            by_id = {}
+            nodes = []
+            for col, nid in self.nodes.items():
+                node = client.get_node(nid)
+                nodes.append(node)
+                by_id[node.nodeid] = col
+            sub = await client.create_subscription(self.publishing_interval_ms, None, queue_maxsize=100_000)
+            await sub.subscribe_data_change(nodes)
+            values: dict[str, float] = {}
+            last_time = None
+            while True:
+                ev = await sub.next_event(timeout=self.stale_s)
+                if ev is None:
+                    try:
+                        await asyncio.wait_for(client.nodes.server_state.read_value(), self.timeout_s)
+                    except Exception as exc:  # noqa: BLE001 - any failure of the probe means the link is gone
+                        raise SourceDisconnected(f"{self.url}: no data for {self.stale_s:g} s and the server does not answer: {exc!r}") from None
+                    continue
+                batch = [ev]
+                while True:  # the rest of the same publish batch is already queued
+                    try:
+                        batch.append(sub._event_queue.get_nowait())
+                    except (asyncio.QueueEmpty, AttributeError):
+                        break
+                for e in batch:
+                    node = getattr(e, "node", None)
+                    if node is not None and node.nodeid in by_id:
+                        values[by_id[node.nodeid]] = e.value
+                t = values.get(TIME)
+                if t is None or t == last_time:
+                    continue
+                last_time = t
+                r = self._reading(values)
+                if start_after_s is not None and r.time_s <= start_after_s:
+                    continue
+                yield r
+        except (OSError, asyncio.TimeoutError, ConnectionError, ua.ua.UaError) as exc:
+            if isinstance(exc, SourceDisconnected):
+                raise
+            raise SourceDisconnected(f"{self.url}: connection lost: {exc!r}") from None
+        finally:
+            try:
+                await asyncio.wait_for(client.disconnect(), 1.0)
+            except Exception:  # noqa: BLE001 - the connection may already be gone
+                pass

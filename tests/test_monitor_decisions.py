@@ -1,0 +1,206 @@
+"""The monitor's pure decisions: offsets, time stamps, sensors, keep/switch/regenerate, model drift, backoff."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from hybridcomp.monitor.decisions import (
+    Backoff,
+    Candidate,
+    SensorRules,
+    SensorState,
+    accept_time,
+    backoff_delay,
+    check_sensor,
+    decide,
+    limit_offsets,
+    model_drift,
+    substitute,
+    temperature_deviation,
+)
+
+# --------------------------------------------------------------------------- offsets
+
+
+def test_limit_offsets_clamps_then_rate_limits():
+    out, clamped, limited = limit_offsets({"dx_um": 500.0, "dy_um": -3.0, "dz_um": 1.0}, {"dx_um": 95.0}, 100.0, 2.0)
+    assert out == {"dx_um": 97.0, "dy_um": -2.0, "dz_um": 1.0}  # 500 → 100 (clamp) → 95 + 2 (rate)
+    assert clamped and limited
+
+
+def test_limit_offsets_reaches_a_step_target_in_exact_steps():
+    prev = {"dz_um": 0.0}
+    seen = []
+    for _ in range(6):
+        prev, clamped, limited = limit_offsets({"dz_um": -10.0}, prev, 100.0, 3.0)
+        seen.append(prev["dz_um"])
+    assert seen == [-3.0, -6.0, -9.0, -10.0, -10.0, -10.0]
+    assert not clamped and not limited
+
+
+def test_limit_offsets_untouched_within_limits():
+    out, clamped, limited = limit_offsets({"dx_um": 1.5}, {"dx_um": 1.0}, 10.0, 1.0)
+    assert out == {"dx_um": 1.5} and not clamped and not limited
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_limit_offsets_rejects_non_finite(bad):
+    with pytest.raises(ValueError, match="dx_um"):
+        limit_offsets({"dx_um": bad}, {}, 10.0, 1.0)
+
+
+# --------------------------------------------------------------------------- time
+
+
+def test_accept_time():
+    assert accept_time(None, 0.0) == "ok"
+    assert accept_time(1.0, 2.0) == "ok"
+    assert accept_time(2.0, 2.0) == "repeated"
+    assert accept_time(2.0, 1.0) == "backwards"
+    assert accept_time(2.0, math.nan) == "invalid"
+
+
+# --------------------------------------------------------------------------- sensors
+
+RULES = SensorRules(hold_s=10.0, frozen_s=100.0, spike_K=1.0, spike_rate_K_s=0.0)
+
+
+def run(values, rules=RULES, dt=1.0, reference=math.nan):
+    st = SensorState()
+    out = []
+    for k, v in enumerate(values):
+        verdict = check_sensor(st, k * dt, v, rules, reference)
+        st = verdict.state
+        out.append((verdict.value_degC, verdict.event, st.status))
+    return out
+
+
+def test_sensor_nan_is_held_for_hold_s_then_degraded_then_recovers():
+    vals = [20.0, 20.1] + [math.nan] * 13 + [20.3]
+    out = run(vals)
+    assert out[2] == (20.1, "holding", "holding")
+    # held at the last good value up to hold_s = 10 s after the first bad reading at t = 2 s
+    assert all(v == 20.1 and s == "holding" for v, _, s in out[3:13])
+    assert out[13][1] == "degraded" and math.isnan(out[13][0])  # t = 13 s: 11 s > hold_s
+    assert out[14][1] is None and out[14][2] == "degraded"
+    assert out[15] == (20.3, "recovered", "ok")
+
+
+def test_sensor_spike_is_rejected_and_a_short_spike_never_degrades():
+    out = run([20.0, 20.05, 35.0, 20.1])
+    assert out[2] == (20.05, "holding", "holding")
+    assert out[3] == (20.1, None, "ok")
+
+
+def test_sensor_spike_threshold_exact():
+    rules = SensorRules(hold_s=1000.0, frozen_s=0.0, spike_K=1.0, spike_rate_K_s=0.1)
+    st = check_sensor(SensorState(), 0.0, 20.0, rules).state
+    assert check_sensor(st, 1.0, 21.09, rules).event is None  # 1.09 K ≤ 1.1 K
+    assert check_sensor(st, 1.0, 21.11, rules).event == "holding"  # 1.11 K > 1.1 K
+    assert check_sensor(st, 10.0, 21.99, rules).event is None  # ≤ 1 + 0.1·10 = 2 K
+
+
+def test_sensor_out_of_range_is_bad():
+    out = run([20.0, 850.0])
+    assert out[1] == (20.0, "holding", "holding")
+    assert check_sensor(SensorState(), 0.0, -40.0, RULES).state.reason == "range"
+
+
+def test_sensor_frozen_degrades_after_frozen_plus_hold():
+    out = run([20.0] * 125)
+    statuses = [s for _, _, s in out]
+    # unchanged since t = 0: frozen from t = 100 s, held until 110 s, degraded after
+    assert statuses[99] == "ok"
+    assert out[100][1] == "holding" and statuses[110] == "holding"
+    assert out[111][1] == "degraded"
+
+
+def test_sensor_stuck_at_implausible_value_does_not_recover_against_the_reference():
+    rules = SensorRules(hold_s=2.0, frozen_s=1e9, spike_K=1.0, spike_rate_K_s=0.0)
+    out = run([20.0] + [45.0] * 6, rules, reference=20.2)
+    assert out[4][1] == "degraded"
+    assert out[5][2] == "degraded" and out[6][2] == "degraded"  # 45 °C is 24.8 K off the stand-in: no recovery
+    st = check_sensor(SensorState(status="degraded", value_degC=20.0), 10.0, 20.5, rules, 20.2)
+    assert st.event == "recovered" and st.value_degC == 20.5
+
+
+def test_sensor_state_round_trips_json_dict():
+    s2 = check_sensor(check_sensor(SensorState(), 0.0, 20.0, RULES).state, 1.0, math.nan, RULES).state
+    back = SensorState.from_dict(s2.to_dict())
+    assert s2.status == "holding"
+    assert (back.status, back.value_degC, back.bad_since_s, back.reason) == (s2.status, s2.value_degC, s2.bad_since_s, s2.reason)
+    assert math.isnan(back.raw_degC)
+
+
+def test_substitute():
+    assert substitute(21.0, 0.4) == pytest.approx(21.4)
+    assert substitute(21.0, math.nan) == 21.0
+    assert math.isnan(substitute(math.nan, 0.4))
+
+
+# --------------------------------------------------------------------------- decisions
+
+
+def test_temperature_deviation_over_common_finite_sensors():
+    d, s = temperature_deviation({"T1": 25.0, "T2": 21.0, "T3": math.nan}, {"T1": 24.2, "T2": 22.0, "T3": 0.0, "T9": 5.0})
+    assert (d, s) == (pytest.approx(1.0), "T2")
+    assert temperature_deviation({"T1": 1.0}, {"T2": 1.0}) == (math.inf, None)
+
+
+A = {"X": 1, "Y": 2, "Z": 3}
+B = Candidate({"X": 4, "Y": 5, "Z": 6}, "basic_X", 0.2)
+
+
+def test_decide_keep_within_threshold_even_exactly_at_it():
+    assert decide(0.5, "T1", 0.5, A, [], True, False).action == "keep"
+
+
+def test_decide_switch_to_the_best_other_set():
+    d = decide(0.8, "T1", 0.5, A, [Candidate(A, "same", 0.1), B], True, False)
+    assert d.action == "switch" and d.target == B
+    assert "0.800 K" in d.reason and "basic_X" in d.reason
+
+
+def test_decide_keep_when_the_database_only_offers_the_active_set():
+    assert decide(0.8, "T1", 0.5, A, [Candidate(A, "same", 0.4)], True, False).action == "keep"
+
+
+def test_decide_regenerate_warn():
+    assert decide(0.8, "T1", 0.5, A, [], True, False).action == "regenerate"
+    assert decide(0.8, "T1", 0.5, A, [], True, True).action == "warn"
+    assert decide(0.8, "T1", 0.5, A, [], False, False).action == "warn"
+
+
+def test_decide_without_active_set():
+    assert decide(math.inf, None, 0.5, None, [B], True, False).action == "switch"
+    d = decide(math.inf, None, 0.5, None, [], False, False)
+    assert d.action == "warn" and "no active CD set" in d.reason
+
+
+def test_model_drift():
+    assert model_drift({"T1": 20.0, "T2": 22.0}, {"T1": 20.5, "T2": 20.9}, 1.0) == (True, pytest.approx(1.1), "T2")
+    assert model_drift({"T1": 20.0}, {"T1": 20.5}, 1.0)[0] is False
+    assert model_drift({"T1": 20.0}, {}, 1.0)[0] is False
+
+
+# --------------------------------------------------------------------------- backoff
+
+
+def test_backoff_schedule_doubles_and_caps():
+    b = Backoff(initial_s=0.5, factor=2.0, max_s=4.0, jitter=0.0)
+    assert [backoff_delay(k, b) for k in range(6)] == [0.5, 1.0, 2.0, 4.0, 4.0, 4.0]
+
+
+def test_backoff_jitter_bounds():
+    b = Backoff(initial_s=1.0, factor=2.0, max_s=8.0, jitter=0.25)
+    assert backoff_delay(1, b, 0.0) == pytest.approx(1.5)
+    assert backoff_delay(1, b, 1.0) == pytest.approx(2.5)
+    assert backoff_delay(1, b, 0.5) == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("kw", [{"initial_s": 0.0}, {"factor": 0.5}, {"max_s": 0.1}, {"jitter": 1.0}])
+def test_backoff_rejects_bad_settings(kw):
+    with pytest.raises(ValueError):
+        Backoff(**kw)
