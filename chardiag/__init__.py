@@ -1,1 +1,35 @@
-"""Characteristic diagrams: regression, XML, database (not built yet)."""
+"""Characteristic diagrams (CDs): training data from the FE model, input selection, regression, XML with a
+schema, the CD database and the CNC export.
+
+* :mod:`hybridcomp.chardiag.cd` — :class:`CharDiagram` (evaluation, vectorised and single-point), :class:`CDSet`
+* :mod:`hybridcomp.chardiag.fit` — input selection and the sparse regularised least-squares fit
+* :mod:`hybridcomp.chardiag.training` — load cases → FE → training table
+* :mod:`hybridcomp.chardiag.xmlio` — XML files validated against ``schema/cd.xsd``, hardened reading
+* :mod:`hybridcomp.chardiag.db` — :class:`CDDatabase` (SQLite by default, any SQLAlchemy URL)
+* :mod:`hybridcomp.chardiag.export` — compensation offsets for the CNC (generic table, Siemens 840D sl)
+"""
+
+from hybridcomp.chardiag.cd import DIRECTIONS, TARGETS, CDError, CDInput, CDSet, CharDiagram, Term, pose_key
+from hybridcomp.chardiag.fit import CDFitError, FitOptions, fit_cd, fit_cd_set, select_inputs
+from hybridcomp.chardiag.xmlio import CDXmlError, cd_from_bytes, cd_to_bytes, read_cd, write_cd
+
+__all__ = [
+    "CDError",
+    "CDFitError",
+    "CDInput",
+    "CDSet",
+    "CDXmlError",
+    "CharDiagram",
+    "DIRECTIONS",
+    "FitOptions",
+    "TARGETS",
+    "Term",
+    "cd_from_bytes",
+    "cd_to_bytes",
+    "fit_cd",
+    "fit_cd_set",
+    "pose_key",
+    "read_cd",
+    "select_inputs",
+    "write_cd",
+]

@@ -66,6 +66,22 @@ def full_power_inputs(machine: Machine) -> np.ndarray:
     return u
 
 
+def in_model_order(loads: Loads, machine: Machine) -> Loads:
+    """The same loads with every input column of the machine, in ``input_columns`` order: a missing heat input
+    is zero power, a missing zone the reference temperature; an unknown column is an error."""
+    expected = input_columns(machine)
+    unknown = [n for n in loads.names if n not in expected]
+    if unknown:
+        raise LoadsFileError(f"loads column {unknown[0]!r} is not an input of machine {machine.name!r}")
+    U = np.zeros((len(loads.time_s), len(expected)))
+    for j, name in enumerate(expected):
+        if name in loads.names:
+            U[:, j] = loads.values[:, loads.names.index(name)]
+        elif name.endswith("_degC"):
+            U[:, j] = machine.reference_temperature_degC
+    return Loads(loads.time_s, U, expected)
+
+
 def read_loads(path: str | Path, machine: Machine) -> Loads:
     """Read and check a loads CSV against a machine."""
     path = Path(path)
@@ -115,13 +131,8 @@ def read_loads(path: str | Path, machine: Machine) -> Loads:
     if back.size:
         i = int(back[0])
         raise LoadsFileError(f"{path}: line {i + 3}: time_s {t[i + 1]} does not increase after {t[i]}")
-    U = np.zeros((len(t), len(expected)))
-    for j, name in enumerate(expected):
-        if name in header:
-            U[:, j] = data[:, header.index(name)]
-        elif name.endswith("_degC"):
-            U[:, j] = machine.reference_temperature_degC
-    return Loads(t, U, expected)
+    cols = [j for j, h in enumerate(header) if h != "time_s"]
+    return in_model_order(Loads(t, data[:, cols], tuple(header[j] for j in cols)), machine)
 
 
 def _is_float(s: str) -> bool:

@@ -1,0 +1,504 @@
+"""The CD database: SQLite file by default, any SQLAlchemy URL (PostgreSQL for a fleet).
+
+Tables (schema version :data:`SCHEMA_VERSION`, kept in ``meta``):
+
+* ``load_cases``: one row per machine, pose and training load case — its signature and the structure model's
+  reference temperatures;
+* ``cds``: every CD ever stored, its XML (the exchange format is the record) and searchable metadata;
+* ``active``: the active CD per machine, pose and direction (three rows per pose, replaced atomically);
+* ``events``: activations, switches, generations, decisions, warnings, with their numbers as JSON; an event
+  may carry a unique ``key`` so a daemon that is killed and restarted never writes one twice;
+* ``state``: a small key–value store (JSON text) for a daemon's state.
+
+Writers serialise per database: SQLite opens every write transaction with ``BEGIN IMMEDIATE`` (WAL mode, so
+readers never wait); PostgreSQL takes a transaction-scoped advisory lock per machine and pose for an
+activation. Two processes activating sets for one pose at once therefore leave one complete set active,
+never a mixture.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+import zlib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from hybridcomp.chardiag.cd import DIRECTIONS, CDSet, CharDiagram, pose_key
+from hybridcomp.chardiag.xmlio import cd_from_bytes, cd_to_bytes
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+
+
+class CDDatabaseError(RuntimeError):
+    """The CD database cannot be opened or used; the message names the URL, table and value."""
+
+
+def _sqlalchemy():
+    try:
+        import sqlalchemy
+    except ImportError:  # pragma: no cover - depends on the installation
+        raise CDDatabaseError("the CD database needs SQLAlchemy: pip install 'hybridcomp[db]' "
+                              "(and 'hybridcomp[postgres]' for PostgreSQL)") from None
+    return sqlalchemy
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="microseconds")
+
+
+def _url(url_or_path: str | Path) -> str:
+    s = str(url_or_path)
+    if "://" in s:
+        return s
+    p = Path(s)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return f"sqlite:///{p}"
+
+
+def _redact(url: str) -> str:
+    """The URL without its password, for messages."""
+    if "@" in url and "://" in url:
+        scheme, rest = url.split("://", 1)
+        cred, host = rest.rsplit("@", 1)
+        return f"{scheme}://{cred.split(':', 1)[0]}:***@{host}"
+    return url
+
+
+@dataclass(frozen=True)
+class Match:
+    """A stored CD set that fits a load case.
+
+    Attributes
+    ----------
+    ids : CD id per direction
+    load_case : its training load case
+    load_case_id : its row in ``load_cases``
+    delta_T_K : max |T_reference − T| over the common sensors [K]
+    distance : load-case signature distance (NaN when no signature was given or stored)
+    """
+
+    ids: dict[str, int]
+    load_case: str
+    load_case_id: int
+    delta_T_K: float
+    distance: float
+
+
+@dataclass(frozen=True)
+class Event:
+    """A logged event: ``payload`` holds its numbers."""
+
+    id: int
+    kind: str
+    machine_time_s: float | None
+    created: str
+    payload: dict
+    key: str | None = None
+
+
+def _tables(sa):
+    md = sa.MetaData()
+    sa.Table("meta", md, sa.Column("key", sa.String(64), primary_key=True), sa.Column("value", sa.Text, nullable=False))
+    sa.Table(
+        "load_cases", md,
+        sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+        sa.Column("machine", sa.String(200), nullable=False),
+        sa.Column("pose_key", sa.String(400), nullable=False),
+        sa.Column("name", sa.String(400), nullable=False),
+        sa.Column("signature", sa.Text, nullable=False),
+        sa.Column("t_reference", sa.Text, nullable=False),
+        sa.Column("created", sa.String(40), nullable=False),
+        sa.UniqueConstraint("machine", "pose_key", "name", "t_reference", name="uq_load_case"),
+    )
+    sa.Table(
+        "cds", md,
+        sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+        sa.Column("machine", sa.String(200), nullable=False, index=True),
+        sa.Column("machine_sha256", sa.String(64), nullable=False),
+        sa.Column("pose_key", sa.String(400), nullable=False),
+        sa.Column("direction", sa.String(1), nullable=False),
+        sa.Column("load_case_id", sa.Integer, sa.ForeignKey("load_cases.id"), nullable=False, index=True),
+        sa.Column("n_active_inputs", sa.Integer, nullable=False),
+        sa.Column("rms_residual_um", sa.Float, nullable=True),
+        sa.Column("created", sa.String(40), nullable=False),
+        sa.Column("software_version", sa.String(40), nullable=False),
+        sa.Column("xml", sa.LargeBinary, nullable=False),
+    )
+    sa.Table(
+        "active", md,
+        sa.Column("machine", sa.String(200), primary_key=True),
+        sa.Column("pose_key", sa.String(400), primary_key=True),
+        sa.Column("direction", sa.String(1), primary_key=True),
+        sa.Column("cd_id", sa.Integer, sa.ForeignKey("cds.id"), nullable=False),
+        sa.Column("activated", sa.String(40), nullable=False),
+    )
+    sa.Table(
+        "events", md,
+        sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+        sa.Column("kind", sa.String(40), nullable=False, index=True),
+        sa.Column("machine_time_s", sa.Float, nullable=True),
+        sa.Column("created", sa.String(40), nullable=False),
+        sa.Column("payload", sa.Text, nullable=False),
+        sa.Column("key", sa.String(400), nullable=True, unique=True),
+    )
+    sa.Table(
+        "state", md,
+        sa.Column("key", sa.String(200), primary_key=True),
+        sa.Column("value", sa.Text, nullable=False),
+        sa.Column("updated", sa.String(40), nullable=False),
+    )
+    return md
+
+
+# schema migrations: version N → N+1, each a function of a connection (none yet: version 1 is the first)
+MIGRATIONS: dict[int, object] = {}
+
+
+class CDDatabase:
+    """The CD database behind a SQLAlchemy engine.
+
+    Parameters
+    ----------
+    url_or_path : a SQLAlchemy URL (``postgresql+psycopg://user:pw@host/db``) or a file path (SQLite)
+    """
+
+    def __init__(self, url_or_path: str | Path):
+        sa = _sqlalchemy()
+        self._sa = sa
+        self.url = _url(url_or_path)
+        kwargs = {}
+        self.dialect = self.url.split(":", 1)[0].split("+", 1)[0]
+        if self.dialect == "sqlite":
+            kwargs["connect_args"] = {"timeout": 60.0, "check_same_thread": False}
+        try:
+            self.engine = sa.create_engine(self.url, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - any driver or URL problem
+            raise CDDatabaseError(f"cannot open CD database {_redact(self.url)}: {exc}") from None
+        if self.dialect == "sqlite":
+            @sa.event.listens_for(self.engine, "connect")
+            def _connect(dbapi_conn, _rec):
+                dbapi_conn.isolation_level = None  # we issue BEGIN ourselves
+                cur = dbapi_conn.cursor()
+                cur.execute("PRAGMA journal_mode=WAL")
+                cur.execute("PRAGMA foreign_keys=ON")
+                cur.execute("PRAGMA busy_timeout=60000")
+                cur.close()
+
+            @sa.event.listens_for(self.engine, "begin")
+            def _begin(conn):
+                conn.exec_driver_sql("BEGIN IMMEDIATE")
+
+        self.md = _tables(sa)
+        self.t = self.md.tables
+        self._init_schema()
+
+    # ------------------------------------------------------------------ plumbing
+
+    def _retry(self, fn, what: str):
+        """Run ``fn()`` in a write transaction, retrying a few times on lock or serialisation conflicts."""
+        sa = self._sa
+        delay = 0.05
+        for attempt in range(8):
+            try:
+                with self.engine.begin() as conn:
+                    return fn(conn)
+            except sa.exc.OperationalError as exc:
+                if attempt == 7:
+                    raise CDDatabaseError(f"{_redact(self.url)}: {what} failed: {exc.orig}") from None
+                log.debug("%s: retry after %s", what, exc.orig)
+                time.sleep(delay)
+                delay *= 2
+
+    def _init_schema(self) -> None:
+        sa = self._sa
+        meta = self.t["meta"]
+        try:
+            def init(conn):
+                self.md.create_all(conn, checkfirst=True)
+                row = conn.execute(sa.select(meta.c.value).where(meta.c.key == "schema_version")).first()
+                if row is None:
+                    conn.execute(meta.insert().values(key="schema_version", value=str(SCHEMA_VERSION)))
+                    return SCHEMA_VERSION
+                return int(row[0])
+
+            version = self._retry(init, "creating the schema")
+        except sa.exc.IntegrityError:  # another process created it at the same moment
+            version = self.schema_version()
+        except sa.exc.SQLAlchemyError as exc:
+            raise CDDatabaseError(f"cannot open CD database {_redact(self.url)}: {exc}") from None
+        if version > SCHEMA_VERSION:
+            raise CDDatabaseError(f"{_redact(self.url)}: meta.schema_version is {version}, newer than this "
+                                  f"hybridcomp's {SCHEMA_VERSION}: upgrade hybridcomp")
+        while version < SCHEMA_VERSION:
+            step = MIGRATIONS[version]
+
+            def migrate(conn, step=step, v=version):
+                step(conn)
+                conn.execute(meta.update().where(meta.c.key == "schema_version").values(value=str(v + 1)))
+
+            self._retry(migrate, f"migrating the schema from version {version}")
+            version += 1
+
+    def schema_version(self) -> int:
+        sa = self._sa
+        meta = self.t["meta"]
+        with self.engine.connect() as conn:
+            return int(conn.execute(sa.select(meta.c.value).where(meta.c.key == "schema_version")).scalar_one())
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ------------------------------------------------------------------ CDs and load cases
+
+    def add(self, cd: CharDiagram, load_case: str | None = None) -> int:
+        """Store a CD (and its load case, once); returns its id."""
+        sa = self._sa
+        lc, cds = self.t["load_cases"], self.t["cds"]
+        xml = cd_to_bytes(cd)
+        name = load_case if load_case is not None else cd.load_case
+        tref = json.dumps(dict(cd.t_reference_degC), sort_keys=True)
+        stats = cd.fit_stats()
+
+        def add(conn):
+            q = sa.select(lc.c.id).where(lc.c.machine == cd.machine, lc.c.pose_key == cd.pose_key, lc.c.name == name,
+                                         lc.c.t_reference == tref)
+            lc_id = conn.execute(q).scalar()
+            if lc_id is None:
+                lc_id = conn.execute(lc.insert().values(
+                    machine=cd.machine, pose_key=cd.pose_key, name=name, t_reference=tref,
+                    signature=json.dumps([float(v) for v in cd.signature]), created=_now())).inserted_primary_key[0]
+            return conn.execute(cds.insert().values(
+                machine=cd.machine, machine_sha256=cd.machine_sha256, pose_key=cd.pose_key, direction=cd.direction,
+                load_case_id=lc_id, n_active_inputs=len(cd.active_inputs),
+                rms_residual_um=stats.get("rms_residual_um"), created=cd.created or _now(),
+                software_version=cd.software_version, xml=xml)).inserted_primary_key[0]
+
+        return int(self._retry(add, "storing a CD"))
+
+    def add_set(self, cds: Mapping[str, CharDiagram], load_case: str | None = None) -> dict[str, int]:
+        """Store the three CDs of one pose; returns their ids by direction."""
+        return {d: self.add(cds[d], load_case) for d in DIRECTIONS}
+
+    def xml(self, cd_id: int) -> bytes:
+        """The stored XML of a CD."""
+        sa = self._sa
+        cds = self.t["cds"]
+        with self.engine.connect() as conn:
+            row = conn.execute(sa.select(cds.c.xml).where(cds.c.id == int(cd_id))).first()
+        if row is None:
+            raise CDDatabaseError(f"{_redact(self.url)}: table cds has no id {cd_id}")
+        return bytes(row[0])
+
+    def get(self, cd_id: int) -> CharDiagram:
+        """A stored CD."""
+        return cd_from_bytes(self.xml(cd_id), source=f"cds id {cd_id}")
+
+    def list(self, machine: str | None = None) -> list[dict]:
+        """Summary rows of the stored CDs (newest last), with whether each is active."""
+        sa = self._sa
+        cds, lc, act = self.t["cds"], self.t["load_cases"], self.t["active"]
+        q = (sa.select(cds.c.id, cds.c.machine, cds.c.pose_key, cds.c.direction, lc.c.name.label("load_case"),
+                       cds.c.n_active_inputs, cds.c.rms_residual_um, cds.c.created, act.c.cd_id.label("active"))
+             .join(lc, lc.c.id == cds.c.load_case_id)
+             .outerjoin(act, act.c.cd_id == cds.c.id).order_by(cds.c.id))
+        if machine is not None:
+            q = q.where(cds.c.machine == machine)
+        with self.engine.connect() as conn:
+            return [{**r._asdict(), "active": r.active is not None} for r in conn.execute(q)]
+
+    def load_cases(self, machine: str, pose: str) -> list[dict]:
+        """Stored load cases of a machine and pose with their signature and reference temperatures."""
+        sa = self._sa
+        lc = self.t["load_cases"]
+        with self.engine.connect() as conn:
+            rows = conn.execute(sa.select(lc).where(lc.c.machine == machine, lc.c.pose_key == pose).order_by(lc.c.id))
+            return [{"id": r.id, "name": r.name, "signature": np.array(json.loads(r.signature), float),
+                     "t_reference_degC": json.loads(r.t_reference), "created": r.created} for r in rows]
+
+    def _complete_sets(self, conn, machine: str, pose: str) -> dict[int, dict[str, int]]:
+        """Load-case id → the newest CD id per direction, for load cases with all three directions."""
+        sa = self._sa
+        cds = self.t["cds"]
+        q = (sa.select(cds.c.load_case_id, cds.c.direction, sa.func.max(cds.c.id))
+             .where(cds.c.machine == machine, cds.c.pose_key == pose)
+             .group_by(cds.c.load_case_id, cds.c.direction))
+        sets: dict[int, dict[str, int]] = {}
+        for lc_id, d, cd_id in conn.execute(q):
+            sets.setdefault(lc_id, {})[d] = int(cd_id)
+        return {k: v for k, v in sets.items() if set(v) == set(DIRECTIONS)}
+
+    def search(self, machine: str, pose: str, signature, t_reference_degC: Mapping[str, float],
+               threshold_K: float = 0.5, layout=None) -> list[Match]:
+        """Stored CD sets for a load case, best first.
+
+        Parameters
+        ----------
+        machine, pose : machine name and :func:`pose_key`
+        signature : the current load-case signature, or None
+        t_reference_degC : the structure model's current sensor temperatures [°C]
+        threshold_K : a set fits when max |T_reference − T| over the common sensors is at most this [K]
+        layout : ``histogram.SignatureLayout`` for :func:`histogram.signature_distance`; None: Euclidean
+
+        Returns
+        -------
+        the fitting complete (X, Y, Z) sets, by signature distance (when a signature is given) then ΔT
+        """
+        if not threshold_K >= 0:
+            raise ValueError(f"threshold_K must be ≥ 0, got {threshold_K!r}")
+        sig = None if signature is None else np.asarray(signature, float)
+        with self.engine.connect() as conn:
+            sets = self._complete_sets(conn, machine, pose)
+        out = []
+        for row in self.load_cases(machine, pose):
+            if row["id"] not in sets:
+                continue
+            common = [s for s in t_reference_degC if s in row["t_reference_degC"]]
+            if not common:
+                continue
+            dT = max(abs(float(row["t_reference_degC"][s]) - float(t_reference_degC[s])) for s in common)
+            if not dT <= threshold_K:
+                continue
+            dist = math.nan
+            if sig is not None and row["signature"].shape == sig.shape and sig.size:
+                if layout is not None:
+                    from hybridcomp.histogram.signature import signature_distance
+
+                    dist = float(signature_distance(sig, row["signature"], layout))
+                else:
+                    dist = float(np.linalg.norm(sig - row["signature"]))
+            out.append(Match(ids=sets[row["id"]], load_case=row["name"], load_case_id=row["id"], delta_T_K=dT,
+                             distance=dist))
+        out.sort(key=lambda m: (math.inf if math.isnan(m.distance) else m.distance, m.delta_T_K, -m.load_case_id))
+        return out
+
+    # ------------------------------------------------------------------ activation
+
+    def activate(self, machine: str, pose: str, ids: Mapping[str, int], reason: str = "",
+                 machine_time_s: float | None = None, event_key: str | None = None) -> int | None:
+        """Make three stored CDs (X, Y, Z) the active set of a pose, atomically, and log an ``activation`` event
+        in the same transaction. Returns the event id (None when ``event_key`` was already logged: then nothing
+        changes)."""
+        sa = self._sa
+        cds, act, ev = self.t["cds"], self.t["active"], self.t["events"]
+        if set(ids) != set(DIRECTIONS):
+            raise ValueError(f"activate: needs one CD id per direction {DIRECTIONS}, got {sorted(ids)}")
+
+        def run(conn):
+            if self.dialect == "postgresql":
+                lock = zlib.crc32(f"{machine}\0{pose}".encode()) - 2**31
+                conn.execute(sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": lock})
+            if event_key is not None and conn.execute(sa.select(ev.c.id).where(ev.c.key == event_key)).first():
+                return None
+            for d, cd_id in ids.items():
+                row = conn.execute(sa.select(cds.c.machine, cds.c.pose_key, cds.c.direction)
+                                   .where(cds.c.id == int(cd_id))).first()
+                if row is None:
+                    raise CDDatabaseError(f"{_redact(self.url)}: activate: table cds has no id {cd_id}")
+                if (row.machine, row.pose_key, row.direction) != (machine, pose, d):
+                    raise CDDatabaseError(f"activate: CD {cd_id} is for {row.machine} {row.pose_key} direction "
+                                          f"{row.direction}, not for {machine} {pose} direction {d}")
+            previous = {r.direction: r.cd_id for r in conn.execute(
+                sa.select(act.c.direction, act.c.cd_id).where(act.c.machine == machine, act.c.pose_key == pose))}
+            conn.execute(act.delete().where(act.c.machine == machine, act.c.pose_key == pose))
+            now = _now()
+            conn.execute(act.insert(), [{"machine": machine, "pose_key": pose, "direction": d, "cd_id": int(ids[d]),
+                                         "activated": now} for d in DIRECTIONS])
+            payload = {"machine": machine, "pose": pose, "ids": {d: int(ids[d]) for d in DIRECTIONS},
+                       "previous": previous, "reason": reason}
+            return conn.execute(ev.insert().values(kind="activation", machine_time_s=machine_time_s, created=now,
+                                                   payload=json.dumps(payload), key=event_key)).inserted_primary_key[0]
+
+        return self._retry(run, "activating a CD set")
+
+    def active_ids(self, machine: str, pose: str) -> dict[str, int]:
+        sa = self._sa
+        act = self.t["active"]
+        with self.engine.connect() as conn:
+            return {r.direction: int(r.cd_id) for r in conn.execute(
+                sa.select(act.c.direction, act.c.cd_id).where(act.c.machine == machine, act.c.pose_key == pose))}
+
+    def active_set(self, machine: str, pose: str) -> CDSet | None:
+        """The active CD set of a pose, or None."""
+        ids = self.active_ids(machine, pose)
+        if not ids:
+            return None
+        return CDSet({d: self.get(i) for d, i in ids.items()}, ids)
+
+    # ------------------------------------------------------------------ events and state
+
+    def log_event(self, kind: str, machine_time_s: float | None, payload: Mapping, key: str | None = None) -> int | None:
+        """Append an event; with a ``key`` that is already logged nothing is written and None is returned."""
+        sa = self._sa
+        ev = self.t["events"]
+        text = json.dumps(dict(payload), default=_json_default)
+
+        def run(conn):
+            if key is not None and conn.execute(sa.select(ev.c.id).where(ev.c.key == key)).first():
+                return None
+            return conn.execute(ev.insert().values(kind=kind, machine_time_s=machine_time_s, created=_now(),
+                                                   payload=text, key=key)).inserted_primary_key[0]
+
+        try:
+            return self._retry(run, f"logging a {kind} event")
+        except sa.exc.IntegrityError:  # the same key from another writer in the same instant
+            return None
+
+    def events(self, kind: str | None = None, since_id: int = 0, limit: int | None = None) -> list[Event]:
+        """Events after ``since_id``, oldest first."""
+        sa = self._sa
+        ev = self.t["events"]
+        q = sa.select(ev).where(ev.c.id > since_id).order_by(ev.c.id)
+        if kind is not None:
+            q = q.where(ev.c.kind == kind)
+        if limit is not None:
+            q = q.limit(limit)
+        with self.engine.connect() as conn:
+            return [Event(r.id, r.kind, r.machine_time_s, r.created, json.loads(r.payload), r.key)
+                    for r in conn.execute(q)]
+
+    def put_state(self, key: str, value: str) -> None:
+        """Set a state value (JSON text)."""
+        sa = self._sa
+        st = self.t["state"]
+
+        def run(conn):
+            n = conn.execute(st.update().where(st.c.key == key).values(value=value, updated=_now())).rowcount
+            if n == 0:
+                conn.execute(st.insert().values(key=key, value=value, updated=_now()))
+
+        try:
+            self._retry(run, f"saving state {key!r}")
+        except sa.exc.IntegrityError:  # another writer inserted the key first: now it is an update
+            self._retry(run, f"saving state {key!r}")
+
+    def get_state(self, key: str) -> str | None:
+        sa = self._sa
+        st = self.t["state"]
+        with self.engine.connect() as conn:
+            return conn.execute(sa.select(st.c.value).where(st.c.key == key)).scalar()
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    raise TypeError(f"cannot store {type(o).__name__} in an event payload")
+
+
+__all__ = ["CDDatabase", "CDDatabaseError", "Event", "Match", "SCHEMA_VERSION", "pose_key"]
