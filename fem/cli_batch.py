@@ -54,13 +54,13 @@ def run(args: argparse.Namespace) -> int:
         return 2
     executor = "serial" if args.serial else args.scheduler or "process"
     try:
+        if executor not in ("serial", "process", "local") and "://" not in executor:
+            raise ValueError(f"--scheduler {executor!r}: use 'local' or an address such as tcp://HOST:8786")
+        if args.workers is not None and args.workers < 1:
+            raise ValueError(f"--workers must be at least 1, got {args.workers}")
         machine = load_machine(args.machine)
         pose = machine.check_pose(parse_pose(args.pose))
         cases = read_loads_dir(args.loads_dir, machine)
-        if args.workers is not None and args.workers < 1:
-            raise ValueError(f"--workers must be at least 1, got {args.workers}")
-        if executor not in ("serial", "process", "local") and "://" not in executor:
-            raise ValueError(f"--scheduler {executor!r}: use 'local' or an address such as tcp://HOST:8786")
         if executor not in ("serial", "process"):
             from hybridcomp.fem.batch import _import_distributed
 

@@ -1,0 +1,310 @@
+"""FE load-case batches: every executor gives the serial results; killed workers lose and duplicate nothing.
+
+The reference is a serial run in a fresh process with one BLAS thread, the
+setting every worker process runs with, so the comparison is bitwise.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridcomp.cli import main
+from hybridcomp.fem.batch import WORKER_ENVIRONMENT, BatchError, run_batch
+from hybridcomp.fem.loads import Loads, example_loads, write_loads, write_outputs
+
+ELEMENT_SIZE_MM = 150.0
+N_CASES = 10
+CASE_ARGS = dict(duration_h=6.0, dt_s=60.0)  # 361 steps, about 0.2 s per case on the coarse mesh
+
+
+def make_cases(machine) -> dict[str, Loads]:
+    return {f"case{i:02d}": example_loads(machine, seed=i, **CASE_ARGS) for i in range(N_CASES)}
+
+
+@pytest.fixture(scope="module")
+def cases(machine):
+    return make_cases(machine)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """Serial run of the batch in a fresh process with one BLAS thread: name -> (sensors_degC, drift_um, time_s)."""
+    out = tmp_path_factory.mktemp("reference") / "reference.npz"
+    code = textwrap.dedent(f"""
+        import numpy as np
+        from hybridcomp.models import load_machine
+        from hybridcomp.fem.batch import run_batch
+        from test_batch import make_cases
+        m = load_machine("vmc800")
+        res = run_batch(m, make_cases(m), element_size_mm={ELEMENT_SIZE_MM}, executor="serial")
+        arrays = {{}}
+        for name, r in res.items():
+            arrays[name + "/sensors"] = r.sensors_degC
+            arrays[name + "/drift"] = r.drift_um
+            arrays[name + "/time"] = r.time_s
+        np.savez({str(out)!r}, **arrays)
+    """)
+    env = {**os.environ, **WORKER_ENVIRONMENT, "PYTHONPATH": str(Path(__file__).parent)}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, cwd=Path(__file__).parent, timeout=120)
+    data = np.load(out)
+    return {n: (data[n + "/sensors"], data[n + "/drift"], data[n + "/time"]) for n in make_cases_names()}
+
+
+def make_cases_names() -> list[str]:
+    return [f"case{i:02d}" for i in range(N_CASES)]
+
+
+def assert_identical(results, reference):
+    assert list(results) == make_cases_names()
+    for name, (sensors, drift, t) in reference.items():
+        r = results[name]
+        assert r.name == name
+        np.testing.assert_array_equal(r.time_s, t)
+        np.testing.assert_array_equal(r.sensors_degC, sensors)
+        np.testing.assert_array_equal(r.drift_um, drift)
+
+
+def assert_files_once(out: Path, reference, sensor_names, tmp_path: Path):
+    """Exactly one outputs CSV per case (no temporaries left), each byte-identical to the reference written alike."""
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted([f"{n}.csv" for n in reference] + ["batch.json"])
+    for name, (sensors, drift, t) in reference.items():
+        expected = tmp_path / f"expected_{name}.csv"
+        write_outputs(expected, t, sensor_names, sensors, drift)
+        assert (out / f"{name}.csv").read_bytes() == expected.read_bytes(), name
+    info = json.loads((out / "batch.json").read_text())
+    assert sorted(info["cases"]) == sorted(reference)
+
+
+def test_process_pool_matches_serial_bitwise_builds_once_per_worker(machine, cases, reference, tmp_path):
+    out = tmp_path / "out"
+    res = run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor="process", workers=2, out_dir=out)
+    assert_identical(res, reference)
+    assert_files_once(out, reference, res["case00"].sensor_names, tmp_path)
+    workers = {r.worker for r in res.values()}
+    builders = [r.worker for r in res.values() if r.built_model]
+    assert len(workers) == 2  # both workers took cases
+    assert sorted(builders) == sorted(workers)  # each built the operators exactly once and reused them
+
+
+def test_serial_in_this_process_agrees_to_round_off(machine, cases, reference):
+    res = run_batch(machine, dict(list(cases.items())[:2]), element_size_mm=ELEMENT_SIZE_MM, executor="serial")
+    for name, r in res.items():
+        sensors, drift, _ = reference[name]
+        # this process may run more BLAS threads than the reference: summation order, nothing else
+        np.testing.assert_allclose(r.drift_um, drift, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(r.sensors_degC, sensors, rtol=0, atol=1e-9)
+    assert [r.built_model for r in res.values()].count(True) <= 1
+
+
+def test_process_pool_worker_killed_mid_batch_loses_and_duplicates_nothing(machine, cases, reference, tmp_path, caplog):
+    killed = []
+
+    def kill_busy_worker(r):
+        if not killed:  # the worker that delivered the first case is already simulating its next one
+            pid = int(r.worker.rsplit(":", 1)[1])
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+
+    out = tmp_path / "out"
+    res = run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor="process", workers=2, out_dir=out,
+                    on_result=kill_busy_worker)
+    assert killed
+    assert "a worker process died" in caplog.text  # the pool broke and the unfinished cases were resubmitted
+    assert_identical(res, reference)
+    assert_files_once(out, reference, res["case00"].sensor_names, tmp_path)
+    # the killed worker delivered the case that triggered the kill (and at most the one it was finishing)
+    assert 1 <= sum(int(r.worker.rsplit(":", 1)[1]) in killed for r in res.values()) <= 2
+
+
+def test_dask_local_cluster_matches_serial_bitwise(machine, cases, reference, tmp_path):
+    pytest.importorskip("distributed", reason="needs dask.distributed (extra 'dask')")
+    out = tmp_path / "out"
+    res = run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor="local", workers=2, out_dir=out)
+    assert_identical(res, reference)
+    assert_files_once(out, reference, res["case00"].sensor_names, tmp_path)
+    assert len({r.worker for r in res.values()}) == 2
+    # warm-up built the operators on each worker before the cases: no case had to build them
+    assert not any(r.built_model for r in res.values())
+
+
+# --------------------------------------------------------------------------- a real dask scheduler + 2 workers
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+    else:  # the session leader is gone; make sure its children are too
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+@pytest.fixture(scope="module")
+def dask_cli_cluster(tmp_path_factory):
+    """``dask scheduler`` + two ``dask worker`` processes on 127.0.0.1 (free ports); yields the scheduler address."""
+    pytest.importorskip("distributed", reason="needs dask.distributed (extra 'dask')")
+    tmp = tmp_path_factory.mktemp("dask")
+    sched_file = tmp / "scheduler.json"
+    env = {**os.environ, **WORKER_ENVIRONMENT}
+    dask = [sys.executable, "-m"]
+    procs = []
+    logs = []
+
+    def start(args, name):
+        log = (tmp / f"{name}.log").open("w")
+        logs.append(log)
+        procs.append(subprocess.Popen(dask + args, env=env, cwd=tmp, stdout=log, stderr=subprocess.STDOUT,
+                                      start_new_session=True))
+
+    try:
+        start(["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+               "--scheduler-file", str(sched_file)], "scheduler")
+        deadline = time.monotonic() + 60
+        while not sched_file.exists() or not sched_file.read_text().strip():
+            if time.monotonic() > deadline or procs[0].poll() is not None:
+                pytest.fail(f"dask scheduler did not start: {(tmp / 'scheduler.log').read_text()[-2000:]}")
+            time.sleep(0.1)
+        address = json.loads(sched_file.read_text())["address"]
+        for k in range(2):
+            start(["distributed.cli.dask_worker", address, "--nthreads", "1", "--host", "127.0.0.1", "--no-dashboard",
+                   "--name", f"w{k}", "--local-directory", str(tmp / f"w{k}")], f"worker{k}")
+        from distributed import Client
+
+        with Client(address, timeout="60s") as client:
+            client.wait_for_workers(2, timeout=60)
+        yield address
+    finally:
+        for p in reversed(procs):
+            _stop(p)
+        for log in logs:
+            log.close()
+
+
+def test_dask_scheduler_and_two_workers_match_serial_bitwise(machine, cases, reference, dask_cli_cluster, tmp_path):
+    assert dask_cli_cluster.startswith("tcp://127.0.0.1:")
+    out = tmp_path / "out"
+    res = run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor=dask_cli_cluster, out_dir=out)
+    assert_identical(res, reference)
+    assert_files_once(out, reference, res["case00"].sensor_names, tmp_path)
+    assert len({r.worker for r in res.values()}) == 2
+
+
+def test_dask_worker_killed_mid_batch_is_retried_without_duplicates(machine, cases, reference, dask_cli_cluster,
+                                                                    tmp_path):
+    from distributed import Client
+
+    killed = {}
+
+    with Client(dask_cli_cluster, timeout="30s") as client:
+
+        def kill_busy_worker(r):
+            if killed:
+                return
+            processing = client.processing()
+            for address, keys in processing.items():
+                if keys:
+                    pid = client.run(os.getpid, workers=[address])[address]
+                    os.kill(pid, signal.SIGKILL)  # the worker process; its nanny starts a new one
+                    killed["pid"] = pid
+                    killed["cases"] = {str(k).split("-")[2] for k in keys}
+                    return
+
+        out = tmp_path / "out"
+        res = run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor=client, out_dir=out,
+                        on_result=kill_busy_worker)
+        client.wait_for_workers(2, timeout=60)  # leave the cluster whole for other tests
+    assert killed and killed["cases"]
+    assert_identical(res, reference)
+    assert_files_once(out, reference, res["case00"].sensor_names, tmp_path)
+    for name in killed["cases"]:  # what the dead worker was running was computed again elsewhere
+        assert int(res[name].worker.rsplit(":", 1)[1]) != killed["pid"], name
+
+
+# --------------------------------------------------------------------------- CLI and bad input
+
+
+def test_cli_batch_run_writes_the_serial_results(machine, cases, reference, tmp_path, capsys):
+    loads_dir = tmp_path / "loads"
+    for name, loads in list(cases.items())[:3]:
+        write_loads(loads_dir / f"{name}.csv", loads)
+    out = tmp_path / "out"
+    rc = main(["batch", "run", str(loads_dir), "--machine", "vmc800", "--element-size-mm", str(ELEMENT_SIZE_MM),
+               "--out", str(out), "--workers", "2", "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["batch.json", "case00.csv", "case01.csv", "case02.csv"]
+    # the loads CSV stores 6 significant digits, so compare with a run of exactly what was written
+    from hybridcomp.fem.batch import read_loads_dir
+
+    again = run_batch(machine, read_loads_dir(loads_dir, machine), element_size_mm=ELEMENT_SIZE_MM, executor="process",
+                      workers=1, out_dir=tmp_path / "again")
+    for name in again:
+        assert (out / f"{name}.csv").read_bytes() == (tmp_path / "again" / f"{name}.csv").read_bytes()
+
+
+def test_cli_batch_errors_name_the_problem(tmp_path, capsys):
+    assert main(["batch", "run", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert "loads directory not found" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["batch", "run", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
+    assert "no loads CSV" in capsys.readouterr().err
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "c1.csv").write_text("time_s,nonsense_W\n0,1\n60,1\n")
+    assert main(["batch", "run", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "c1.csv" in err and "nonsense_W" in err
+    assert main(["batch", "run", str(bad), "--out", str(tmp_path / "o"), "--scheduler", "nowhere"]) == 2
+    assert "--scheduler 'nowhere'" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_run_batch_rejects_bad_input(machine, cases):
+    one = {"a": cases["case00"]}
+    with pytest.raises(ValueError, match="executor 'bogus'"):
+        run_batch(machine, one, executor="bogus")
+    with pytest.raises(ValueError, match="load case name '../x'"):
+        run_batch(machine, {"../x": cases["case00"]}, executor="serial")
+    short = Loads(cases["case00"].time_s[:1], cases["case00"].values[:1], cases["case00"].names)
+    with pytest.raises(ValueError, match="load case 'a': needs at least two rows"):
+        run_batch(machine, {"a": short}, executor="serial")
+    swapped = Loads(cases["case00"].time_s, cases["case00"].values, tuple(reversed(cases["case00"].names)))
+    with pytest.raises(ValueError, match="load case 'a': columns"):
+        run_batch(machine, {"a": swapped}, executor="serial")
+    with pytest.raises(ValueError, match="theta"):
+        run_batch(machine, one, theta=0.2)
+    with pytest.raises(TypeError, match="executor"):
+        run_batch(machine, one, executor=42)
+    with pytest.raises(ValueError, match="outside the travel"):
+        run_batch(machine, one, pose_mm={"X": 1e6}, executor="serial")
+
+
+class BrokenLoads(Loads):
+    """Loads that pass the up-front checks but fail inside the worker."""
+
+    def as_inputs(self, reference_temperature_degC):
+        raise ValueError("planted failure")
+
+
+def test_a_failing_case_names_itself(machine, cases):
+    c = cases["case00"]
+    bad = BrokenLoads(c.time_s, c.values, c.names)
+    with pytest.raises(BatchError, match="load case 'b' failed: planted failure"):
+        run_batch(machine, {"a": cases["case01"], "b": bad}, element_size_mm=ELEMENT_SIZE_MM, executor="process",
+                  workers=1)
