@@ -79,6 +79,17 @@ def _finite(x) -> float | None:
     return float(x) if x is not None and math.isfinite(x) else None
 
 
+def _jsonable(obj):
+    """Non-finite floats → None, recursively (the state and the events are strict JSON)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    return obj
+
+
 @dataclass
 class Counters:
     """What the daemon counts (status, metrics)."""
@@ -205,7 +216,7 @@ class Monitor:
                     "offsets_um": {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}}
         snap = {**snap, "pending": self.pending, "regen_blocked_until_s": _finite(self.regen_blocked_until_s),
                 "updated_unix": self.clock.unix()}
-        self.db.put_state(self.key, json.dumps(snap, allow_nan=False))
+        self.db.put_state(self.key, json.dumps(_jsonable(snap), allow_nan=False))
 
     def restore(self) -> None:
         text = self.db.get_state(self.key)
@@ -225,8 +236,8 @@ class Monitor:
         elif s.get("x") is not None:
             log.warning("state %s belongs to reduced model %s, not %s: the structure model restarts from steady state",
                         self.key, s.get("rom_id"), self.rom.rom_id)
-        self.rom_sensors_degC = s["rom_sensors_degC"]
-        self.bias_K = s["bias_K"]
+        self.rom_sensors_degC = {k: (math.nan if v is None else v) for k, v in s["rom_sensors_degC"].items()}
+        self.bias_K = {k: (math.nan if v is None else v) for k, v in s["bias_K"].items()}
         self.sensors = {k: SensorState.from_dict(v) for k, v in s["sensors"].items()}
         self.offsets_um = s["offsets_um"]
         if s["carry"] is not None:
@@ -254,7 +265,7 @@ class Monitor:
         self._eval_failed_logged = False
 
     def event(self, kind: str, t: float | None, payload: dict, key: str) -> None:
-        self.db.log_event(kind, t, payload, key=f"{kind}@{self.pose_key}@{key}")
+        self.db.log_event(kind, t, _jsonable(payload), key=f"{kind}@{self.pose_key}@{key}")
 
     # ------------------------------------------------------------------ one reading
     def process(self, r: Reading) -> list[Offset]:
