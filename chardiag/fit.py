@@ -259,6 +259,7 @@ def solve_values(inputs: Sequence[CDInput], terms: Sequence[tuple[int, ...]], X:
     n, P = A.shape
     D = smoothing_operator(inputs, terms)
     N = (A.T @ A).tocsc()
+    eps = ridge * max(float(N.diagonal().mean()), 1e-300)
     if smoothing > 0 and D.shape[0]:
         N = N + (smoothing * n / D.shape[0]) * (D.T @ D)
     sizes = [int(np.prod([inputs[j].n_support for j in t])) for t in terms]
@@ -269,7 +270,6 @@ def solve_values(inputs: Sequence[CDInput], terms: Sequence[tuple[int, ...]], X:
              (np.repeat(np.arange(len(sizes) - 1), sizes[1:]), np.arange(starts[1], P))),
             shape=(len(sizes) - 1, P))
         N = N + n * (Z.T @ Z)
-    eps = ridge * max(float(N.diagonal().mean()), 1e-300)
     N = (N + eps * sp.identity(P)).tocsc()
     return splu(N).solve(A.T @ y)
 

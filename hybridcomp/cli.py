@@ -14,6 +14,7 @@ SUBCOMMANDS = {
     "machine": ("hybridcomp.models.cli", "check a machine file and print its inputs, sensors and mesh size"),
     "histogram": ("hybridcomp.histogram.cli", "turn a trace CSV or G-code into load factors, histograms and a loads CSV"),
     "scenario": ("hybridcomp.histogram.cli_scenario", "write a bundled scenario (basic load cases, job-shop day): G-code, trace, loads"),
+    "cd": ("hybridcomp.chardiag.cli", "characteristic diagrams: training data, fit, evaluation, CNC export, database"),
     "reduce": ("hybridcomp.rom.cli_reduce", "reduce a machine's FE model (or exported matrices) to a real-time ROM.npz"),
     "batch": ("hybridcomp.fem.cli_batch", "run a directory of load cases on the FE model: local process pool or Dask cluster"),
 }
