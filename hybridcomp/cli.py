@@ -17,6 +17,7 @@ SUBCOMMANDS = {
     "cd": ("hybridcomp.chardiag.cli", "characteristic diagrams: training data, fit, evaluation, CNC export, database"),
     "reduce": ("hybridcomp.rom.cli_reduce", "reduce a machine's FE model (or exported matrices) to a real-time ROM.npz"),
     "batch": ("hybridcomp.fem.cli_batch", "run a directory of load cases on the FE model: local process pool or Dask cluster"),
+    "monitor": ("hybridcomp.monitor.cli", "the monitoring daemon: run, status, example-config, and the hybrid scenario"),
 }
 
 

@@ -40,7 +40,7 @@ import numpy as np
 
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.increments import increments_from_samples
-from hybridcomp.histogram.signature import signatures
+from hybridcomp.histogram.signature import SignatureLayout, signatures
 from hybridcomp.histogram.trace import Samples, TraceFileError
 from hybridcomp.monitor.config import MonitorConfig
 from hybridcomp.monitor.decisions import (
@@ -131,6 +131,7 @@ class Monitor:
         self.sensor_names = tuple(s.name for s in machine.sensors)
         self.axis_names = tuple(a.name for a in machine.axes)
         self.counters = Counters()
+        self.layout = SignatureLayout.of(machine)
         self.t_ref = float(rom.meta.get("reference_temperature_degC", machine.reference_temperature_degC))
         n_inc = int(round(cfg.monitoring_interval_s / cfg.increment_s))
         self.history_rows = max(1, int(math.ceil(cfg.regeneration.history_s / cfg.increment_s)))
@@ -478,7 +479,7 @@ class Monitor:
         candidates = []
         if self.active is None or dT > self.cfg.threshold_K:
             for m in self.db.search(self.machine.name, self.pose_key, None if sig is None else np.asarray(sig), actual,
-                                    self.cfg.threshold_K):
+                                    self.cfg.threshold_K, layout=self.layout):
                 candidates.append(Candidate({k: int(v) for k, v in m.ids.items()}, m.load_case, float(m.delta_T_K),
                                             float(m.distance) if m.distance is not None else math.nan))
         enabled = self.cfg.regeneration.enabled and boundary >= self.regen_blocked_until_s
@@ -513,7 +514,8 @@ class Monitor:
         ids = {k: int(v) for k, v in ids.items()}
         if self.active_ids == ids:
             return
-        self.db.activate(self.machine.name, self.pose_key, ids, reason=reason, machine_time_s=t)
+        self.db.activate(self.machine.name, self.pose_key, ids, reason=reason, machine_time_s=t,
+                         event_key=f"activation@{self.pose_key}@{_t(t)}@{ids['X']},{ids['Y']},{ids['Z']}")
         self.counters.switches += 1
         self.reload_active()
 

@@ -1,0 +1,223 @@
+"""``hybridcomp monitor``: run the daemon, show its status, write an example configuration, run the scenario."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "The monitoring daemon: compensation offsets from the active characteristic diagrams every few seconds, "
+        "and every monitoring interval the reduced structure model checks whether the machine's load case still "
+        "matches the one the CDs were trained for (keep, switch to a stored set, or generate a new one)."
+    )
+    sub = p.add_subparsers(dest="monitor_command", metavar="ACTION", required=True)
+    r = sub.add_parser("run", help="run the daemon (stop with SIGTERM or Ctrl-C)",
+                       description="Run the monitoring daemon configured by a TOML file. SIGTERM/SIGINT stop it "
+                       "cleanly; after a crash or kill it resumes at the last monitoring boundary.")
+    r.add_argument("--config", required=True, type=Path, help="monitor TOML file (see 'hybridcomp monitor example-config')")
+    r.add_argument("--speed", type=float, default=None, help="override [source] speed of a replay (0: as fast as possible)")
+    s = sub.add_parser("status", help="print the active CDs, last ΔT, last decision, data freshness",
+                       description="Print what the daemon of a configuration last did, from its database.")
+    s.add_argument("--config", required=True, type=Path, help="monitor TOML file")
+    s.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    s.add_argument("--events", type=int, default=5, help="show the last N decisions/switches/generations/warnings")
+    e = sub.add_parser("example-config", help="write an annotated example configuration")
+    e.add_argument("--out", type=Path, default=None, help="file to write (default: print)")
+    c = sub.add_parser("scenario", help="the hybrid scenario: job-shop day on the FE 'real machine', five strategies compared",
+                       description="Replay the bundled 16 h job-shop day with the FE model (plus a planted workspace "
+                       "disturbance) as the real machine, starting from default CDs of the basic load cases; compare "
+                       "no compensation, static default CDs, the hybrid monitor, the ROM used directly and a multiple "
+                       "linear regression on the sensors (RMS, peak-to-peak, 95th-percentile range over sliding windows).")
+    c.add_argument("--out", required=True, type=Path, help="output directory (table, plot, database, traces)")
+    c.add_argument("--element-size", type=float, default=80.0, help="FE element size of the 'real machine' and the "
+                   "training runs [mm] (default 80)")
+    c.add_argument("--disturbance-K", type=float, default=2.0, help="planted workspace air offset against the "
+                   "measured workshop air [K] (default 2)")
+    c.add_argument("--rom-order", type=int, default=None, help="order of the structure model (default: to tolerance)")
+    c.add_argument("--basic-hours", type=float, default=8.0, help="heating hours of each basic load case (default 8)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hybridcomp.monitor.config import ConfigError
+
+    try:
+        if args.monitor_command == "run":
+            return _run(args)
+        if args.monitor_command == "status":
+            return _status(args)
+        if args.monitor_command == "example-config":
+            from hybridcomp.monitor.config import example_config
+
+            if args.out is None:
+                print(example_config(), end="")
+            else:
+                args.out.write_text(example_config())
+            return 0
+        if args.monitor_command == "scenario":
+            from hybridcomp.monitor.scenario import run_scenario
+
+            res = run_scenario(args.out, element_size_mm=args.element_size, disturbance_K=args.disturbance_K,
+                               rom_order=args.rom_order, basic_hours=args.basic_hours)
+            print(res.table)
+            print(json.dumps(res.summary))
+            return 0
+    except (ConfigError, ValueError, OSError) as exc:
+        print(f"hybridcomp monitor: {exc}", file=sys.stderr)
+        return 2
+    return 2
+
+
+def open_everything(cfg):
+    """Machine, structure model, pose key and database of a configuration."""
+    from hybridcomp.chardiag.cd import pose_key
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.models import load_machine
+    from hybridcomp.monitor.config import ConfigError
+    from hybridcomp.rom import load_rom
+
+    machine = load_machine(cfg.machine)
+    rom = load_rom(cfg.rom, machine)
+    rom_pose = {k: float(v) for k, v in (rom.meta.get("pose_mm") or {}).items()}
+    pose = machine.check_pose(dict(cfg.pose_mm or rom_pose))
+    if rom_pose and any(abs(pose[k] - rom_pose.get(k, math.nan)) > 1e-9 for k in pose):
+        raise ConfigError(f"{cfg.source_file}: monitor.pose_mm {dict(cfg.pose_mm)} differs from the pose {rom_pose} "
+                          f"the structure model {cfg.rom} was reduced at")
+    return machine, rom, pose, pose_key(pose), CDDatabase(cfg.database)
+
+
+def _run(args) -> int:
+    import dataclasses
+
+    from hybridcomp.monitor.config import load_config
+    from hybridcomp.monitor.daemon import Monitor, install_signal_handlers, run_monitor
+    from hybridcomp.monitor.sinks import make_sink
+    from hybridcomp.monitor.sources import OpcUaSource, ReplaySource, WallClock
+
+    cfg = load_config(args.config)
+    if args.speed is not None:
+        cfg = dataclasses.replace(cfg, source=dataclasses.replace(cfg.source, speed=args.speed))
+    machine, rom, pose, pkey, db = open_everything(cfg)
+    clock = WallClock()
+    if cfg.source.kind == "replay":
+        source = ReplaySource(cfg.source.path, machine, cfg.source.speed, clock, cfg.source.start_s)
+    else:
+        source = OpcUaSource(cfg.source.url, cfg.source.nodes, machine, cfg.source.publishing_interval_ms,
+                             cfg.source.stale_s)
+    sink = make_sink(cfg.sink, cfg.reconnect, clock)
+    monitor = Monitor(cfg, machine, rom, db, pkey, clock)
+
+    async def main():
+        stop = asyncio.Event()
+        install_signal_handlers(stop)
+        server = None
+        if cfg.prometheus_port:
+            from hybridcomp.monitor.metrics import serve_metrics
+
+            server = await serve_metrics(monitor, cfg.prometheus_port)
+        try:
+            return await run_monitor(cfg, monitor, source, sink, clock=clock, stop=stop)
+        finally:
+            if server is not None:
+                server.close()
+                await server.wait_closed()
+
+    t0 = time.monotonic()
+    res = asyncio.run(main())
+    st = res.status
+    log.info("stopped (%s) after %.1f s", res.stopped_by, time.monotonic() - t0)
+    print(f"monitor stopped ({res.stopped_by}): machine time {st['last_time_s']} s, {st['readings']} readings, "
+          f"{st['compensations']} compensation cycles, {st['monitorings']} monitoring cycles, "
+          f"{st['switches']} switches, {st['generations']} generations, slowest decision {st['max_decision_s'] * 1e3:.1f} ms")
+    db.close()
+    return 0
+
+
+def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dict:
+    """What ``monitor status`` shows, as a dict."""
+    from hybridcomp.monitor.daemon import state_key
+
+    key = state_key(machine_name, pkey)
+    state = json.loads(db.get_state(key) or "null")
+    beat = json.loads(db.get_state(key + ":heartbeat") or "null")
+    active = db.active_set(machine_name, pkey)
+    now = time.time()
+    ev = [e for e in db.events() if e.kind in ("decision", "activation", "generation", "warning", "model_drift", "sensor")]
+    out = {
+        "machine": machine_name, "pose": pkey,
+        "active": None if active is None else {"ids": dict(active.ids), "load_case": active.cds["X"].load_case,
+                                                "t_reference_degC": active.t_reference_degC},
+        "last_delta_T_K": None if state is None else state.get("last_delta_T_K"),
+        "last_decision": None if state is None else state.get("last_decision"),
+        "last_machine_time_s": (beat or state or {}).get("last_time_s"),
+        "seconds_since_data": None if beat is None else now - beat["unix"],
+        "seconds_since_boundary": None if state is None else now - state["updated_unix"],
+        "degraded_sensors": None if beat is None else beat.get("degraded"),
+        "regeneration_running": None if beat is None else beat.get("regeneration_running"),
+        "pending_generation": None if state is None or not state.get("pending") else state["pending"]["machine_time_s"],
+        "recent_events": [{"kind": e.kind, "machine_time_s": e.machine_time_s, "created": e.created,
+                           "summary": _summary(e)} for e in ev[-n_events:]],
+    }
+    return out
+
+
+def _summary(e) -> str:
+    p = e.payload
+    if e.kind == "decision":
+        return f"{p.get('action')}: {p.get('reason')}"
+    if e.kind == "activation":
+        return f"active {p.get('ids')} ({p.get('reason')})"
+    if e.kind == "generation":
+        return f"{p.get('status')} {p.get('ids') or p.get('error') or ''}".strip()
+    return str(p.get("message") or p)[:160]
+
+
+def _status(args) -> int:
+    from hybridcomp.chardiag.cd import pose_key
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.models import load_machine
+    from hybridcomp.monitor.config import load_config
+    from hybridcomp.rom import load_rom
+
+    cfg = load_config(args.config)
+    machine = load_machine(cfg.machine)
+    if cfg.pose_mm:
+        pose = machine.check_pose(dict(cfg.pose_mm))
+    else:
+        pose = machine.check_pose({k: float(v) for k, v in (load_rom(cfg.rom).meta.get("pose_mm") or {}).items()})
+    db = CDDatabase(cfg.database)
+    try:
+        st = status_dict(cfg, db, machine.name, pose_key(pose), args.events)
+    finally:
+        db.close()
+    if args.json:
+        print(json.dumps(st))
+        return 0
+    a = st["active"]
+    print(f"machine {st['machine']}, pose {st['pose']}")
+    print("active CDs: " + ("none" if a is None else f"{a['ids']} (load case {a['load_case']})"))
+    print(f"last ΔT: {_fmt(st['last_delta_T_K'], 'K')}")
+    d = st["last_decision"]
+    print("last decision: " + ("none" if d is None else f"{d['action']} at {d['time_s']:.0f} s: {d['reason']}"))
+    print(f"data: machine time {_fmt(st['last_machine_time_s'], 's')}, last sample {_fmt(st['seconds_since_data'], 's')} ago, "
+          f"last monitoring boundary saved {_fmt(st['seconds_since_boundary'], 's')} ago")
+    if st["degraded_sensors"]:
+        print(f"degraded sensors: {', '.join(st['degraded_sensors'])}")
+    if st["pending_generation"] is not None:
+        print(f"generation pending for the decision at {st['pending_generation']:.0f} s")
+    for e in st["recent_events"]:
+        print(f"  {e['created']}  t={_fmt(e['machine_time_s'], 's')}  {e['kind']}: {e['summary']}")
+    return 0
+
+
+def _fmt(v, unit) -> str:
+    return "unknown" if v is None else f"{v:.3f} {unit}" if unit == "K" else f"{v:.1f} {unit}"
