@@ -12,7 +12,7 @@ import asyncio
 import json
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -92,83 +92,39 @@ def trace(machine, rom, tmp_path_factory):
     return write_trace_csv(tmp_path_factory.mktemp("trace") / "trace.csv", machine, s, T), s, T
 
 
-# --------------------------------------------------------------------------- a database stand-in (contract of chardiag.db)
+# --------------------------------------------------------------------------- CD database with two fitted sets
+
+POSE = {"X": 0.0, "Y": 0.0, "Z": 0.0}
+PKEY = "X=0,Y=0,Z=0"
 
 
-@dataclass(frozen=True)
-class LinearSet:
-    """A CD set stand-in: drift linear in (T1 - T8) [µm/K]."""
+def fit_set(machine, T, gains, t_ref, name):
+    """A CD set fitted to drift linear in (T1 − T8) [µm/K] over the trace's temperatures."""
+    from hybridcomp.chardiag.fit import fit_cd_set
 
-    ids: dict
-    t_reference_degC: dict
-    gain: tuple = (0.5, -1.0, -3.0)
-
-    def evaluate_point(self, values):
-        d = values["T1"] - values["T8"]
-        return {"dx_um": self.gain[0] * d, "dy_um": self.gain[1] * d, "dz_um": self.gain[2] * d}, False
-
-
-@dataclass(frozen=True)
-class Match:
-    ids: dict
-    load_case: str
-    delta_T_K: float
-    distance: float
+    d = T[:, 0] - T[:, 7]
+    table = {f"{sn.name}_degC": T[:, j] for j, sn in enumerate(machine.sensors)}
+    table |= {"dx_um": gains[0] * d, "dy_um": gains[1] * d, "dz_um": gains[2] * d}
+    names = [sn.name for sn in machine.sensors]
+    return fit_cd_set(table, machine=machine.name, machine_sha256=machine.sha256, pose_mm=POSE, load_case=name,
+                      t_reference_degC=dict(zip(names, map(float, t_ref))))
 
 
-class MemoryDB:
-    """In-memory stand-in with the CDDatabase methods the monitor uses (same semantics for keys)."""
+def make_db(path, machine, T, gains=((0.5, -1.0, -3.0), (0.4, -0.8, -2.5)), warm=True):
+    """A 'cold' set referenced at the first sample (active) and a 'warm' one at the hottest moment."""
+    from hybridcomp.chardiag.db import CDDatabase
 
-    def __init__(self, sets: dict[str, LinearSet], active: str | None):
-        self.sets = sets
-        self.active = {"vmc800": sets[active]} if active else {}
-        self.state = {}
-        self.log = []
-        self.keys = set()
-
-    def put_state(self, key, value):
-        self.state[key] = value
-
-    def get_state(self, key):
-        return self.state.get(key)
-
-    def log_event(self, kind, machine_time_s, payload, key=None):
-        json.dumps(payload, allow_nan=False)  # events must be JSON
-        if key is not None:
-            if key in self.keys:
-                return None
-            self.keys.add(key)
-        self.log.append((kind, machine_time_s, payload, key))
-        return len(self.log)
-
-    def events(self, kind=None):
-        return [e for e in self.log if kind is None or e[0] == kind]
-
-    def active_set(self, machine, pose_key):
-        return self.active.get(machine)
-
-    def activate(self, machine, pose_key, ids, reason="", machine_time_s=None):
-        for s in self.sets.values():
-            if dict(s.ids) == dict(ids):
-                self.active[machine] = s
-        self.log.append(("activation", machine_time_s, {"ids": dict(ids), "reason": reason}, None))
-
-    def search(self, machine, pose_key, signature, t_reference_degC, threshold_K=0.5):
-        out = []
-        for name, s in self.sets.items():
-            d = max(abs(t_reference_degC[k] - v) for k, v in s.t_reference_degC.items())
-            if d <= threshold_K:
-                out.append(Match(dict(s.ids), name, d, 0.0))
-        return sorted(out, key=lambda m: m.delta_T_K)
+    db = CDDatabase(path)
+    ids = {"cold": db.add_set(fit_set(machine, T, gains[0], T[0], "cold"), "cold")}
+    if warm:
+        hot = int(np.argmax(T[:, 0]))
+        ids["warm"] = db.add_set(fit_set(machine, T, gains[1], T[hot], "warm"), "warm")
+    db.activate(machine.name, PKEY, ids["cold"], "initial")
+    return db, ids
 
 
-def two_sets(T):
-    """A 'cold' set referenced at the first sample and a 'warm' one at the hottest moment."""
-    names = [f"T{k + 1}" for k in range(T.shape[1])]
-    hot = int(np.argmax(T[:, 0]))
-    cold = LinearSet({"X": 1, "Y": 2, "Z": 3}, dict(zip(names, T[0])))
-    warm = LinearSet({"X": 4, "Y": 5, "Z": 6}, dict(zip(names, T[hot])), gain=(0.4, -0.8, -2.5))
-    return {"cold": cold, "warm": warm}
+def events(db, kind):
+    return [(e.kind, e.machine_time_s, e.payload, e.key) for e in db.events(kind)]
 
 
 def config(rom_file, trace_path, tmp_path, **over):
@@ -195,15 +151,19 @@ def run(cfg, machine, rom, db, source, sink=None, **kw):
 # --------------------------------------------------------------------------- tests
 
 
+def values_at(r):
+    return {**r.sensors_degC, **dict(zip(("X", "Y", "Z"), r.position_mm))}
+
+
 def test_replay_compensates_every_cycle_and_switches_when_the_machine_warms_up(machine, rom, rom_file, trace, tmp_path):
     path, s, T = trace
-    db = MemoryDB(two_sets(T), "cold")
+    db, ids = make_db(tmp_path / "cd.db", machine, T)
     cfg = config(rom_file, path, tmp_path)
     mon, sink, res = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=0))
     duration = s.time_s[-1]
     # one offset per 5 s of machine time (samples every 10 s: one per sample), one decision per 15 min
     assert len(sink.rows) == len(s)
-    decisions = db.events("decision")
+    decisions = events(db, "decision")
     assert [e[1] for e in decisions] == [900.0 * k for k in range(1, int(duration // 900) + 1)]
     actions = [e[2]["action"] for e in decisions]
     assert "switch" in actions
@@ -211,25 +171,39 @@ def test_replay_compensates_every_cycle_and_switches_when_the_machine_warms_up(m
     # warming up, the cold set no longer fits and the warm one not yet: warn (regeneration is off) ...
     assert first > 0 and all(e[2]["action"] == "warn" and e[2]["delta_T_K"] > 0.5 for e in decisions[:first])
     # ... until the warm set fits: switch, and from then on it is the active one that fits
-    assert decisions[first][2]["target"]["ids"] == {"X": 4, "Y": 5, "Z": 6}
+    assert decisions[first][2]["target"]["ids"] == ids["warm"]
     assert decisions[first + 1][2]["action"] == "keep" and decisions[first + 1][2]["delta_T_K"] <= 0.5
-    assert decisions[first + 1][2]["active"] == {"X": 4, "Y": 5, "Z": 6}
-    assert [e[2]["ids"] for e in db.events("activation")] == [{"X": 4, "Y": 5, "Z": 6}]
-    # offsets follow the active set: after the switch they are the warm set's (rate limit aside)
+    assert decisions[first + 1][2]["active"] == ids["warm"]
+    assert [e[2]["ids"] for e in events(db, "activation")] == [ids["cold"], ids["warm"]]
+    # offsets are the active set's prediction (no limit acts in steady parts): the warm set after the switch
+    readings = list(read_replay(path, machine))
     i = int(np.searchsorted(s.time_s, decisions[first][1])) + 60
-    d = T[i, 0] - T[i, 7]
-    assert sink.rows[i].dz_um == pytest.approx(-2.5 * d, abs=1e-9)
-    assert sink.rows[i].active == "X=4,Y=5,Z=6"
+    want, _ = db.active_set(machine.name, PKEY).evaluate_point(values_at(readings[i]))
+    assert sink.rows[i].active == ",".join(f"{k}={v}" for k, v in sorted(ids["warm"].items()))
+    assert not sink.rows[i].limited
+    assert (sink.rows[i].dx_um, sink.rows[i].dy_um, sink.rows[i].dz_um) == pytest.approx(
+        (want["dx_um"], want["dy_um"], want["dz_um"]), abs=1e-9)
+    assert want["dz_um"] == pytest.approx(-2.5 * (T[i, 0] - T[i, 7]), abs=0.3)  # the fitted CD reproduces its data
     # the ROM reproduces the trace's sensors (they come from it): no model drift
-    assert not db.events("model_drift")
+    assert not events(db, "model_drift")
     assert res.status["max_decision_s"] < 1.0
+
+
+def test_model_drift_event_when_the_machine_departs_from_the_structure_model(machine, rom, rom_file, trace, tmp_path):
+    path, s, T = trace
+    T2 = T.copy()
+    T2[:, 3] += np.clip((s.time_s - 7200.0) / 3600.0, 0.0, 2.0)  # T4 drifts 2 K away from the model after 2 h
+    p = write_trace_csv(tmp_path / "drift.csv", machine, s, T2)
+    db, _ = make_db(tmp_path / "cd.db", machine, T)
+    run(config(rom_file, p, tmp_path, monitor={"model_drift_K": 1.0}), machine, rom, db, ReplaySource(p, machine, speed=0))
+    ev = events(db, "model_drift")
+    assert ev and ev[0][1] == 7200.0 + 3600.0 + 900.0  # first boundary with more than 1 K (1.25 K at 3 h 15 min)
+    assert ev[0][2]["sensor"] == "T4" and ev[0][2]["max_abs_K"] == pytest.approx(1.25, abs=0.02)
 
 
 def test_offsets_are_clamped_and_rate_limited(machine, rom, rom_file, trace, tmp_path):
     path, s, T = trace
-    sets = two_sets(T)
-    sets = {k: replace(v, gain=(0.0, 0.0, -400.0)) for k, v in sets.items()}
-    db = MemoryDB(sets, "cold")
+    db, _ = make_db(tmp_path / "cd.db", machine, T, gains=((1.0, 1.0, -400.0), (1.0, 1.0, -400.0)))
     cfg = config(rom_file, path, tmp_path, compensation={"max_offset_um": 30.0, "max_step_um": 0.5})
     _, sink, _ = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=0))
     dz = np.array([r.dz_um for r in sink.rows])
@@ -239,8 +213,8 @@ def test_offsets_are_clamped_and_rate_limited(machine, rom, rom_file, trace, tmp
 
 
 def test_sensor_faults_hold_then_degrade_with_events(machine, rom, rom_file, trace, tmp_path):
-    path, s, T = trace
-    T = T.copy()
+    path, s, T_ok = trace
+    T = T_ok.copy()
     n = len(s)
     nan_at = (s.time_s >= 3600) & (s.time_s < 3600 + 600)  # T1 missing for 10 min
     T[nan_at, 0] = np.nan
@@ -248,27 +222,25 @@ def test_sensor_faults_hold_then_degrade_with_events(machine, rom, rom_file, tra
     frozen_from = int(np.searchsorted(s.time_s, 7200))
     T[frozen_from:, 1] = T[frozen_from, 1]  # T2 frozen from 2 h on
     p = write_trace_csv(tmp_path / "faults.csv", machine, s, T)
-    db = MemoryDB(two_sets(T), "cold")
+    db, _ = make_db(tmp_path / "cd.db", machine, T_ok, warm=False)
     cfg = config(rom_file, p, tmp_path, sensors={"hold_s": 60.0, "frozen_s": 1800.0})
     _, sink, _ = run(cfg, machine, rom, db, ReplaySource(p, machine, speed=0))
-    ev = [(e[2]["sensor"], e[2]["status"], e[1]) for e in db.events("sensor")]
+    ev = [(e[2]["sensor"], e[2]["status"], e[1]) for e in events(db, "sensor")]
     t1 = [(st, t) for name, st, t in ev if name == "T1"]
     assert t1 == [("holding", 3600.0), ("degraded", 3670.0), ("recovered", 4200.0)]
     assert [st for name, st, _ in ev if name == "T3"] == ["holding"]  # a single spike never degrades
     t2 = [(st, t) for name, st, t in ev if name == "T2"]
     assert t2[0] == ("holding", 7200.0 + 1800.0) and t2[1] == ("degraded", 7200.0 + 1800.0 + 70.0)
-    msg = [e[2]["message"] for e in db.events("sensor") if e[2]["status"] == "degraded"][0]
+    msg = [e[2]["message"] for e in events(db, "sensor") if e[2]["status"] == "degraded"][0]
     assert "degraded" in msg and "structure model" in msg
     # compensation never stopped and never produced a non-finite offset; degraded sensors are reported per row
     assert len(sink.rows) == n and all(math.isfinite(r.dz_um) for r in sink.rows)
     i = int(np.searchsorted(s.time_s, 3900))
     assert sink.rows[i].degraded == "T1"
-    # while T1 was degraded the stand-in (the ROM at the last boundary plus the last bias) is close to the truth:
-    # the trace's T1 comes from the same ROM, so the offset differs from the fault-free one only by T1's change
-    # since the last monitoring boundary (< 1 K here, 3 µm/K in dz)
-    _, T_ok = trace[1], trace[2]
-    dz_ok = -3.0 * (T_ok[i, 0] - T_ok[i, 7])
-    assert abs(sink.rows[i].dz_um - dz_ok) < 3.0
+    # while T1 was degraded the stand-in (the ROM at the last monitoring boundary plus the last bias) is close to
+    # the truth: the trace's T1 comes from the same ROM, so the offset differs from the fault-free one by T1's
+    # change since that boundary only (< 1 K here, 3 µm/K in dz)
+    assert abs(sink.rows[i].dz_um - (-3.0) * (T_ok[i, 0] - T_ok[i, 7])) < 3.0
 
 
 def test_timestamps_repeated_or_backwards_are_dropped_and_reported(machine, rom, rom_file, trace, tmp_path):
@@ -281,14 +253,14 @@ def test_timestamps_repeated_or_backwards_are_dropped_and_reported(machine, rom,
             messy.append(r)  # repeated
         if k % 131 == 7 and k > 0:
             messy.append(replace(r, time_s=r.time_s - 25.0))  # out of order
-    db_a = MemoryDB(two_sets(T), "cold")
-    db_b = MemoryDB(two_sets(T), "cold")
+    db_a, _ = make_db(tmp_path / "a.db", machine, T)
+    db_b, _ = make_db(tmp_path / "b.db", machine, T)
     cfg = config(rom_file, path, tmp_path)
     _, sink_a, _ = run(cfg, machine, rom, db_a, ListSource(clean))
     mon_b, sink_b, _ = run(cfg, machine, rom, db_b, ListSource(messy))
     assert [r.dz_um for r in sink_b.rows] == [r.dz_um for r in sink_a.rows]
-    assert [e[2] for e in db_b.events("decision")] == [e[2] for e in db_a.events("decision")]
-    dropped = sum(e[2]["repeated"] for e in db_b.events("time")), sum(e[2]["backwards"] for e in db_b.events("time"))
+    assert [e[2] for e in events(db_b, "decision")] == [e[2] for e in events(db_a, "decision")]
+    dropped = sum(e[2]["repeated"] for e in events(db_b, "time")), sum(e[2]["backwards"] for e in events(db_b, "time"))
     assert dropped == (len([k for k in range(len(clean)) if k % 97 == 5]), len([k for k in range(1, len(clean)) if k % 131 == 7]))
     assert mon_b.counters.dropped_repeated == dropped[0]
 
@@ -314,20 +286,19 @@ class TimedSink(MemorySink):
 @pytest.mark.parametrize("job,status", [("failing_job", "failed"), ("hanging_job", "timeout")])
 def test_failing_or_hanging_generation_never_stalls_compensation(machine, rom, rom_file, trace, tmp_path, job, status):
     path, s, T = trace
-    sets = two_sets(T)
-    db = MemoryDB({"cold": sets["cold"]}, "cold")  # the warm set is missing: the monitor must generate one
+    db, ids = make_db(tmp_path / "cd.db", machine, T, warm=False)  # no warm set: the monitor must generate one
     cfg = config(rom_file, path, tmp_path, regeneration={"enabled": True, "job": f"{__name__}:{job}", "timeout_s": 1.5})
     sink = TimedSink()
     t0 = time.monotonic()
     mon, sink, res = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=s.time_s[-1] / 5.0), sink)
     wall = time.monotonic() - t0
-    gen = db.events("generation")
+    gen = events(db, "generation")
     assert [e[2]["status"] for e in gen][:2] == ["started", status]
-    assert "planted failure" in gen[1][2]["error"] if status == "failed" else "killed" in gen[1][2]["error"]
+    assert ("planted failure" in gen[1][2]["error"]) if status == "failed" else ("killed" in gen[1][2]["error"])
     assert len(sink.rows) == len(s)  # every compensation cycle ran
     assert np.max(np.diff(sink.wall)) < 0.5  # and none waited for the job
     assert wall < 12.0
-    assert db.active["vmc800"] is sets["cold"]  # nothing was activated
+    assert db.active_ids(machine.name, PKEY) == ids["cold"]  # nothing was activated
     # no second job right after a failed one (blocked for four monitoring intervals)
     starts = [e[1] for e in gen if e[2]["status"] == "started"]
     assert all(b - a >= 4 * 900.0 for a, b in zip(starts, starts[1:]))
@@ -335,11 +306,11 @@ def test_failing_or_hanging_generation_never_stalls_compensation(machine, rom, r
 
 def test_source_dropped_reconnects_with_backoff(machine, rom, rom_file, trace, tmp_path):
     path, s, T = trace
-    db = MemoryDB(two_sets(T), "cold")
+    db, _ = make_db(tmp_path / "cd.db", machine, T)
     cfg = config(rom_file, path, tmp_path, reconnect={"initial_s": 0.05, "max_s": 0.2, "jitter": 0.0})
     readings = list(read_replay(path, machine))
     src = ListSource(readings, fail_after=len(readings) // 2)
     _, sink, _ = run(cfg, machine, rom, db, src)
     assert src.connects == 2
-    assert [e[2]["status"] for e in db.events("source")] == ["disconnected", "reconnected"]
+    assert [e[2]["status"] for e in events(db, "source")] == ["disconnected", "reconnected"]
     assert len(sink.rows) == len(readings)  # resumed after the last reading processed, nothing lost
