@@ -22,7 +22,6 @@ Evaluation is exact multilinear interpolation, vectorised for arrays
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -233,10 +232,9 @@ class CharDiagram:
         out = np.zeros(n)
         outside = np.zeros(n, bool)
         for term in self.terms:
-            idx, w, off = _term_weights(self.inputs, term.inputs, X)
+            v, off = _term_values(self.inputs, term, X)
             outside |= off
-            flat = term.values.ravel()
-            out += np.einsum("nc,nc->n", w, flat[idx])
+            out += v
         return out, outside
 
     def evaluate_table(self, columns: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -257,26 +255,27 @@ class CharDiagram:
         return self.evaluate(X)
 
     @cached_property
-    def _fast(self) -> list:
-        """Per term: (names, lows, inverse spacings, last cells, strides, corners, flat values) for evaluate_point."""
-        plan = []
+    def _fast(self) -> tuple[list, list]:
+        """Plans for evaluate_point: 1-D terms as (name, low, inverse spacing, last cell, values); other terms
+        as (names, lows, inverse spacings, last cells, strides, flat values)."""
+        one, plan = [], []
         for term in self.terms:
             inps = [self.inputs[j] for j in term.inputs]
+            if len(inps) == 1:
+                i = inps[0]
+                one.append((i.name, i.min, (i.n_support - 1) / (i.max - i.min), i.n_support - 1,
+                            term.values.tolist()))
+                continue
             shape = term.values.shape
-            strides = [int(np.prod(shape[k + 1:])) for k in range(len(shape))]
-            corners = []
-            for bits in itertools.product((0, 1), repeat=len(shape)):
-                corners.append((sum(b * s for b, s in zip(bits, strides)), bits))
             plan.append((
                 tuple(i.name for i in inps),
                 tuple(i.min for i in inps),
                 tuple((i.n_support - 1) / (i.max - i.min) for i in inps),
                 tuple(i.n_support - 1 for i in inps),
-                tuple(strides),
-                tuple(corners),
+                tuple(int(np.prod(shape[k + 1:])) for k in range(len(shape))),
                 term.values.ravel().tolist(),
             ))
-        return plan
+        return one, plan
 
     def evaluate_point(self, values: Mapping[str, float]) -> tuple[float, bool]:
         """Drift [µm] at one point and whether it was outside the trained box (clamped).
@@ -285,9 +284,24 @@ class CharDiagram:
         """
         total = 0.0
         outside = False
-        for names, lows, inv, last, strides, corners, flat in self._fast:
+        one, plan = self._fast
+        for name, lo, a, m, vals in one:
+            u = (values[name] - lo) * a
+            if not u >= 0.0:
+                u = 0.0
+                outside = True
+            elif u > m:
+                u = float(m)
+                outside = True
+            i = int(u)
+            if i == m:
+                i -= 1
+            v0 = vals[i]
+            total += v0 + (u - i) * (vals[i + 1] - v0)
+        for names, lows, inv, last, strides, flat in plan:
             base = 0
-            fr = []
+            w = [1.0]
+            offs = [0]
             for name, lo, a, m, s in zip(names, lows, inv, last, strides):
                 u = (values[name] - lo) * a
                 if not u >= 0.0:  # also NaN: clamped to the low end and flagged
@@ -299,44 +313,72 @@ class CharDiagram:
                 i = int(u)
                 if i == m:
                     i -= 1
+                f = u - i
                 base += i * s
-                fr.append(u - i)
-            for off, bits in corners:
-                w = 1.0
-                for f, b in zip(fr, bits):
-                    w *= f if b else 1.0 - f
-                total += w * flat[base + off]
+                g = 1.0 - f
+                w = [x * g for x in w] + [x * f for x in w]
+                offs = offs + [o + s for o in offs]
+            for x, o in zip(w, offs):
+                total += x * flat[base + o]
         return total, outside
+
+
+def _cells(inp: CDInput, x: np.ndarray):
+    """Cell index, fraction in the cell and the outside flag of one input's values."""
+    m = inp.n_support
+    u = (x - inp.min) * ((m - 1) / (inp.max - inp.min))
+    bad = ~(u >= 0.0) | (u > m - 1)
+    if bad.any():
+        u = np.clip(np.nan_to_num(u, nan=0.0), 0.0, m - 1)
+    i = np.minimum(u.astype(np.intp), m - 2)
+    return i, u - i, bad
+
+
+def _term_values(inputs, term: Term, X):
+    """A term's interpolated values (n,) and outside flags: gather the 2^d cell corners, then interpolate
+    linearly along one input after the other."""
+    d = len(term.inputs)
+    shape = term.values.shape
+    strides = [int(np.prod(shape[k + 1:])) for k in range(d)]
+    n = X.shape[0]
+    base = np.zeros(n, np.intp)
+    fr = []
+    outside = np.zeros(n, bool)
+    for j, s in zip(term.inputs, strides):
+        i, f, bad = _cells(inputs[j], X[:, j])
+        base += i * s
+        fr.append(f)
+        outside |= bad
+    offs = np.zeros(1, np.intp)
+    for s in strides:
+        offs = np.concatenate([offs, offs + s])
+    V = term.values.ravel()[base[:, None] + offs[None, :]]  # corners: the last input's bit is the highest
+    for f in reversed(fr):  # halve the corners along the input of the highest remaining bit
+        h = V.shape[1] // 2
+        V = V[:, :h] + (V[:, h:] - V[:, :h]) * f[:, None]
+    return V[:, 0], outside
 
 
 def _term_weights(inputs, term_inputs, X):
     """Flat corner indices (n × 2^d), multilinear weights (n × 2^d) and the outside flag (n,) of a term."""
     n = X.shape[0]
     shape = [inputs[j].n_support for j in term_inputs]
-    cell = []
-    frac = []
+    strides = [int(np.prod(shape[k + 1:])) for k in range(len(shape))]
     outside = np.zeros(n, bool)
-    for j, m in zip(term_inputs, shape):
+    idx = np.zeros((n, 1), np.intp)
+    w = np.ones((n, 1))
+    for j, m, s in zip(term_inputs, shape, strides):
         inp = inputs[j]
         u = (X[:, j] - inp.min) * ((m - 1) / (inp.max - inp.min))
         bad = ~(u >= 0.0) | (u > m - 1)
-        outside |= bad
-        u = np.clip(np.nan_to_num(u, nan=0.0), 0.0, m - 1)
+        if bad.any():
+            outside |= bad
+            u = np.clip(np.nan_to_num(u, nan=0.0), 0.0, m - 1)
         i = np.minimum(u.astype(np.intp), m - 2)
-        cell.append(i)
-        frac.append(u - i)
-    d = len(shape)
-    strides = [int(np.prod(shape[k + 1:])) for k in range(d)]
-    base = sum(c * s for c, s in zip(cell, strides))
-    nc = 1 << d
-    idx = np.empty((n, nc), np.intp)
-    w = np.empty((n, nc))
-    for c, bits in enumerate(itertools.product((0, 1), repeat=d)):
-        idx[:, c] = base + sum(b * s for b, s in zip(bits, strides))
-        wc = np.ones(n)
-        for f, b in zip(frac, bits):
-            wc = wc * (f if b else 1.0 - f)
-        w[:, c] = wc
+        f = (u - i)[:, None]
+        base = (i * s)[:, None]
+        idx = np.hstack([idx + base, idx + base + s])
+        w = np.hstack([w * (1.0 - f), w * f])
     return idx, w, outside
 
 

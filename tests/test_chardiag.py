@@ -75,6 +75,10 @@ def test_additive_cd_of_eight_temperatures_and_five_axes_reproduces_an_additive_
     assert cd.memory_bytes == 13 * 5 * 8
     pred, _ = cd.evaluate_table(tab)
     assert np.max(np.abs(pred - y)) < 1e-8 * np.max(np.abs(y))
+    names = [i.column for i in cd.inputs]
+    for k in range(0, n, 400):  # the single-point path of additive CDs
+        v, out = cd.evaluate_point({i.name: tab[c][k] for i, c in zip(cd.inputs, names)})
+        assert not out and v == pytest.approx(pred[k], abs=1e-9 * np.max(np.abs(y)))
 
 
 def test_more_smoothing_never_increases_roughness(rng):
