@@ -72,6 +72,7 @@ DASK_CONFIG = {
 }
 
 MAX_CACHED_MODELS = 4
+_FORK_SERVER_THREADS: int | None = None
 _CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
@@ -281,10 +282,14 @@ def _fork_server_context(threads: int) -> multiprocessing.context.BaseContext:
     ctx = multiprocessing.get_context("forkserver")
     from multiprocessing import forkserver
 
+    global _FORK_SERVER_THREADS
     running = getattr(forkserver._forkserver, "_forkserver_pid", None) is not None
     if running:
-        log.debug("fork server already running; its BLAS thread settings are kept")
+        if _FORK_SERVER_THREADS not in (None, threads):
+            log.warning("the fork server runs with %s BLAS threads per worker; %d asked for is ignored in this process",
+                        _FORK_SERVER_THREADS, threads)
         return ctx
+    _FORK_SERVER_THREADS = threads
     saved = {k: os.environ.get(k) for k in WORKER_ENVIRONMENT}
     os.environ.update({k: str(threads) for k in WORKER_ENVIRONMENT})
     try:
@@ -296,6 +301,11 @@ def _fork_server_context(threads: int) -> multiprocessing.context.BaseContext:
             else:
                 os.environ[k] = v
     return ctx
+
+
+def process_pool(workers: int, threads_per_worker: int = 1) -> cf.ProcessPoolExecutor:
+    """A process pool whose workers fork from a clean fork server with ``threads_per_worker`` BLAS threads each."""
+    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=_fork_server_context(threads_per_worker))
 
 
 def _run_futures(executor: cf.Executor, spec, options, cases, done: Callable[[CaseResult], None]) -> None:
@@ -327,7 +337,7 @@ def _run_process_pool(workers, threads, max_restarts, spec, options, cases, done
             done(r)
 
     for attempt in range(max_restarts + 1):
-        pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=_fork_server_context(threads))
+        pool = process_pool(workers, threads)
         try:
             _run_futures(pool, spec, options, dict(pending), record)
             return
@@ -357,8 +367,9 @@ def dask_client(address: str, workers: int | None = None, threads: int = 1) -> I
         n = workers or os.cpu_count() or 1
         config = {**DASK_CONFIG, **{f"distributed.nanny.pre-spawn-environ.{k}": str(threads) for k in WORKER_ENVIRONMENT}}
         with dask.config.set(config):
+            # ":0": Dask starts its HTTP server even without a dashboard, on 8787 unless told a free port
             cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                               dashboard_address=None, host="127.0.0.1")
+                                               dashboard_address=":0", host="127.0.0.1")
         try:
             with distributed.Client(cluster) as client:
                 yield client

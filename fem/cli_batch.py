@@ -10,6 +10,7 @@ inputs are checked before anything runs.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -64,7 +65,9 @@ def run(args: argparse.Namespace) -> int:
         if executor not in ("serial", "process"):
             from hybridcomp.fem.batch import _import_distributed
 
-            _import_distributed()
+            _import_distributed()  # before quieting its loggers: importing distributed sets their levels
+            if getattr(args, "verbose", 0) < 2:  # Dask logs every connection at INFO; keep the progress bar readable
+                logging.getLogger("distributed").setLevel(logging.WARNING)
         if not args.no_progress:
             print(f"{len(cases)} load cases of {machine.name} at {pose} on {executor} ...", file=sys.stderr)
         results = run_batch(machine, cases, pose_mm=pose, element_size_mm=args.element_size_mm, theta=args.theta,

@@ -174,7 +174,7 @@ def dask_cli_cluster(tmp_path_factory):
                                       start_new_session=True))
 
     try:
-        start(["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+        start(["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0", "--dashboard-address", ":0",
                "--scheduler-file", str(sched_file)], "scheduler")
         deadline = time.monotonic() + 60
         while not sched_file.exists() or not sched_file.read_text().strip():
