@@ -115,3 +115,16 @@ def test_cd_command_line_fit_eval_cnc_and_database(training, tmp_path, capsys):
     (tmp_path / "foreign.csv").write_text("T1_degC,T99_degC,dx_um,dy_um,dz_um\n20,20,1,1,1\n21,22,2,2,2\n")
     assert main(["cd", "fit", str(tmp_path / "foreign.csv"), "--out", str(out)]) == 2
     assert "T99_degC is not a sensor of machine 'vmc800'" in capsys.readouterr().err
+
+
+def test_train_data_command(tmp_path, capsys):
+    out = tmp_path / "data.csv"
+    assert main(["cd", "train-data", "--cases", "basic", "--heat-h", "0.5", "--cool-h", "0.5", "--element-size-mm", "200",
+                 "--dt", "300", "--no-progress", "--out", str(out)]) == 0
+    data = read_training_csv(out)
+    assert data.cases == ("basic_X", "basic_Y", "basic_Z", "basic_spindle")
+    T = np.column_stack([data.columns[f"T{i}_degC"] for i in range(1, 9)])
+    assert T.max() > 21.0  # heat sources warm the machine ...
+    assert T.min() > 20.0 - 0.02  # ... and never cool it (beyond the small undershoot of a consistent-mass FE model)
+    assert main(["cd", "train-data", "--cases", "basic,nonsense", "--out", str(out)]) == 2
+    assert "nonsense: no such file" in capsys.readouterr().err
