@@ -1,0 +1,85 @@
+"""The diagnosis entry points: prepare the reduced model, diagnose a dataset."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from hybridcomp.diagnose._threads import single_blas_thread
+from hybridcomp.diagnose.data import Dataset, Split, parse_split
+from hybridcomp.diagnose.effects import library
+from hybridcomp.diagnose.problem import body_drift_rows, build_problem, with_body_rows
+from hybridcomp.diagnose.selection import Diagnosis, select
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SPLIT = "0:60%"
+
+
+def prepare_model(machine, *, rom=None, model=None, element_size_mm: float | None = None, pose_mm: dict | None = None,
+                  order: int | None = None, tol_K: float = 0.02, tol_um: float = 0.1, check_loads=None,
+                  body_rows: bool = True):
+    """The reduced model a diagnosis runs on, with per-body drift rows appended for the expansion effects.
+
+    Parameters
+    ----------
+    machine : loaded machine
+    rom : an existing reduced model of this machine (reduced with its basis V); None: reduce now
+    model : the assembled FE model (built here if needed)
+    element_size_mm : FE element size [mm] (default: the machine file's)
+    pose_mm : pose of the model [mm] (default: mid travel)
+    order, tol_K, tol_um, check_loads : passed to :func:`hybridcomp.rom.machine.reduce_model`
+    body_rows : compute per-body drift rows (one elastic adjoint set per body) for the expansion effects
+    """
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.rom.machine import reduce_model
+
+    t0 = time.perf_counter()
+    if model is None and (rom is None or (body_rows and rom.V is not None)):
+        model = build_model(machine, pose_mm, element_size_mm)
+    if rom is None:
+        rom = reduce_model(model, tol_K=tol_K, tol_um=tol_um, order=order, check_loads=check_loads)
+    if body_rows and rom.V is not None and model is not None:
+        if model.n != rom.V.shape[0]:
+            raise ValueError(f"the reduced model has {rom.V.shape[0]} nodes, the FE model {model.n}: use the same element size")
+        bodies, rows = body_drift_rows(model)
+        rom = with_body_rows(rom, bodies, rows)
+    log.info("model for the diagnosis ready in %.1f s (order %d)", time.perf_counter() - t0, rom.order)
+    return rom
+
+
+def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=None, kinds=None,
+             max_effects: int = 4, progress: bool = False) -> Diagnosis:
+    """Diagnose what the reduced model of ``machine`` gets wrong on ``dataset``.
+
+    Parameters
+    ----------
+    machine : loaded machine (:func:`hybridcomp.models.load_machine`)
+    dataset : measured data (:func:`hybridcomp.diagnose.read_dataset`): heat inputs ``*_W``, zone or
+        measured air ``*_degC``, measured sensors ``<sensor>_degC`` and drift ``dx_um`` ...
+    split : training range (``"0:60%"``, ``"0:24h"``) or a :class:`Split`; validation is the rest
+    rom : the model (:func:`prepare_model`); None: reduce the machine's FE model now
+    kinds : effect kinds to consider (default: the whole library)
+    max_effects : most effects named
+    """
+    t0 = time.perf_counter()
+    if not isinstance(split, Split):
+        split = parse_split(split, dataset.time_s)
+    if rom is None:
+        rom = prepare_model(machine)
+    bodies = tuple(dict.fromkeys(n.split("@", 1)[1] for n in rom.output_names if "@" in n))
+    problem = build_problem(machine, rom, dataset, split, bodies)
+    cands = library(problem, kinds)
+    log.info("%d candidate effects", len(cands))
+    with single_blas_thread():
+        d = select(problem, cands, max_effects=max_effects, progress=progress)
+    d.timings_s["total"] = time.perf_counter() - t0
+    d.timings_s["candidates"] = len(cands)
+    return d
+
+
+def channel_residuals(d: Diagnosis) -> dict[str, np.ndarray]:
+    p = d.problem
+    return {c: p.Y[:, k] - d.Y_after[:, k] for k, c in enumerate(p.channels)}

@@ -1,0 +1,275 @@
+"""Measured datasets: reading, column mapping, training/validation split.
+
+A measured dataset is a CSV whose columns carry their unit (``time_s``,
+``T3_degC``, ``dz_um``, ``spindle_rpm``, ``x_mm``, heat inputs ``*_W``); any
+other CSV is read through a column map (TOML)::
+
+    [columns]              # project name = column in the CSV
+    time_s = "Time"
+    T1_degC = "spindle housing"
+    dz_um = "Z displacement"
+
+    [scale]                # optional: multiply a mapped column (e.g. hours to seconds, mm to µm)
+    time_s = 3600.0
+
+With a map only the mapped columns are read (and every mapped column must be
+in the CSV); without one, every column is read under its own name.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+MIN_VALIDATION_SAMPLES = 30
+MIN_VALIDATION_FRACTION = 0.05
+MIN_TRAINING_SAMPLES = 30
+
+
+class DatasetError(ValueError):
+    """A measured dataset, column map or split is invalid; the message names the file, column and value."""
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A measured dataset with project column names.
+
+    Attributes
+    ----------
+    time_s : sample times, strictly increasing [s]
+    columns : column name (unit-suffixed project name) → values (unit in the name)
+    source : file or description the data came from
+    """
+
+    time_s: np.ndarray
+    columns: dict
+    source: str = "dataset"
+
+    def __post_init__(self):
+        t = np.asarray(self.time_s, float)
+        if t.ndim != 1 or t.size < 2:
+            raise DatasetError(f"{self.source}: need at least two samples, got {t.size}")
+        bad = np.flatnonzero(~(np.diff(t) > 0))
+        if bad.size:
+            i = int(bad[0])
+            raise DatasetError(f"{self.source}: column 'time_s' does not increase at row {i + 1}: {t[i]} then {t[i + 1]}")
+        for name, v in self.columns.items():
+            v = np.asarray(v, float)
+            if v.shape != t.shape:
+                raise DatasetError(f"{self.source}: column {name!r} has {v.size} values, 'time_s' has {t.size}")
+            if not np.all(np.isfinite(v)):
+                k = int(np.flatnonzero(~np.isfinite(v))[0])
+                raise DatasetError(f"{self.source}: column {name!r}, row {k + 1}: value {v[k]} is not finite")
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.columns)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return np.asarray(self.columns[name], float)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.columns
+
+    def subset(self, rows: np.ndarray) -> Dataset:
+        """The rows selected by an index or boolean array."""
+        return Dataset(self.time_s[rows], {k: np.asarray(v)[rows] for k, v in self.columns.items()}, self.source)
+
+
+def read_column_map(path: str | Path) -> tuple[dict[str, str], dict[str, float]]:
+    """Read a column map TOML: ``[columns] project_name = "csv column"`` and optional ``[scale]``."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read column map: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise DatasetError(f"{path}: column map is not valid TOML: {exc}") from None
+    unknown = [k for k in data if k not in ("columns", "scale")]
+    if unknown:
+        raise DatasetError(f"{path}: field {unknown[0]!r} is not a known field (known: columns, scale)")
+    cols = data.get("columns")
+    if not isinstance(cols, dict) or not cols:
+        raise DatasetError(f"{path}: field 'columns' is required: a table project_name = \"csv column\"")
+    for k, v in cols.items():
+        if not isinstance(v, str):
+            raise DatasetError(f"{path}: field 'columns.{k}' must be a column name (string), got {v!r}")
+        check_column_name(k, f"{path}: field 'columns.{k}'")
+    if "time_s" not in cols:
+        raise DatasetError(f"{path}: field 'columns.time_s' is required (the time column)")
+    scale = data.get("scale", {})
+    if not isinstance(scale, dict):
+        raise DatasetError(f"{path}: field 'scale' must be a table")
+    for k, v in scale.items():
+        if k not in cols:
+            raise DatasetError(f"{path}: field 'scale.{k}' scales a column the map does not define")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise DatasetError(f"{path}: field 'scale.{k}' must be a finite number, got {v!r}")
+    return dict(cols), {k: float(v) for k, v in scale.items()}
+
+
+UNIT_SUFFIXES = ("_s", "_degC", "_um", "_rpm", "_mm", "_W", "_mm_min")
+
+
+def check_column_name(name: str, where: str) -> None:
+    """A project column name must end in a known unit suffix."""
+    if not any(name.endswith(s) for s in UNIT_SUFFIXES):
+        raise DatasetError(f"{where}: column name {name!r} has no known unit suffix ({', '.join(UNIT_SUFFIXES)})")
+
+
+def read_dataset(path: str | Path, column_map: str | Path | dict | None = None) -> Dataset:
+    """Read a measured dataset CSV, optionally through a column map (file or ``{project: csv}`` dict).
+
+    Raises
+    ------
+    DatasetError
+        missing file or column, a column named by the map that is not in the CSV, non-numeric or
+        non-finite values, time not increasing.
+    """
+    path = Path(path)
+    scale: dict[str, float] = {}
+    if isinstance(column_map, (str, Path)):
+        mapping, scale = read_column_map(column_map)
+        map_src = str(column_map)
+    elif isinstance(column_map, dict):
+        mapping, map_src = dict(column_map), "column map"
+    else:
+        mapping, map_src = None, ""
+    try:
+        with path.open() as fh:
+            header = [h.strip() for h in fh.readline().strip().split(",")]
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read dataset: {exc}") from None
+    if not header or header == [""]:
+        raise DatasetError(f"{path}: empty file, expected a header line")
+    if len(set(header)) != len(header):
+        dup = next(h for h in header if header.count(h) > 1)
+        raise DatasetError(f"{path}: column {dup!r} appears twice")
+    if mapping is not None:
+        missing = [(k, v) for k, v in mapping.items() if v not in header]
+        if missing:
+            k, v = missing[0]
+            raise DatasetError(
+                f"{path}: column {v!r} named by {map_src} field 'columns.{k}' is not in the dataset "
+                f"(columns: {', '.join(header)})"
+            )
+        wanted = {k: header.index(v) for k, v in mapping.items()}
+    else:
+        if "time_s" not in header:
+            raise DatasetError(f"{path}: column 'time_s' is missing (columns: {', '.join(header)}); "
+                               "name the columns by the unit-suffix convention or give a column map")
+        wanted = {}
+        for j, h in enumerate(header):
+            if any(h.endswith(s) for s in UNIT_SUFFIXES):
+                wanted[h] = j
+            else:
+                log.warning("%s: column %r has no unit suffix and is not read (give a column map to use it)", path, h)
+    try:
+        data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=sorted(set(wanted.values())), ndmin=2)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: not a numeric CSV: {exc}") from None
+    if data.shape[0] == 0:
+        raise DatasetError(f"{path}: no data rows")
+    pos = {j: i for i, j in enumerate(sorted(set(wanted.values())))}
+    cols = {k: data[:, pos[j]] * scale.get(k, 1.0) for k, j in wanted.items()}
+    t = cols.pop("time_s")
+    return Dataset(t, cols, str(path))
+
+
+# ---------------------------------------------------------------------------------------------- split
+
+
+@dataclass(frozen=True)
+class Split:
+    """Training and validation rows of a dataset (boolean masks; validation = the rest)."""
+
+    train: np.ndarray
+    validation: np.ndarray
+    text: str
+
+    def describe(self, time_s: np.ndarray) -> dict:
+        t = np.asarray(time_s)
+        return {
+            "spec": self.text,
+            "train_rows": int(self.train.sum()),
+            "validation_rows": int(self.validation.sum()),
+            "train_h": [float(t[self.train][0] / 3600), float(t[self.train][-1] / 3600)],
+            "validation_h": [float(t[self.validation][0] / 3600), float(t[self.validation][-1] / 3600)],
+        }
+
+
+_BOUND = re.compile(r"^\s*([0-9.eE+-]*)\s*(%|s|h)?\s*$")
+
+
+def _bound(text: str, t: np.ndarray, default: float, spec: str) -> float:
+    m = _BOUND.match(text)
+    if not m:
+        raise DatasetError(f"split {spec!r}: bound {text!r} is not a number with %, s or h")
+    num, unit = m.groups()
+    if num == "":
+        if unit:
+            raise DatasetError(f"split {spec!r}: bound {text!r} has a unit but no number")
+        return default
+    try:
+        v = float(num)
+    except ValueError:
+        raise DatasetError(f"split {spec!r}: bound {text!r} is not a number") from None
+    if unit == "%":
+        if not 0 <= v <= 100:
+            raise DatasetError(f"split {spec!r}: percentage {v} is outside 0..100")
+        return t[0] + v / 100 * (t[-1] - t[0])
+    if unit == "h":
+        return t[0] + v * 3600
+    return t[0] + v
+
+
+def parse_split(spec: str, time_s: np.ndarray) -> Split:
+    """Training range ``START:END`` in %, s or h of the record (e.g. ``0:60%``, ``0:24h``); validation is the rest.
+
+    Raises
+    ------
+    DatasetError
+        unparsable range, an empty training part, or a validation part shorter than
+        ``MIN_VALIDATION_SAMPLES`` samples or ``MIN_VALIDATION_FRACTION`` of the record.
+    """
+    t = np.asarray(time_s, float)
+    if ":" not in spec:
+        raise DatasetError(f"split {spec!r}: expected START:END of the training part, e.g. 0:60% or 0:24h")
+    a, b = spec.split(":", 1)
+    lo = _bound(a, t, t[0], spec)
+    hi = _bound(b, t, t[-1], spec)
+    if not hi > lo:
+        raise DatasetError(f"split {spec!r}: the training part must end after it starts ({lo} s .. {hi} s)")
+    train = (t >= lo) & (t < hi) if hi < t[-1] else (t >= lo)
+    val = ~train
+    if train.sum() < MIN_TRAINING_SAMPLES:
+        raise DatasetError(f"split {spec!r}: training part has {int(train.sum())} samples, at least {MIN_TRAINING_SAMPLES} needed")
+    need = max(MIN_VALIDATION_SAMPLES, int(math.ceil(MIN_VALIDATION_FRACTION * t.size)))
+    if val.sum() < need:
+        raise DatasetError(
+            f"split {spec!r}: validation part has {int(val.sum())} samples ({(t[val][-1] - t[val][0]) / 3600 if val.sum() > 1 else 0:.3g} h); "
+            f"at least {need} samples ({MIN_VALIDATION_SAMPLES} and {MIN_VALIDATION_FRACTION:.0%} of the record) are needed "
+            "to measure the gain on data the fit has not seen"
+        )
+    return Split(train, val, spec)
+
+
+def check_channels(ds: Dataset, channels, split: Split) -> None:
+    """Every measured channel must vary in the training and in the validation part."""
+    for c in channels:
+        y = ds[c]
+        for part, mask in (("training", split.train), ("validation", split.validation)):
+            v = y[mask]
+            if np.ptp(v) <= 1e-9 * max(1.0, np.abs(v).max()):
+                raise DatasetError(
+                    f"{ds.source}: channel {c!r} is constant ({v[0]:g}) in the {part} part: a residual fit % is undefined; "
+                    "remove the channel (column map) or check the sensor"
+                )

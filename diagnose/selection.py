@@ -1,0 +1,302 @@
+"""Fitting effects with bounded least squares and greedy model selection (BIC on training, gain on validation)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares, lsq_linear
+
+from hybridcomp.diagnose.effects import Candidate, simulate
+from hybridcomp.diagnose.metrics import channel_metrics, lag1_autocorrelation, rms, strongest_correlations
+from hybridcomp.diagnose.problem import Problem
+
+log = logging.getLogger(__name__)
+
+# a channel's validation residual within this factor of its noise level is "at the noise level"
+NOISE_FACTOR = 1.5
+# an effect is named only if it lowers the weighted validation residual energy by this fraction ...
+MIN_VALIDATION_GAIN = 0.10
+# ... and the training BIC by at least this much
+MIN_BIC_DROP = 10.0
+MAX_EFFECTS = 4
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """A fitted effect: parameters, 1σ uncertainty, and what it gained."""
+
+    candidate: Candidate
+    params: np.ndarray
+    uncertainty: np.ndarray
+    bic_drop: float
+    validation_gain: float
+
+    def as_dict(self) -> dict:
+        c = self.candidate
+        return {
+            "name": c.kind,
+            "target": c.target,
+            "label": c.label,
+            "parameters": {n: float(v) for n, v in zip(c.param_names, self.params)},
+            "nominal": {n: float(v) for n, v in zip(c.param_names, c.nominal)},
+            "uncertainty": {n: float(v) for n, v in zip(c.param_names, self.uncertainty)},
+            "gain": {"bic_drop_train": float(self.bic_drop), "validation_rss_reduction": float(self.validation_gain)},
+        }
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Weighted residual energy of a model variant on the training and validation rows."""
+
+    rss_train: float
+    rss_val: float
+    n_train: int
+    k: int
+
+    @property
+    def bic(self) -> float:
+        n = self.n_train
+        return n * np.log(self.rss_train / n) + self.k * np.log(n)
+
+
+def _weighted(problem: Problem, Yhat: np.ndarray) -> np.ndarray:
+    return (problem.Y - Yhat) * problem.weights[None, :]
+
+
+def evaluate(problem: Problem, effects, k: int) -> tuple[Evaluation, np.ndarray]:
+    Yhat = simulate(problem, effects)
+    R = _weighted(problem, Yhat)
+    tr, va = problem.split.train, problem.split.validation
+    return Evaluation(float(np.sum(R[tr] ** 2)), float(np.sum(R[va] ** 2)), int(R[tr].size), k), Yhat
+
+
+def fit(problem: Problem, fixed: list, free: list[Candidate], start: list | None = None,
+        max_nfev: int = 40) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
+    """Bounded least squares of the free effects' parameters on the training rows, ``fixed`` held.
+
+    Returns
+    -------
+    parameters and 1σ uncertainties per free effect, and the model's channels (nt × nch)
+    """
+    tr = problem.split.train
+    sizes = [len(c.nominal) for c in free]
+    cuts = np.cumsum([0] + sizes)
+    lo = np.concatenate([c.lower for c in free])
+    hi = np.concatenate([c.upper for c in free])
+    x0 = np.concatenate(start) if start is not None else np.concatenate([c.start for c in free])
+    x0 = np.clip(x0, lo, hi)
+
+    def effects_at(x):
+        return list(fixed) + [(c, x[cuts[i]:cuts[i + 1]]) for i, c in enumerate(free)]
+
+    def resid(x):
+        return _weighted(problem, simulate(problem, effects_at(x)))[tr].ravel()
+
+    if all(c.linear for c in free):
+        nom = np.concatenate([c.nominal for c in free])
+        r0 = resid(nom)
+        J = np.empty((r0.size, nom.size))
+        for j in range(nom.size):
+            step = max(1.0, abs(hi[j] - lo[j]) * 1e-2)
+            e = nom.copy()
+            e[j] += step
+            J[:, j] = -(resid(e) - r0) / step
+        sol = lsq_linear(J, r0, bounds=(lo - nom, hi - nom), method="bvls" if nom.size <= 8 else "trf")
+        x = nom + sol.x
+        r = r0 - J @ sol.x
+        Jac = -J
+    else:
+        if start is None:
+            # scan the first parameter of a single nonlinear effect for a start
+            if len(free) == 1 and free[0].grid is not None:
+                best = None
+                for g in free[0].grid:
+                    xg = x0.copy()
+                    xg[0] = np.clip(g, lo[0], hi[0])
+                    val = float(np.sum(resid(xg) ** 2))
+                    if best is None or val < best[0]:
+                        best = (val, xg)
+                x0 = best[1]
+        scale = np.maximum(np.abs(hi - lo) * 0.05, 1e-6)
+        res = least_squares(resid, x0, bounds=(lo, hi), x_scale=scale, diff_step=1e-4, max_nfev=max_nfev, method="trf")
+        x, r, Jac = res.x, res.fun, res.jac
+    n, k = r.size, x.size
+    s2 = float(r @ r) / max(n - k, 1)
+    # residual correlation in time inflates the variance (effective sample size)
+    rho = np.clip(np.mean([lag1_autocorrelation(rc) for rc in r.reshape(-1, problem.Y.shape[1]).T]), 0.0, 0.99)
+    infl = (1 + rho) / (1 - rho)
+    try:
+        cov = np.linalg.pinv(Jac.T @ Jac) * s2 * infl
+        unc = np.sqrt(np.clip(np.diag(cov), 0, None))
+    except np.linalg.LinAlgError:
+        unc = np.full(k, np.nan)
+    Yhat = simulate(problem, effects_at(x))
+    return ([x[cuts[i]:cuts[i + 1]] for i in range(len(free))], [unc[cuts[i]:cuts[i + 1]] for i in range(len(free))], Yhat)
+
+
+def at_noise_level(problem: Problem, Yhat: np.ndarray, factor: float = NOISE_FACTOR) -> np.ndarray:
+    """Per channel: is the validation residual within ``factor`` × the channel's noise level?"""
+    va = problem.split.validation
+    r = problem.Y[va] - Yhat[va]
+    return np.sqrt(np.mean(r**2, axis=0)) <= factor * problem.sigma
+
+
+@dataclass(frozen=True)
+class Round:
+    """One greedy round: every candidate's score given the effects accepted before it."""
+
+    accepted: str | None
+    scores: list  # dicts: label, params, bic_drop, validation_gain
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """What the simulation gets wrong, the named causes, the extended model and the gain.
+
+    Attributes
+    ----------
+    problem : the data and the model under test
+    causes : fitted effects, in the order they were accepted
+    before, after : per channel validation RMS, P2P and fit % of the model as is and extended
+    verdict : ``"no significant discrepancy"``, ``"explained"``, ``"partly explained"`` or ``"unexplained"``
+    Y_before, Y_after : the model's channels before and after (nt × nch)
+    correlations : strongest correlations of the remaining residual with the available signals
+    rounds : candidate scores per greedy round
+    """
+
+    problem: Problem
+    causes: tuple[Fitted, ...]
+    before: dict
+    after: dict
+    verdict: str
+    Y_before: np.ndarray
+    Y_after: np.ndarray
+    correlations: list
+    rounds: tuple[Round, ...]
+    message: str = ""
+    timings_s: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {
+            "verdict": self.verdict,
+            "message": self.message,
+            "causes": [c.as_dict() for c in self.causes],
+            "before": self.before,
+            "after": self.after,
+            "noise_level": {c: float(s) for c, s in zip(self.problem.channels, self.problem.sigma)},
+            "unexplained_correlations": [c.as_dict() for c in self.correlations],
+            "split": self.problem.split.describe(self.problem.time_s),
+            "timings_s": self.timings_s,
+        }
+
+
+def validation_metrics(problem: Problem, Yhat: np.ndarray) -> dict:
+    va = problem.split.validation
+    return {c: channel_metrics(problem.Y[va, k], Yhat[va, k]) for k, c in enumerate(problem.channels)}
+
+
+def _conflicts(a: Candidate, chosen: list) -> bool:
+    return any(a.key == c.key or (a.kind in ("htc", "htc_motion") and c.kind in ("htc", "htc_motion") and a.target == c.target)
+               or (a.kind in ("power_scale", "exponent") and c.kind in ("power_scale", "exponent") and a.target == c.target
+                   and a.kind == c.kind)
+               for c in chosen)
+
+
+def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX_EFFECTS,
+           min_gain: float = MIN_VALIDATION_GAIN, min_bic_drop: float = MIN_BIC_DROP, progress: bool = False) -> Diagnosis:
+    """Greedy forward selection of named effects.
+
+    Each round fits every remaining candidate (the accepted ones held at their values), ranks them
+    by the drop of the training BIC, and accepts the best one whose fit also lowers the weighted
+    validation residual energy by at least ``min_gain``; then all accepted effects are refitted
+    together.  Stops when every channel's validation residual is at its noise level, when no
+    candidate passes both tests, or after ``max_effects``.
+    """
+    t0 = time.perf_counter()
+    base_eval, Y0 = evaluate(problem, [], 0)
+    before = validation_metrics(problem, Y0)
+    if at_noise_level(problem, Y0).all():
+        return Diagnosis(problem, (), before, before, "no significant discrepancy", Y0, Y0, [], (),
+                         "every channel's validation residual is at its noise level (within "
+                         f"{NOISE_FACTOR}× the noise estimated from the data)", {"selection": time.perf_counter() - t0})
+    chosen: list[Fitted] = []
+    current = base_eval
+    Ycur = Y0
+    rounds = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=max_effects * len(candidates), desc="candidates", unit="fit", leave=False)
+    while len(chosen) < max_effects:
+        fixed = [(f.candidate, f.params) for f in chosen]
+        k_now = sum(len(f.params) for f in chosen)
+        scores = []
+        for cand in candidates:
+            if bar is not None:
+                bar.update()
+            if _conflicts(cand, [f.candidate for f in chosen]):
+                continue
+            try:
+                (p,), (u,), Yhat = fit(problem, fixed, [cand])
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                log.debug("candidate %s failed: %s", cand.label, exc)
+                continue
+            ev, _ = evaluate(problem, fixed + [(cand, p)], k_now + len(p))
+            bic_drop = current.bic - ev.bic
+            gain = 1.0 - ev.rss_val / current.rss_val if current.rss_val > 0 else 0.0
+            scores.append({"candidate": cand, "params": p, "unc": u, "bic_drop": bic_drop, "gain": gain})
+        scores.sort(key=lambda s: -s["bic_drop"])
+        ok = [s for s in scores if s["bic_drop"] >= min_bic_drop and s["gain"] >= min_gain]
+        table = [{"label": s["candidate"].describe(s["params"]), "kind": s["candidate"].kind, "target": s["candidate"].target,
+                  "bic_drop": float(s["bic_drop"]), "validation_gain": float(s["gain"])} for s in scores[:15]]
+        if not ok:
+            rounds.append(Round(None, table))
+            break
+        best = ok[0]
+        rounds.append(Round(best["candidate"].describe(best["params"]), table))
+        log.info("accepted %s (BIC drop %.1f, validation gain %.3f)", best["candidate"].describe(best["params"]),
+                 best["bic_drop"], best["gain"])
+        # joint refit of every accepted effect
+        free = [f.candidate for f in chosen] + [best["candidate"]]
+        starts = [f.params for f in chosen] + [best["params"]]
+        params, uncs, Ycur = fit(problem, [], free, start=starts)
+        new_eval, _ = evaluate(problem, list(zip(free, params)), sum(len(p) for p in params))
+        chosen = [Fitted(c, p, u, f.bic_drop, f.validation_gain) for c, p, u, f in
+                  zip(free[:-1], params[:-1], uncs[:-1], chosen)]
+        chosen.append(Fitted(best["candidate"], params[-1], uncs[-1], float(best["bic_drop"]), float(best["gain"])))
+        current = new_eval
+        if at_noise_level(problem, Ycur).all():
+            break
+    if bar is not None:
+        bar.close()
+    after = validation_metrics(problem, Ycur)
+    noise = at_noise_level(problem, Ycur)
+    va = problem.split.validation
+    corr = []
+    if not noise.all():
+        res = {c: problem.Y[va, k] - Ycur[va, k] for k, c in enumerate(problem.channels) if not noise[k]}
+        sig = {n: v[va] for n, v in problem.signals.items()}
+        corr = strongest_correlations(problem.time_s[va], res, sig)
+    if noise.all():
+        verdict = "explained"
+        msg = "the named effects bring every channel's validation residual to its noise level"
+    elif chosen:
+        verdict = "partly explained"
+        left = [c for c, ok in zip(problem.channels, noise) if not ok]
+        msg = ("the named effects explain part of the discrepancy; a structured residual remains on "
+               f"{', '.join(left)} that no effect in the library explains")
+    else:
+        verdict = "unexplained"
+        msg = ("the residual is structured but no effect in the library explains it significantly; "
+               "see the strongest correlations")
+    return Diagnosis(problem, tuple(chosen), before, after, verdict, Y0, Ycur, corr, tuple(rounds), msg,
+                     {"selection": time.perf_counter() - t0})
+
+
+def residual_rms(problem: Problem, Yhat: np.ndarray) -> dict:
+    va = problem.split.validation
+    return {c: rms(problem.Y[va, k] - Yhat[va, k]) for k, c in enumerate(problem.channels)}
