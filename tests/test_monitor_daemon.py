@@ -314,3 +314,89 @@ def test_source_dropped_reconnects_with_backoff(machine, rom, rom_file, trace, t
     assert src.connects == 2
     assert [e[2]["status"] for e in events(db, "source")] == ["disconnected", "reconnected"]
     assert len(sink.rows) == len(readings)  # resumed after the last reading processed, nothing lost
+
+
+# --------------------------------------------------------------------------- kill -9 and restart
+
+
+def write_config(path, rom_file, trace_path, db_path, sink_path, speed):
+    path.write_text(f"""
+[monitor]
+machine = "vmc800"
+database = "{db_path}"
+rom = "{rom_file}"
+pose_mm = {{ X = 0, Y = 0, Z = 0 }}
+[compensation]
+max_offset_um = 100
+max_step_um = 2
+[source]
+kind = "replay"
+path = "{trace_path}"
+speed = {speed}
+[sink]
+kind = "jsonl"
+path = "{sink_path}"
+[regeneration]
+enabled = false
+""")
+    return path
+
+
+def test_kill_9_at_random_moments_and_restart_loses_and_duplicates_no_event(machine, rom, rom_file, trace, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    path, s, T = trace
+    # reference: one uninterrupted run
+    ref_db, ids = make_db(tmp_path / "ref.db", machine, T)
+    run(config(rom_file, path, tmp_path), machine, rom, ref_db, ReplaySource(path, machine, speed=0))
+    ref = {e.key: (e.kind, e.machine_time_s, e.payload) for e in ref_db.events() if e.key is not None}
+    assert len([k for k in ref if k.startswith("decision@")]) == int(s.time_s[-1] // 900)
+
+    db, ids2 = make_db(tmp_path / "cd.db", machine, T)
+    assert ids2 == ids
+    rng = np.random.default_rng(7)
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    speed = s.time_s[-1] / 8.0  # the whole trace in 8 s of wall time: every run is killed part-way
+    active_after_kill = []
+    kills = 0
+    for k in range(11):
+        cfg_file = write_config(tmp_path / f"m{k}.toml", rom_file, path, tmp_path / "cd.db", tmp_path / f"off{k}.jsonl", speed)
+        with (tmp_path / f"err{k}.txt").open("wb") as err:
+            proc = subprocess.Popen([sys.executable, "-m", "hybridcomp", "monitor", "run", "--config", str(cfg_file)],
+                                    env=env, stdout=subprocess.DEVNULL, stderr=err)
+        if k < 10:
+            try:
+                proc.wait(timeout=float(rng.uniform(0.6, 3.2)))
+            except subprocess.TimeoutExpired:
+                proc.kill()  # SIGKILL: no clean-up of any kind
+                kills += 1
+            proc.wait()
+            active_after_kill.append(db.active_ids(machine.name, PKEY))
+        else:
+            proc.wait(timeout=60)
+            assert proc.returncode == 0, (tmp_path / f"err{k}.txt").read_text()[-2000:]
+    assert kills == 10
+
+    got = [e for e in db.events() if e.key is not None]
+    keys = [e.key for e in got]
+    assert len(keys) == len(set(keys))  # nothing written twice
+    assert set(keys) == set(ref)  # nothing lost
+    for e in got:
+        kind, t, payload = ref[e.key]
+        assert (e.kind, e.machine_time_s) == (kind, t)
+        if kind == "decision":
+            assert payload["action"] == e.payload["action"]
+            assert payload["T_actual_degC"] == pytest.approx(e.payload["T_actual_degC"], abs=1e-9)
+    # one activation per switch, as in the uninterrupted run
+    assert [e.payload["ids"] for e in db.events("activation")] == [e.payload["ids"] for e in ref_db.events("activation")]
+    # every restart compensated with the set that was active when it was killed
+    checked = 0
+    for k, active in enumerate(active_after_kill):
+        f = tmp_path / f"off{k + 1}.jsonl"  # (absent or empty when the next run was killed before its first flush)
+        rows = [json.loads(x) for x in f.read_text().splitlines()] if f.exists() else []
+        if rows:
+            assert rows[0]["active"] == ",".join(f"{d}={v}" for d, v in sorted(active.items()))
+            checked += 1
+    assert checked >= 3
