@@ -16,6 +16,7 @@ SUBCOMMANDS = {
     "scenario": ("hybridcomp.histogram.cli_scenario", "write a bundled scenario (basic load cases, job-shop day): G-code, trace, loads"),
     "cd": ("hybridcomp.chardiag.cli", "characteristic diagrams: training data, fit, evaluation, CNC export, database"),
     "reduce": ("hybridcomp.rom.cli_reduce", "reduce a machine's FE model (or exported matrices) to a real-time ROM.npz"),
+    "diagnose": ("hybridcomp.diagnose.cli", "diagnose measured data: residuals, named physical causes, extended machine file, gain"),
     "batch": ("hybridcomp.fem.cli_batch", "run a directory of load cases on the FE model: local process pool or Dask cluster"),
     "monitor": ("hybridcomp.monitor.cli", "the monitoring daemon: run, status, example-config, and the hybrid scenario"),
 }

@@ -1,0 +1,89 @@
+"""``hybridcomp diagnose``: what the simulation gets wrong on measured data, the named cause, the extended model, the gain."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+from hybridcomp.models.cli import add_machine_argument
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Simulate a measured dataset with the machine's reduced model, analyse the residuals (RMS, P2P, fit %, "
+        "E_P95(range), cross-correlation), fit a library of named physical effects by bounded least squares, select "
+        "them greedily (BIC on the training part, gain on the validation part) and write DIR/report.md with plots, "
+        "DIR/summary.json and DIR/machine_extended.toml. With --data-only, diagnose a regression compensation model "
+        "fitted to the dataset alone."
+    )
+    add_machine_argument(p)
+    p.add_argument("--data", required=True, type=Path, metavar="MEASURED.csv",
+                   help="measured dataset: time_s, heat inputs <input>_W, zone air <zone>_degC (or Tamb_degC, Tws_degC), "
+                   "measured sensors <sensor>_degC and dx_um, dy_um, dz_um (unit-suffix names; other names via --map)")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
+    p.add_argument("--map", type=Path, metavar="MAP.toml",
+                   help="column map: [columns] project_name = \"csv column\", optional [scale] project_name = factor")
+    p.add_argument("--train", default="0:60%", metavar="START:END",
+                   help="training part in %%, s or h of the record (default 0:60%%); validation is the rest")
+    p.add_argument("--data-only", action="store_true",
+                   help="no FE model: diagnose a multiple linear regression of the *_um channels on the *_degC sensors "
+                   "(greedy input selection by BIC) with data-side extensions")
+    p.add_argument("--rom", type=Path, help="reduced model .npz of this machine (kept basis); default: reduce now")
+    p.add_argument("--element-size-mm", type=float, help="FE element size for the reduction [mm] (default: machine file)")
+    p.add_argument("--effects", help="comma-separated effect kinds to consider (default: the whole library)")
+    p.add_argument("--max-effects", type=int, default=4, help="most effects to name (default 4)")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hybridcomp.diagnose.data import DatasetError, parse_split, read_dataset
+    from hybridcomp.models.machine import MachineFileError
+
+    t0 = time.perf_counter()
+    try:
+        ds = read_dataset(args.data, args.map)
+        split = parse_split(args.train, ds.time_s)
+        if args.max_effects < 1:
+            raise DatasetError(f"--max-effects must be at least 1, got {args.max_effects}")
+        if args.data_only:
+            from hybridcomp.diagnose.dataonly import diagnose_data_only, write_data_only_report
+
+            d = diagnose_data_only(ds, split, max_terms=args.max_effects)
+            summary = write_data_only_report(d, args.out, dataset_name=args.data.name, plots=not args.no_plots)
+            fits = ", ".join(f"{c} {v['after']['fit_percent']:.1f} %" for c, v in summary["channels"].items())
+            print(f"data-only diagnosis: validation fit {fits}; report {args.out / 'report.md'}")
+            return 0
+        from hybridcomp.diagnose.core import diagnose, prepare_model
+        from hybridcomp.diagnose.report import write_report
+        from hybridcomp.models.machine import load_machine
+
+        machine = load_machine(args.machine)
+        kinds = [k.strip() for k in args.effects.split(",")] if args.effects else None
+        if kinds:
+            from hybridcomp.diagnose.effects import KINDS
+
+            bad = [k for k in kinds if k not in KINDS]
+            if bad:
+                raise DatasetError(f"--effects: unknown effect {bad[0]!r} (library: {', '.join(KINDS)})")
+        rom = None
+        if args.rom:
+            from hybridcomp.rom import load_rom
+
+            rom = load_rom(args.rom, machine)
+        print(f"preparing the reduced model of {machine.name} ...", file=sys.stderr)
+        rom = prepare_model(machine, rom=rom, element_size_mm=args.element_size_mm)
+        d = diagnose(machine, ds, split, rom=rom, kinds=kinds, max_effects=args.max_effects, progress=True)
+        write_report(d, args.out, dataset_name=args.data.name, plots=not args.no_plots)
+    except (DatasetError, MachineFileError, ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"verdict: {d.verdict}")
+    for f in d.causes:
+        print(f"  {f.candidate.describe(f.params)}; validation gain {100 * f.validation_gain:.1f} %")
+    print(f"report {args.out / 'report.md'} ({time.perf_counter() - t0:.1f} s)")
+    return 0

@@ -1,0 +1,154 @@
+"""The extended machine file: the named causes written back into the machine's TOML.
+
+What a machine file can express (``models/README.md``): a source's ``power_W`` and ``exponent``,
+a zone's ``h_W_m2K``, a new fixed heat source with a driver, a body's material (so a body-specific
+expansion coefficient is a new material).  What it cannot express is listed by
+:func:`not_expressible`: air temperatures (ambient lag, workspace offset) are loads, sensor lag
+and offset are properties of the measurement, and a zone has one coefficient, not one for motion
+and one for standstill.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import tomllib
+from pathlib import Path
+
+NOT_EXPRESSIBLE = {
+    "ambient_lag": "air temperatures are loads, not machine data: feed the lagged workshop air to the ambient zones' "
+                   "`<zone>_degC` columns of the loads CSV",
+    "workspace_offset": "air temperatures are loads, not machine data: add the offset to the workspace zones' "
+                        "`<zone>_degC` columns of the loads CSV (or measure the enclosure air)",
+    "htc_motion": "a zone has one heat-transfer coefficient in the machine file; the two fitted values need a "
+                  "motion-dependent coefficient the model does not have (the file keeps the nominal value)",
+    "sensor_lag": "a property of the measurement, not of the structure: correct the sensor reading or its mounting",
+    "sensor_offset": "a property of the measurement, not of the structure: recalibrate the channel",
+}
+
+_BARE = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def _key(k: str) -> str:
+    return k if _BARE.match(k) else json.dumps(k)
+
+
+def _value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            raise ValueError(f"cannot write a non-finite number {v} to a machine file")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{_key(k)} = {_value(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dumps_toml(data: dict) -> str:
+    """TOML text of a machine-file dictionary (tables, arrays of tables, inline tables in lists)."""
+    lines: list[str] = []
+
+    def table(d: dict, path: list[str]):
+        scalars = {k: v for k, v in d.items() if not isinstance(v, dict) and not _is_aot(v)}
+        subs = {k: v for k, v in d.items() if isinstance(v, dict)}
+        aots = {k: v for k, v in d.items() if _is_aot(v)}
+        for k, v in scalars.items():
+            lines.append(f"{_key(k)} = {_value(v)}")
+        for k, v in subs.items():
+            lines.append("")
+            lines.append(f"[{'.'.join(_key(p) for p in path + [k])}]")
+            table(v, path + [k])
+        for k, items in aots.items():
+            for item in items:
+                lines.append("")
+                lines.append(f"[[{'.'.join(_key(p) for p in path + [k])}]]")
+                table(item, path + [k])
+
+    table(data, [])
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def _is_aot(v) -> bool:
+    return isinstance(v, list) and len(v) > 0 and all(isinstance(x, dict) for x in v)
+
+
+def _clean_name(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_-]", "_", text)
+
+
+def not_expressible(causes) -> list[tuple[str, str]]:
+    """(label, reason) of the causes the machine file cannot hold."""
+    return [(f.candidate.label, NOT_EXPRESSIBLE[f.candidate.kind]) for f in causes if f.candidate.kind in NOT_EXPRESSIBLE]
+
+
+def extended_machine(machine, causes) -> dict:
+    """The machine file's dictionary with every expressible cause applied."""
+    src = Path(machine.source)
+    data = tomllib.loads(src.read_text())
+    mesh = data.get("mesh", {})
+    if "file" in mesh and not Path(mesh["file"]).is_absolute():
+        mesh["file"] = str((src.parent / mesh["file"]).resolve())
+    m = data.setdefault("machine", {})
+    m["name"] = _clean_name(f"{m.get('name', machine.name)}_extended")
+    applied = []
+    sources = data.get("heat_sources", [])
+    zones = data.get("zones", [])
+    bodies = data.get("bodies", [])
+    for f in causes:
+        c, p = f.candidate, [float(v) for v in f.params]
+        if c.kind == "power_scale":
+            s = next(s for s in sources if s["name"] == c.target)
+            s["power_W"] = round(float(s["power_W"]) * p[0], 6)
+            applied.append(f"heat_sources '{c.target}': power_W × {p[0]:.4g} = {s['power_W']:.4g} W")
+        elif c.kind == "exponent":
+            s = next(s for s in sources if s["name"] == c.target)
+            s["exponent"] = round(p[0], 6)
+            applied.append(f"heat_sources '{c.target}': exponent = {p[0]:.4g}")
+        elif c.kind == "htc":
+            z = next(z for z in zones if z["name"] == c.target)
+            z["h_W_m2K"] = round(p[0], 6)
+            applied.append(f"zones '{c.target}': h_W_m2K = {p[0]:.4g} W/(m2 K)")
+        elif c.kind == "missing_source":
+            loc, driver = c.target.split("|")
+            s0 = next(s for s in sources if s["name"] == loc)
+            name = _clean_name(f"{loc}_by_{driver}")
+            new = {"name": name, "kind": "fixed", "body": s0["body"], "position_mm": list(s0["position_mm"]),
+                   "size_mm": list(s0.get("size_mm", [20.0, 20.0, 20.0])), "power_W": round(p[0], 6), "driver": driver,
+                   "exponent": 1.0}
+            sources.append(new)
+            applied.append(f"heat_sources: new '{name}' at {loc} ({s0['body']}), driven by {driver}, {p[0]:.4g} W at full load")
+        elif c.kind == "expansion":
+            b = next(b for b in bodies if b["name"] == c.target)
+            mats = data["materials"]
+            new_mat = _clean_name(f"{b['material']}_{c.target}")
+            mats[new_mat] = dict(mats[b["material"]])
+            mats[new_mat]["expansion_1_K"] = float(f"{p[0] * 1e-6:.6g}")
+            b["material"] = new_mat
+            applied.append(f"bodies '{c.target}': material '{new_mat}' with expansion_1_K = {p[0]:.4g}e-6 1/K")
+    data["heat_sources"] = sources
+    data["_applied"] = applied
+    return data
+
+
+def write_extended_machine(machine, causes, path: str | Path) -> tuple[Path, list[str], list[tuple[str, str]]]:
+    """Write ``machine_extended.toml``; returns the path, the applied changes and the causes it cannot hold."""
+    data = extended_machine(machine, causes)
+    applied = data.pop("_applied")
+    missing = not_expressible(causes)
+    head = [f"# {machine.name} extended by hybridcomp diagnose from {Path(machine.source).name}",
+            "# changes applied:"] + [f"#   {a}" for a in applied or ["(none)"]]
+    if missing:
+        head.append("# causes found that a machine file cannot express:")
+        head += [f"#   {label}: {why}" for label, why in missing]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(head) + "\n\n" + dumps_toml(data))
+    return path, applied, missing

@@ -1,0 +1,192 @@
+"""Writing a diagnosis: ``report.md`` with plots, ``summary.json`` and ``machine_extended.toml``."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from hybridcomp.diagnose.metrics import ep95_curve, strongest_correlations
+from hybridcomp.diagnose.selection import Diagnosis
+
+log = logging.getLogger(__name__)
+
+EP95_WINDOWS_H = (1 / 60, 0.25, 1.0, 4.0, 8.0, 24.0)
+
+
+def _fmt(v, nd=3) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "–"
+    return f"{v:.{nd}g}" if abs(v) < 1e4 else f"{v:.0f}"
+
+
+def before_correlations(d: Diagnosis, top: int = 10) -> list:
+    """Strongest correlations of the model-as-is residual (validation rows) with the available signals."""
+    p = d.problem
+    va = p.split.validation
+    res = {c: p.Y[va, k] - d.Y_before[va, k] for k, c in enumerate(p.channels)}
+    return strongest_correlations(p.time_s[va], res, {n: v[va] for n, v in p.signals.items()}, top=top)
+
+
+def ep95_table(d: Diagnosis) -> dict:
+    """E_P95(range) of every channel's validation residual before and after: {channel: {windows_s, before, after}}."""
+    p = d.problem
+    va = p.split.validation
+    out = {}
+    for k, c in enumerate(p.channels):
+        w, b = ep95_curve(p.time_s[va], p.Y[va, k] - d.Y_before[va, k])
+        _, a = ep95_curve(p.time_s[va], p.Y[va, k] - d.Y_after[va, k])
+        out[c] = {"window_s": w.tolist(), "before": b.tolist(), "after": a.tolist()}
+    return out
+
+
+def _plots(d: Diagnosis, out: Path, ep: dict) -> list[str]:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        log.warning("matplotlib is not installed: no plots (pip install 'hybridcomp[plot]')")
+        return []
+    p = d.problem
+    th = (p.time_s - p.time_s[0]) / 3600
+    va = p.split.validation
+    t_val = th[va][0]
+    files = []
+    n = len(p.channels)
+    fig, axes = plt.subplots(n, 2, figsize=(12, 1.9 * n + 0.6), sharex=True, squeeze=False)
+    for k, c in enumerate(p.channels):
+        ax = axes[k, 0]
+        ax.plot(th, p.Y[:, k], color="k", lw=0.8, label="measured")
+        ax.plot(th, d.Y_before[:, k], color="tab:red", lw=0.8, label="model")
+        ax.plot(th, d.Y_after[:, k], color="tab:blue", lw=0.8, ls="--", label="extended")
+        ax.axvspan(t_val, th[-1], color="0.92", zorder=0)
+        ax.set_ylabel(c, fontsize=8)
+        ax = axes[k, 1]
+        ax.plot(th, p.Y[:, k] - d.Y_before[:, k], color="tab:red", lw=0.8, label="residual, model")
+        ax.plot(th, p.Y[:, k] - d.Y_after[:, k], color="tab:blue", lw=0.8, label="residual, extended")
+        ax.axvspan(t_val, th[-1], color="0.92", zorder=0)
+        ax.axhline(0, color="k", lw=0.5)
+    axes[0, 0].legend(fontsize=7, loc="best")
+    axes[0, 1].legend(fontsize=7, loc="best")
+    axes[-1, 0].set_xlabel("time [h] (grey: validation)")
+    axes[-1, 1].set_xlabel("time [h] (grey: validation)")
+    fig.tight_layout()
+    fig.savefig(out / "residuals.png", dpi=90)
+    plt.close(fig)
+    files.append("residuals.png")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for k, c in enumerate(p.channels):
+        e = ep[c]
+        ax = axes[0 if c.endswith("_degC") else 1]
+        line, = ax.loglog(np.array(e["window_s"]) / 3600, np.maximum(e["before"], 1e-6), lw=1, label=f"{c}")
+        ax.loglog(np.array(e["window_s"]) / 3600, np.maximum(e["after"], 1e-6), lw=1, ls="--", color=line.get_color())
+    axes[0].set_title("E_P95(range), temperatures [K] (solid: model, dashed: extended)", fontsize=9)
+    axes[1].set_title("E_P95(range), drift [µm]", fontsize=9)
+    for ax in axes:
+        ax.set_xlabel("window [h]")
+        if ax.lines:
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "ep95.png", dpi=90)
+    plt.close(fig)
+    files.append("ep95.png")
+    return files
+
+
+def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plots: bool = True) -> dict:
+    """Write ``report.md`` (with plots), ``summary.json`` and ``machine_extended.toml`` into ``out_dir``.
+
+    Returns the summary dictionary.
+    """
+    from hybridcomp.diagnose.machine_file import write_extended_machine
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    p = d.problem
+    ep = ep95_table(d)
+    corr_before = before_correlations(d)
+    summary = d.summary()
+    summary["machine"] = p.machine.name
+    summary["dataset"] = dataset_name
+    summary["model"] = {"order": int(p.rom.order), "nodes": p.rom.meta.get("nodes"),
+                        "element_size_mm": p.rom.meta.get("element_size_mm")}
+    summary["ep95_range"] = ep
+    summary["residual_correlations_before"] = [c.as_dict() for c in corr_before]
+    mpath, applied, missing = write_extended_machine(p.machine, d.causes, out / "machine_extended.toml")
+    summary["machine_extended"] = {"file": mpath.name, "applied": applied,
+                                   "not_expressible": [{"cause": a, "reason": b} for a, b in missing]}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    files = _plots(d, out, ep) if plots else []
+
+    L = [f"# Diagnosis of {p.machine.name}" + (f" on {dataset_name}" if dataset_name else ""), ""]
+    sp = summary["split"]
+    L += [f"**Verdict: {d.verdict}.** {d.message}.", "",
+          f"Training rows {sp['train_rows']} ({sp['train_h'][0]:.3g}–{sp['train_h'][1]:.3g} h), validation rows "
+          f"{sp['validation_rows']} ({sp['validation_h'][0]:.3g}–{sp['validation_h'][1]:.3g} h); reduced model of order "
+          f"{p.rom.order}; {d.timings_s.get('candidates', '?')} candidate effects; "
+          f"{d.timings_s.get('total', d.timings_s.get('selection', 0)):.1f} s.", ""]
+    L += ["## Causes", ""]
+    if d.causes:
+        L += ["| # | cause | parameters (± 1σ) | nominal | BIC drop (training) | validation gain |", "|---|---|---|---|---|---|"]
+        for i, f in enumerate(d.causes, 1):
+            c = f.candidate
+            pars = "; ".join(f"{n} = {_fmt(v, 4)} ± {_fmt(u, 2)}" for n, v, u in zip(c.param_names, f.params, f.uncertainty))
+            nom = "; ".join(_fmt(v, 4) for v in c.nominal)
+            L.append(f"| {i} | {c.label} | {pars} | {nom} | {f.bic_drop:.1f} | {100 * f.validation_gain:.1f} % |")
+        L += ["", "Validation gain: reduction of the noise-weighted residual energy on the validation rows when the "
+              "effect was added."]
+    else:
+        L.append("No effect named.")
+    L += ["", "## Before and after (validation part)", "",
+          "| channel | noise σ | RMS before | RMS after | P2P before | P2P after | fit % before | fit % after |",
+          "|---|---|---|---|---|---|---|---|"]
+    for k, c in enumerate(p.channels):
+        b, a = d.before[c], d.after[c]
+        L.append(f"| {c} | {_fmt(p.sigma[k], 2)} | {_fmt(b['rms'])} | {_fmt(a['rms'])} | {_fmt(b['p2p'])} | {_fmt(a['p2p'])} | "
+                 f"{b['fit_percent']:.1f} | {a['fit_percent']:.1f} |")
+    L += ["", "Units: °C channels in K, µm channels in µm. fit % = 100 (1 − ‖y − ŷ‖/‖y − ȳ‖).", ""]
+    L += ["## E_P95(range)", "", "95th percentile of the residual's range over sliding windows (validation part), "
+          "model as is → extended:", ""]
+    hdr = [f"{w * 60:.0f} min" if w < 1 else f"{w:g} h" for w in EP95_WINDOWS_H]
+    L += ["| channel | " + " | ".join(hdr) + " |", "|---|" + "---|" * len(hdr)]
+    for c, e in ep.items():
+        w = np.array(e["window_s"]) / 3600
+        cells = []
+        for wh in EP95_WINDOWS_H:
+            if wh > w[-1] * 1.0001:
+                cells.append("–")
+                continue
+            i = int(np.argmin(np.abs(np.log(w / wh))))
+            cells.append(f"{_fmt(e['before'][i], 2)} → {_fmt(e['after'][i], 2)}")
+        L.append(f"| {c} | " + " | ".join(cells) + " |")
+    L += ["", "## What the simulation gets wrong: residual correlations", "",
+          "Strongest normalised cross-correlations of the model-as-is residual (validation part) with the available "
+          "signals; lag > 0: the residual follows the signal.", "", "| channel | signal | lag [h] | ρ |", "|---|---|---|---|"]
+    for c in corr_before:
+        L.append(f"| {c.channel} | {c.signal} | {c.lag_s / 3600:.2f} | {c.r:.3f} |")
+    if d.correlations:
+        L += ["", "### Unexplained remainder", "", "Strongest correlations of the residual left after the named effects:", "",
+              "| channel | signal | lag [h] | ρ |", "|---|---|---|---|"]
+        for c in d.correlations:
+            L.append(f"| {c.channel} | {c.signal} | {c.lag_s / 3600:.2f} | {c.r:.3f} |")
+    if d.rounds:
+        L += ["", "## Model selection", ""]
+        for i, r in enumerate(d.rounds, 1):
+            L += [f"Round {i}: {'accepted ' + r.accepted if r.accepted else 'no candidate passed both tests'}", "",
+                  "| candidate | BIC drop | validation gain |", "|---|---|---|"]
+            for s in r.scores[:8]:
+                L.append(f"| {s['label']} | {s['bic_drop']:.1f} | {100 * s['validation_gain']:.1f} % |")
+            L.append("")
+    L += ["## Extended machine file", "", f"`{mpath.name}` loads with `hybridcomp.models.load_machine` and runs with "
+          "`hybridcomp simulate` and `hybridcomp reduce` as it is."]
+    L += [f"* {a}" for a in applied] or ["* no change (no cause the machine file can express)"]
+    if missing:
+        L += ["", "Causes the machine file cannot express:", ""] + [f"* {a}: {b}" for a, b in missing]
+    if files:
+        L += ["", "## Plots", ""] + [f"![{f}]({f})" for f in files]
+    (out / "report.md").write_text("\n".join(L) + "\n")
+    return summary
