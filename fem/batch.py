@@ -73,6 +73,7 @@ DASK_CONFIG = {
 
 MAX_CACHED_MODELS = 4
 _FORK_SERVER_THREADS: int | None = None
+_MALLOC_WARNED = False
 _CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
@@ -197,7 +198,13 @@ def run_case(spec: ModelSpec, options: SimulationOptions, name: str, loads: Load
     """Simulate one load case on the cached model of ``spec`` (the task every executor runs)."""
     from hybridcomp.fem.transient import simulate
 
+    global _MALLOC_WARNED
     t0 = time.perf_counter()
+    if os.environ.get("MALLOC_TRIM_THRESHOLD_") and not _MALLOC_WARNED:
+        _MALLOC_WARNED = True
+        log.warning("this worker runs with MALLOC_TRIM_THRESHOLD_=%s (Dask's default), which slows the sparse "
+                    "solves; start Dask workers with the setting removed (see fem.batch.DASK_CONFIG)",
+                    os.environ["MALLOC_TRIM_THRESHOLD_"])
     model, built, lock = cached_model(spec)
     if options.dt_s is not None:
         loads = resample(loads, options.dt_s)
