@@ -40,10 +40,12 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import dataclasses
+import hashlib
 import json
 import logging
 import multiprocessing
 import os
+import pickle
 import re
 import socket
 import threading
@@ -90,15 +92,18 @@ class ModelSpec:
     machine : the validated machine definition
     pose_mm : axis positions, complete and sorted by axis name [mm]
     element_size_mm : largest element edge [mm]; None means the machine file's
+    machine_digest : SHA-256 of the pickled machine object; a machine derived in memory from a file
+        (changed coefficients, same file hash) must not reuse the file's cached model
     """
 
     machine: Machine
     pose_mm: tuple[tuple[str, float], ...]
     element_size_mm: float | None
+    machine_digest: str = ""
 
     @property
     def key(self) -> tuple:
-        return (self.machine.sha256 or self.machine.source, self.pose_mm, self.element_size_mm)
+        return (self.machine.sha256, self.machine_digest, self.pose_mm, self.element_size_mm)
 
 
 @dataclass(frozen=True)
@@ -473,7 +478,8 @@ def run_batch(
     check_cases(cases, machine)
     pose = machine.check_pose(dict(pose_mm or {}))
     spec = ModelSpec(machine, tuple(sorted((k, float(v)) for k, v in pose.items())),
-                     None if element_size_mm is None else float(element_size_mm))
+                     None if element_size_mm is None else float(element_size_mm),
+                     hashlib.sha256(pickle.dumps(machine)).hexdigest())
     options = SimulationOptions(theta=float(theta), initial=initial, dt_s=dt_s)
     out = None
     if out_dir is not None:

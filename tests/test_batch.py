@@ -328,3 +328,19 @@ def test_a_failing_case_names_itself(machine, cases):
     with pytest.raises(BatchError, match="load case 'b' failed: planted failure"):
         run_batch(machine, {"a": cases["case01"], "b": bad}, element_size_mm=ELEMENT_SIZE_MM, executor="process",
                   workers=1)
+
+
+def test_a_machine_changed_in_memory_does_not_reuse_the_cached_model(machine, cases):
+    import dataclasses
+
+    one = {"case00": cases["case00"]}
+    first = run_batch(machine, one, element_size_mm=ELEMENT_SIZE_MM, executor="serial")["case00"]
+    again = run_batch(machine, one, element_size_mm=ELEMENT_SIZE_MM, executor="serial")["case00"]
+    assert not again.built_model  # the same machine, pose and mesh: the cached operators
+    np.testing.assert_array_equal(again.drift_um, first.drift_um)
+    z0 = machine.zones[0]
+    cooler = dataclasses.replace(machine, zones=(dataclasses.replace(z0, h_W_m2K=2 * z0.h_W_m2K), *machine.zones[1:]))
+    assert cooler.sha256 == machine.sha256  # same file hash, different physics
+    changed = run_batch(cooler, one, element_size_mm=ELEMENT_SIZE_MM, executor="serial")["case00"]
+    assert changed.built_model
+    assert np.abs(changed.sensors_degC - first.sensors_degC).max() > 1e-3
