@@ -50,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--theta", type=float, default=0.5, help="θ-method: 0.5 Crank-Nicolson (default), 1 backward Euler")
     t.add_argument("--heat-h", type=float, default=8.0, help="heating time of the basic/simultaneous cases [h]")
     t.add_argument("--cool-h", type=float, default=8.0, help="cooling time after them [h]")
+    t.add_argument("--scheduler", help="run the load cases as a batch: 'process' (local process pool), 'local' "
+                   "(Dask LocalCluster) or a Dask scheduler address tcp://HOST:8786 (default: one after another here)")
+    t.add_argument("--workers", type=int, help="worker processes for --scheduler process/local (default: cores)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     f = sub.add_parser("fit", help="fit the X, Y, Z CDs of a pose to a training table → XML files",
@@ -181,7 +184,7 @@ def _train_data(args) -> int:
             cases[lc.name] = lc
     print(f"simulating {len(cases)} load case(s) on {machine.name} at {pose}: {', '.join(cases)}", file=sys.stderr)
     data = simulate_load_cases(machine, cases, pose, args.element_size_mm, args.dt, args.theta,
-                               progress=not args.no_progress)
+                               progress=not args.no_progress, executor=args.scheduler, workers=args.workers)
     write_training_csv(args.out, data)
     print(f"wrote {args.out} ({len(data)} rows)", file=sys.stderr)
     return 0

@@ -234,6 +234,8 @@ def simulate_load_cases(
     theta: float = 0.5,
     model=None,
     progress: bool = False,
+    executor: str | object | None = None,
+    workers: int | None = None,
 ) -> TrainingData:
     """Run load cases on the FE model and collect the training table.
 
@@ -246,40 +248,56 @@ def simulate_load_cases(
     dt_s : FE time step [s] (the loads are interpolated onto it; outputs are taken at the loads rows);
         None: the loads rows themselves
     theta : θ-method (0.5 Crank–Nicolson, 1 backward Euler)
-    model : an already built ``ThermoElasticModel`` of the same machine and pose (reused)
-    progress : show a progress bar per load case
+    model : an already built ``ThermoElasticModel`` of the same machine and pose (reused; serial run)
+    progress : show a progress bar
+    executor : None: serial in this process; else run the cases as a batch with ``fem.batch.run_batch``:
+        ``"process"`` (local process pool), ``"local"`` (Dask LocalCluster), a Dask scheduler address
+        ``"tcp://HOST:8786"``, or an executor object
+    workers : worker processes for ``"process"`` / ``"local"``
     """
-    from hybridcomp.fem.model import build_model
-    from hybridcomp.fem.transient import simulate
-
     pose = machine.check_pose(dict(pose_mm or {}))
-    if model is None:
-        model = build_model(machine, pose, element_size_mm)
+    full = {name: in_model_order(case.loads, machine) for name, case in cases.items()}
+    outputs = {}  # name -> (sensor names, sensors at the loads rows, drift at the loads rows)
+    if executor is None:
+        from hybridcomp.fem.model import build_model
+        from hybridcomp.fem.transient import simulate
+
+        if model is None:
+            model = build_model(machine, pose, element_size_mm)
+        for name, L in full.items():
+            t = L.time_s
+            tt = np.union1d(np.arange(t[0], t[-1], dt_s), t) if dt_s is not None else t
+            U = L.as_inputs(machine.reference_temperature_degC)
+            Ut = np.column_stack([np.interp(tt, t, U[:, j]) for j in range(U.shape[1])])
+            log.info("load case %s: %d steps", name, len(tt) - 1)
+            res = simulate(model, tt, Ut, theta=theta, initial="steady", progress=progress)
+            pick = np.searchsorted(tt, t)
+            outputs[name] = (model.sensor_names, res.sensors_degC[pick], res.drift_um[pick])
+    else:
+        from hybridcomp.fem.batch import run_batch
+
+        results = run_batch(machine, full, pose_mm=pose, element_size_mm=element_size_mm, theta=theta,
+                            dt_s=dt_s, executor=executor, workers=workers, progress=progress)
+        for name, r in results.items():
+            t = full[name].time_s
+            sens = np.column_stack([np.interp(t, r.time_s, r.sensors_degC[:, j]) for j in range(len(r.sensor_names))])
+            drift = np.column_stack([np.interp(t, r.time_s, r.drift_um[:, j]) for j in range(3)])
+            outputs[name] = (r.sensor_names, sens, drift)
     axes = [a.name for a in machine.axes]
     rows_case, cols = [], {}
     sigs = {}
     for name, case in cases.items():
-        L = in_model_order(case.loads, machine)
-        t = L.time_s
-        if dt_s is not None:
-            tt = np.arange(t[0], t[-1], dt_s)
-            tt = np.union1d(tt, t)
-        else:
-            tt = t
-        U = L.as_inputs(machine.reference_temperature_degC)
-        Ut = np.column_stack([np.interp(tt, t, U[:, j]) for j in range(U.shape[1])])
-        log.info("load case %s: %d steps", name, len(tt) - 1)
-        res = simulate(model, tt, Ut, theta=theta, initial="steady", progress=progress)
-        pick = np.searchsorted(tt, t)
+        t = full[name].time_s
+        sensor_names, sensors, drift = outputs[name]
         rows_case += [name] * len(t)
         block = {"time_s": t.copy()}
-        for j, s in enumerate(model.sensor_names):
-            block[f"{s}_degC"] = res.sensors_degC[pick, j]
+        for j, s in enumerate(sensor_names):
+            block[f"{s}_degC"] = sensors[:, j]
         pos = case.positions_mm if case.positions_mm is not None else np.tile([pose[a] for a in axes], (len(t), 1))
         for j, a in enumerate(axes):
             block[f"{a.lower()}_mm"] = pos[:, j]
         for j, d in enumerate(("dx_um", "dy_um", "dz_um")):
-            block[d] = res.drift_um[pick, j]
+            block[d] = drift[:, j]
         for k, v in block.items():
             cols.setdefault(k, []).append(v)
         if case.signature is not None:

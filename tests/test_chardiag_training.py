@@ -128,3 +128,12 @@ def test_train_data_command(tmp_path, capsys):
     assert T.min() > 20.0 - 0.02  # ... and never cool it (beyond the small undershoot of a consistent-mass FE model)
     assert main(["cd", "train-data", "--cases", "basic,nonsense", "--out", str(out)]) == 2
     assert "nonsense: no such file" in capsys.readouterr().err
+
+
+def test_training_on_a_process_pool_equals_the_serial_run(machine):
+    cases = standard_load_cases(machine, ["basic"], heat_h=0.5, cool_h=0.5)
+    serial = simulate_load_cases(machine, cases, element_size_mm=200.0, dt_s=300.0)
+    pooled = simulate_load_cases(machine, cases, element_size_mm=200.0, dt_s=300.0, executor="process", workers=2)
+    assert pooled.cases == serial.cases
+    for k in serial.columns:
+        np.testing.assert_allclose(pooled.columns[k], serial.columns[k], rtol=0, atol=1e-9)
