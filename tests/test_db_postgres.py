@@ -254,6 +254,7 @@ def test_two_monitors_open_a_new_database_at_once(chardiag, fresh_postgres_url, 
         from pathlib import Path
         go = Path(sys.argv[2])
         from hybridcomp.chardiag.db import CDDatabase
+        (go.parent / f"ready-{sys.argv[3]}").touch()
         while not go.exists():
             time.sleep(0.002)
         store = CDDatabase(sys.argv[1])
@@ -262,7 +263,11 @@ def test_two_monitors_open_a_new_database_at_once(chardiag, fresh_postgres_url, 
     """))
     procs = [subprocess.Popen([sys.executable, str(script), fresh_postgres_url, str(go), f"p{k}"],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for k in range(2)]
-    time.sleep(1.5)  # both imported and waiting
+    deadline = time.monotonic() + 120
+    while not all((tmp_path / f"ready-p{k}").exists() for k in range(2)):  # both imported and waiting
+        if time.monotonic() > deadline or any(p.poll() is not None for p in procs):
+            break
+        time.sleep(0.01)
     go.touch()
     outs = [p.communicate(timeout=120) for p in procs]
     for p, (out, err) in zip(procs, outs):
