@@ -45,6 +45,18 @@ def synthetic(n: int, d: int, seed: int = 0):
     return tab
 
 
+def point_times_us(cd, Q: np.ndarray, repeats: int) -> list[float]:
+    """Mean time of one ``evaluate_point`` over the rows of Q, per repeat [µs]."""
+    pts = [dict(zip(cd.input_names, q)) for q in Q]
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for p in pts:
+            cd.evaluate_point(p)
+        out.append((time.perf_counter() - t0) / len(pts) * 1e6)
+    return out
+
+
 def speed(repeats: int) -> dict:
     from hybridcomp.chardiag.fit import FitOptions, fit_cd
 
@@ -63,23 +75,10 @@ def speed(repeats: int) -> dict:
         t0 = time.perf_counter()
         cd.evaluate(Q)
         vec_s.append(time.perf_counter() - t0)
-    pts = [dict(zip(cd.input_names, q)) for q in Q[:2000]]
-    point_us = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for p in pts:
-            cd.evaluate_point(p)
-        point_us.append((time.perf_counter() - t0) / len(pts) * 1e6)
+    point_us = point_times_us(cd, Q[:2000], repeats)
     # an additive CD of 8 temperatures (the demonstrator's shape)
-    tab8 = synthetic(20000, 8)
-    cd8 = fit_cd(tab8, "Z", machine="bench", options=FitOptions(n_support=6))
-    pts8 = [dict(zip(cd8.input_names, q)) for q in rng.uniform(20, 30, (2000, 8))]
-    point8_us = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for p in pts8:
-            cd8.evaluate_point(p)
-        point8_us.append((time.perf_counter() - t0) / len(pts8) * 1e6)
+    cd8 = fit_cd(synthetic(20000, 8), "Z", machine="bench", options=FitOptions(n_support=6))
+    point8_us = point_times_us(cd8, rng.uniform(20, 30, (2000, 8)), repeats)
     return {
         "fit_20000x4_s": statistics.median(fit_s),
         "eval_100000_ms": 1e3 * statistics.median(vec_s),

@@ -129,16 +129,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _pairs(text: str, what: str) -> dict[str, float]:
-    out = {}
-    for part in text.split(","):
-        if "=" not in part:
-            raise ValueError(f"{what}: {part!r} is not NAME=VALUE")
-        k, v = part.split("=", 1)
-        try:
-            out[k.strip()] = float(v)
-        except ValueError:
-            raise ValueError(f"{what}: value {v!r} of {k.strip()!r} is not a number") from None
-    return out
+    from hybridcomp.fem.cli_simulate import parse_pairs
+
+    return parse_pairs(text, what)
 
 
 def run(args: argparse.Namespace) -> int:

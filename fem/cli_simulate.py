@@ -22,20 +22,25 @@ from hybridcomp.models.cli import add_machine_argument
 log = logging.getLogger(__name__)
 
 
-def parse_pose(text: str | None) -> dict[str, float]:
-    """``"X=100,Y=-50"`` → {"X": 100.0, "Y": -50.0} [mm]."""
+def parse_pairs(text: str | None, what: str) -> dict[str, float]:
+    """``"X=100,Y=-50"`` → {"X": 100.0, "Y": -50.0}; errors name the option ``what`` and the bad part."""
     if not text:
         return {}
-    pose = {}
+    out = {}
     for part in text.split(","):
         if "=" not in part:
-            raise ValueError(f"--pose: {part!r} is not AXIS=POSITION_MM")
+            raise ValueError(f"{what}: {part!r} is not NAME=VALUE")
         k, v = part.split("=", 1)
         try:
-            pose[k.strip()] = float(v)
+            out[k.strip()] = float(v)
         except ValueError:
-            raise ValueError(f"--pose: position {v!r} of axis {k.strip()!r} is not a number") from None
-    return pose
+            raise ValueError(f"{what}: value {v!r} of {k.strip()!r} is not a number") from None
+    return out
+
+
+def parse_pose(text: str | None) -> dict[str, float]:
+    """``"X=100,Y=-50"`` → {"X": 100.0, "Y": -50.0} [mm]."""
+    return parse_pairs(text, "--pose")
 
 
 def resample(loads: Loads, dt_s: float) -> Loads:
