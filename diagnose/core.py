@@ -51,7 +51,7 @@ def prepare_model(machine, *, rom=None, model=None, element_size_mm: float | Non
 
 
 def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=None, kinds=None,
-             max_effects: int = 4, progress: bool = False) -> Diagnosis:
+             max_effects: int = 4, tolerance: tuple[float, float] = (0.02, 0.1), progress: bool = False) -> Diagnosis:
     """Diagnose what the reduced model of ``machine`` gets wrong on ``dataset``.
 
     Parameters
@@ -63,6 +63,8 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     rom : the model (:func:`prepare_model`); None: reduce the machine's FE model now
     kinds : effect kinds to consider (default: the whole library)
     max_effects : most effects named
+    tolerance : (K, µm) residual the model itself may leave (its reduction error): a channel whose validation
+        RMS is below this or below 1.5 × its noise level counts as explained
     """
     t0 = time.perf_counter()
     if not isinstance(split, Split):
@@ -70,7 +72,7 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     if rom is None:
         rom = prepare_model(machine)
     bodies = tuple(dict.fromkeys(n.split("@", 1)[1] for n in rom.output_names if "@" in n))
-    problem = build_problem(machine, rom, dataset, split, bodies)
+    problem = build_problem(machine, rom, dataset, split, bodies, tolerance)
     cands = library(problem, kinds)
     log.info("%d candidate effects", len(cands))
     with single_blas_thread():

@@ -71,6 +71,8 @@ class Problem:
     activity : driver → load factor 0..1 per sample
     signals : every named series the residual is correlated with
     body_names : bodies whose drift rows follow the base outputs
+    air_measured : zone → the dataset column its air temperature came from
+    tolerance : per channel, the residual the model itself may leave (reduction and discretisation error) [°C or µm]
     """
 
     machine: object
@@ -87,6 +89,7 @@ class Problem:
     signals: dict
     body_names: tuple[str, ...] = ()
     air_measured: dict = field(default_factory=dict)
+    tolerance: np.ndarray | None = None
     _cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -188,13 +191,17 @@ def _factor(machine, s, P: np.ndarray) -> np.ndarray | None:
     return np.clip(P / s.power_W, 0.0, 1.0) ** (1.0 / s.exponent)
 
 
-def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tuple[str, ...] = ()) -> Problem:
+def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tuple[str, ...] = (),
+                  tolerance: tuple[float, float] = (0.0, 0.0)) -> Problem:
     """Model inputs, measured channels, noise levels and activity signals of a dataset.
 
     Heat inputs are read from ``<input>_W`` columns (missing: zero power); zone air from
     ``<zone>_degC``, else from the measured workspace (``Tws_degC``) or workshop (``Tamb_degC``)
     air by the zone's kind, else the reference temperature.  Measured channels are the machine's
     sensors ``<sensor>_degC`` and ``dx_um``, ``dy_um``, ``dz_um`` present in the dataset.
+
+    ``tolerance`` = (K, µm): the residual the model itself may leave (its reduction error); a channel
+    whose residual is below it counts as explained.
 
     Raises
     ------
@@ -271,7 +278,8 @@ def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tupl
             signals[extra] = dataset[extra]
     signals["time_s"] = dataset.time_s.astype(float)
     return Problem(machine, rom, np.asarray(dataset.time_s, float), U, Y, tuple(channels), tuple(idx), sigma, split,
-                   tuple(sources), activity, signals, tuple(body_names), air_measured)
+                   tuple(sources), activity, signals, tuple(body_names), air_measured,
+                   np.array([tolerance[0] if c.endswith("_degC") else tolerance[1] for c in channels], float))
 
 
 # --------------------------------------------------------------------------- simulating variants

@@ -141,6 +141,13 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
               "effect was added."]
     else:
         L.append("No effect named.")
+    if d.partial:
+        L += ["", "Best combination of library effects found, **not confirmed** (a structured residual remains, so these "
+              "names are not claimed as the cause):", "", "| candidate | parameters | validation gain |", "|---|---|---|"]
+        for f in d.partial:
+            c = f.candidate
+            pars = "; ".join(f"{n} = {_fmt(v, 4)}" for n, v in zip(c.param_names, f.params))
+            L.append(f"| {c.label} | {pars} | {100 * f.validation_gain:.1f} % |")
     L += ["", "## Before and after (validation part)", "",
           "| channel | noise σ | RMS before | RMS after | P2P before | P2P after | fit % before | fit % after |",
           "|---|---|---|---|---|---|---|---|"]

@@ -95,7 +95,7 @@ def fit(problem: Problem, fixed: list, free: list[Candidate], start: list | None
     def resid(x):
         return _weighted(problem, simulate(problem, effects_at(x)))[tr].ravel()
 
-    if all(c.linear for c in free):
+    if len(free) == 1 and free[0].linear:
         nom = np.concatenate([c.nominal for c in free])
         r0 = resid(nom)
         J = np.empty((r0.size, nom.size))
@@ -137,11 +137,20 @@ def fit(problem: Problem, fixed: list, free: list[Candidate], start: list | None
     return ([x[cuts[i]:cuts[i + 1]] for i in range(len(free))], [unc[cuts[i]:cuts[i + 1]] for i in range(len(free))], Yhat)
 
 
+def at_bound(c: Candidate, p: np.ndarray, rel: float = 0.01) -> bool:
+    """A fitted parameter pinned to a bound that is not its nominal value: the effect is the wrong shape for the data."""
+    lo, hi, nom = np.asarray(c.lower), np.asarray(c.upper), np.asarray(c.nominal)
+    tol = rel * (hi - lo)
+    pinned = ((np.abs(p - lo) <= tol) & (np.abs(lo - nom) > tol)) | ((np.abs(p - hi) <= tol) & (np.abs(hi - nom) > tol))
+    return bool(pinned.any())
+
+
 def at_noise_level(problem: Problem, Yhat: np.ndarray, factor: float = NOISE_FACTOR) -> np.ndarray:
-    """Per channel: is the validation residual within ``factor`` × the channel's noise level?"""
+    """Per channel: is the validation residual within ``factor`` × the channel's noise level (or within the model's
+    own accuracy ``problem.tolerance``, whichever is larger)?"""
     va = problem.split.validation
     r = problem.Y[va] - Yhat[va]
-    return np.sqrt(np.mean(r**2, axis=0)) <= factor * problem.sigma
+    return np.sqrt(np.mean(r**2, axis=0)) <= np.maximum(factor * problem.sigma, problem.tolerance)
 
 
 @dataclass(frozen=True)
@@ -161,10 +170,13 @@ class Diagnosis:
     problem : the data and the model under test
     causes : fitted effects, in the order they were accepted
     before, after : per channel validation RMS, P2P and fit % of the model as is and extended
-    verdict : ``"no significant discrepancy"``, ``"explained"``, ``"partly explained"`` or ``"unexplained"``
+    verdict : ``"no significant discrepancy"``, ``"explained"`` (every channel at its noise level with the named
+        causes) or ``"unexplained"`` (a structured residual remains; the best library combination is then
+        reported as ``partial``, not as causes: no name without evidence)
     Y_before, Y_after : the model's channels before and after (nt × nch)
     correlations : strongest correlations of the remaining residual with the available signals
     rounds : candidate scores per greedy round
+    partial : with an unexplained residual, the best combination of library effects found (not confirmed)
     """
 
     problem: Problem
@@ -178,12 +190,14 @@ class Diagnosis:
     rounds: tuple[Round, ...]
     message: str = ""
     timings_s: dict = field(default_factory=dict)
+    partial: tuple[Fitted, ...] = ()
 
     def summary(self) -> dict:
         return {
             "verdict": self.verdict,
             "message": self.message,
             "causes": [c.as_dict() for c in self.causes],
+            "partial_candidates": [c.as_dict() for c in self.partial],
             "before": self.before,
             "after": self.after,
             "noise_level": {c: float(s) for c, s in zip(self.problem.channels, self.problem.sigma)},
@@ -206,7 +220,8 @@ def _conflicts(a: Candidate, chosen: list) -> bool:
 
 
 def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX_EFFECTS,
-           min_gain: float = MIN_VALIDATION_GAIN, min_bic_drop: float = MIN_BIC_DROP, progress: bool = False) -> Diagnosis:
+           min_gain: float = MIN_VALIDATION_GAIN, min_bic_drop: float = MIN_BIC_DROP, top_joint: int = 6,
+           progress: bool = False) -> Diagnosis:
     """Greedy forward selection of named effects.
 
     Each round fits every remaining candidate (the accepted ones held at their values), ranks them
@@ -226,19 +241,22 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
     current = base_eval
     Ycur = Y0
     rounds = []
+    banned: set = set()
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=max_effects * len(candidates), desc="candidates", unit="fit", leave=False)
-    while len(chosen) < max_effects:
+    for _ in range(2 * max_effects):
+        if len(chosen) >= max_effects:
+            break
         fixed = [(f.candidate, f.params) for f in chosen]
         k_now = sum(len(f.params) for f in chosen)
         scores = []
         for cand in candidates:
             if bar is not None:
                 bar.update()
-            if _conflicts(cand, [f.candidate for f in chosen]):
+            if cand.key in banned or _conflicts(cand, [f.candidate for f in chosen]):
                 continue
             try:
                 (p,), (u,), Yhat = fit(problem, fixed, [cand])
@@ -250,27 +268,65 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
             gain = 1.0 - ev.rss_val / current.rss_val if current.rss_val > 0 else 0.0
             scores.append({"candidate": cand, "params": p, "unc": u, "bic_drop": bic_drop, "gain": gain})
         scores.sort(key=lambda s: -s["bic_drop"])
-        ok = [s for s in scores if s["bic_drop"] >= min_bic_drop and s["gain"] >= min_gain]
         table = [{"label": s["candidate"].describe(s["params"]), "kind": s["candidate"].kind, "target": s["candidate"].target,
-                  "bic_drop": float(s["bic_drop"]), "validation_gain": float(s["gain"])} for s in scores[:15]]
+                  "bic_drop": float(s["bic_drop"]), "validation_gain": float(s["gain"]),
+                  "at_bound": at_bound(s["candidate"], s["params"])} for s in scores[:15]]
+        # the best few by screening are refitted jointly with the effects already accepted
+        joint = []
+        for s in [s for s in scores if s["bic_drop"] >= min_bic_drop][:top_joint]:
+            free = [f.candidate for f in chosen] + [s["candidate"]]
+            if not chosen:
+                params, uncs, ev = [s["params"]], [s["unc"]], None
+            else:
+                params, uncs, _ = fit(problem, [], free, start=[f.params for f in chosen] + [s["params"]])
+            ev, _ = evaluate(problem, list(zip(free, params)), sum(len(p) for p in params))
+            gain = 1.0 - ev.rss_val / current.rss_val if current.rss_val > 0 else 0.0
+            pinned = any(at_bound(c, p) for c, p in zip(free, params))
+            joint.append({"free": free, "params": params, "uncs": uncs, "eval": ev, "bic_drop": current.bic - ev.bic,
+                          "gain": gain, "pinned": pinned})
+        ok = [j for j in joint if j["bic_drop"] >= min_bic_drop and j["gain"] >= min_gain and not j["pinned"]]
         if not ok:
             rounds.append(Round(None, table))
             break
-        best = ok[0]
-        rounds.append(Round(best["candidate"].describe(best["params"]), table))
-        log.info("accepted %s (BIC drop %.1f, validation gain %.3f)", best["candidate"].describe(best["params"]),
-                 best["bic_drop"], best["gain"])
-        # joint refit of every accepted effect
-        free = [f.candidate for f in chosen] + [best["candidate"]]
-        starts = [f.params for f in chosen] + [best["params"]]
-        params, uncs, Ycur = fit(problem, [], free, start=starts)
-        new_eval, _ = evaluate(problem, list(zip(free, params)), sum(len(p) for p in params))
-        chosen = [Fitted(c, p, u, f.bic_drop, f.validation_gain) for c, p, u, f in
-                  zip(free[:-1], params[:-1], uncs[:-1], chosen)]
-        chosen.append(Fitted(best["candidate"], params[-1], uncs[-1], float(best["bic_drop"]), float(best["gain"])))
-        current = new_eval
+        best = max(ok, key=lambda j: j["bic_drop"])
+        new = best["free"][-1]
+        rounds.append(Round(new.describe(best["params"][-1]), table))
+        log.info("accepted %s (BIC drop %.1f, validation gain %.3f)", new.describe(best["params"][-1]), best["bic_drop"],
+                 best["gain"])
+        chosen = [Fitted(c, p, u, 0.0, 0.0) for c, p, u in zip(best["free"], best["params"], best["uncs"])]
+        current = best["eval"]
+        # backward step: drop an earlier effect the others now make unnecessary
+        while len(chosen) > 1:
+            worst = None
+            for i in range(len(chosen) - 1):
+                rest = chosen[:i] + chosen[i + 1:]
+                params, uncs, _ = fit(problem, [], [f.candidate for f in rest], start=[f.params for f in rest])
+                ev, _ = evaluate(problem, [(f.candidate, p) for f, p in zip(rest, params)], sum(len(p) for p in params))
+                need_bic = ev.bic - current.bic
+                need_gain = 1.0 - current.rss_val / ev.rss_val if ev.rss_val > 0 else 0.0
+                if need_bic < min_bic_drop or need_gain < min_gain:
+                    if worst is None or need_bic < worst[0]:
+                        worst = (need_bic, i, [Fitted(f.candidate, p, u, 0.0, 0.0) for f, p, u in zip(rest, params, uncs)], ev)
+            if worst is None:
+                break
+            log.info("dropped %s: not needed next to the others", chosen[worst[1]].candidate.label)
+            banned.add(chosen[worst[1]].candidate.key)
+            chosen, current = worst[2], worst[3]
+        Ycur = simulate(problem, [(f.candidate, f.params) for f in chosen])
         if at_noise_level(problem, Ycur).all():
             break
+    # what each named effect is worth next to the others (leave-one-out, the rest refitted)
+    final = []
+    for i, f in enumerate(chosen):
+        rest = chosen[:i] + chosen[i + 1:]
+        if rest:
+            params, _, _ = fit(problem, [], [g.candidate for g in rest], start=[g.params for g in rest])
+            ev, _ = evaluate(problem, [(g.candidate, p) for g, p in zip(rest, params)], sum(len(p) for p in params))
+        else:
+            ev = base_eval
+        final.append(Fitted(f.candidate, f.params, f.uncertainty, float(ev.bic - current.bic),
+                            float(1.0 - current.rss_val / ev.rss_val) if ev.rss_val > 0 else 0.0))
+    chosen = final
     if bar is not None:
         bar.close()
     after = validation_metrics(problem, Ycur)
@@ -281,20 +337,22 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
         res = {c: problem.Y[va, k] - Ycur[va, k] for k, c in enumerate(problem.channels) if not noise[k]}
         sig = {n: v[va] for n, v in problem.signals.items()}
         corr = strongest_correlations(problem.time_s[va], res, sig)
+    partial: tuple = ()
     if noise.all():
         verdict = "explained"
         msg = "the named effects bring every channel's validation residual to its noise level"
-    elif chosen:
-        verdict = "partly explained"
-        left = [c for c, ok in zip(problem.channels, noise) if not ok]
-        msg = ("the named effects explain part of the discrepancy; a structured residual remains on "
-               f"{', '.join(left)} that no effect in the library explains")
     else:
         verdict = "unexplained"
-        msg = ("the residual is structured but no effect in the library explains it significantly; "
-               "see the strongest correlations")
+        left = [c for c, ok in zip(problem.channels, noise) if not ok]
+        if chosen:
+            partial, chosen = tuple(chosen), []
+            msg = ("a structured residual remains on " + ", ".join(left) + " after the best combination of library "
+                   "effects; their names are not confirmed (listed as partial candidates), see the strongest correlations")
+        else:
+            msg = ("the residual is structured on " + ", ".join(left) + " but no effect in the library explains it "
+                   "significantly; see the strongest correlations")
     return Diagnosis(problem, tuple(chosen), before, after, verdict, Y0, Ycur, corr, tuple(rounds), msg,
-                     {"selection": time.perf_counter() - t0})
+                     {"selection": time.perf_counter() - t0}, partial)
 
 
 def residual_rms(problem: Problem, Yhat: np.ndarray) -> dict:
