@@ -9,7 +9,9 @@ Throughput: ``--cases`` load cases of ``--hours`` at ``--dt`` on the demonstrato
 
 each executor started once (its start and the model build on each worker reported apart), then the batch
 timed on the warm executors, the configurations interleaved per repeat so that a busy moment of a shared
-machine hits all alike.  Per-task overhead: ``--tiny`` two-row load cases on one warm worker:
+machine hits all alike.  "core share" is the workers' CPU time over (wall × workers): 1.0 when each
+worker had a core to itself; below 1 the machine was busy with other work and the speed-up shows that.
+Per-task overhead: ``--tiny`` two-row load cases on one warm worker:
 (wall − Σ task compute) / tasks.
 
 Prints tables and a final JSON line::
@@ -63,7 +65,9 @@ def batch(machine, cases, element_size_mm: float, ex) -> dict:
     res = run_batch(machine, cases, element_size_mm=element_size_mm, executor=ex)
     wall = time.perf_counter() - t0
     compute = sum(r.compute_s for r in res.values())
-    return {"wall_s": wall, "compute_s": compute, "workers_used": len({r.worker for r in res.values()}),
+    workers = len({r.worker for r in res.values()})
+    cpu = sum(r.cpu_s for r in res.values())
+    return {"wall_s": wall, "compute_s": compute, "cpu_s": cpu, "core_share": cpu / (wall * workers), "workers_used": workers,
             "per_task_ms": 1e3 * wall / len(cases), "overhead_ms": 1e3 * (wall - compute) / len(cases),
             "compute_ms": 1e3 * compute / len(cases)}
 
@@ -121,10 +125,14 @@ def main() -> None:
         results.append({"executor": config, "workers": workers, "start_and_build_s": start_s[c], "wall_s": wall,
                         "cases_per_min": 60 * a.cases / wall, "speedup_vs_1_worker": one / wall,
                         "task_compute_s": statistics.median(r["compute_s"] for r in runs[c]),
+                        "task_cpu_s": statistics.median(r["cpu_s"] for r in runs[c]),
+                        "core_share": statistics.median(r["core_share"] for r in runs[c]),
                         "walls_s": [r["wall_s"] for r in runs[c]]})
         rows.append({"executor": names[config], "workers": workers, "start + build [s]": f"{start_s[c]:.1f}",
                      "batch wall [s]": f"{wall:.2f}", "cases/min": f"{60 * a.cases / wall:.1f}",
-                     "speed-up": f"{one / wall:.2f}"})
+                     "speed-up": f"{one / wall:.2f}",
+                     "Σ task CPU [s]": f"{statistics.median(r['cpu_s'] for r in runs[c]):.1f}",
+                     "core share": f"{statistics.median(r['core_share'] for r in runs[c]):.2f}"})
     print(f"{a.cases} load cases of {a.hours} h at dt = {a.dt} s, vmc800 at {a.element_size_mm} mm, on warm "
           f"executors; median of {a.repeats}; {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
     print(table(rows, list(rows[0])))

@@ -136,6 +136,7 @@ class CaseResult:
     worker : ``host:pid`` of the process that computed it
     built_model : whether this task had to build the operators (False: reused from the worker's cache)
     compute_s : wall time of the task inside the worker, model build included [s]
+    cpu_s : CPU time of the worker process during the task [s] (below ``compute_s`` when the cores are shared)
     path : the outputs CSV written for it, if any
     """
 
@@ -147,6 +148,7 @@ class CaseResult:
     worker: str
     built_model: bool
     compute_s: float
+    cpu_s: float = float("nan")
     path: Path | None = None
 
     def columns(self) -> dict[str, np.ndarray]:
@@ -204,7 +206,7 @@ def run_case(spec: ModelSpec, options: SimulationOptions, name: str, loads: Load
     from hybridcomp.fem.transient import simulate
 
     global _MALLOC_WARNED
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if os.environ.get("MALLOC_TRIM_THRESHOLD_") and not _MALLOC_WARNED:
         _MALLOC_WARNED = True
         log.warning("this worker runs with MALLOC_TRIM_THRESHOLD_=%s (Dask's default), which slows the sparse "
@@ -225,6 +227,7 @@ def run_case(spec: ModelSpec, options: SimulationOptions, name: str, loads: Load
         worker=f"{socket.gethostname()}:{os.getpid()}",
         built_model=built,
         compute_s=time.perf_counter() - t0,
+        cpu_s=time.process_time() - c0,
     )
 
 
