@@ -357,12 +357,13 @@ def _run_process_pool(workers, threads, max_restarts, spec, options, cases, done
             _run_futures(pool, spec, options, dict(pending), record)
             return
         except cf.process.BrokenProcessPool as exc:
-            log.warning("a worker process died (%s); resubmitting %d unfinished load cases on a new pool",
-                        exc, len(pending))
+            if attempt < max_restarts:
+                log.warning("a worker process died (%s); resubmitting %d unfinished load cases on a new pool",
+                            exc, len(pending))
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
-    raise BatchError(f"the process pool broke {max_restarts + 1} times; {len(pending)} load cases unfinished: "
-                     f"{sorted(pending)[:5]}")
+    raise BatchError(f"a worker process died {max_restarts + 1} time(s) (max_restarts={max_restarts}); "
+                     f"{len(pending)} load cases unfinished: {sorted(pending)[:5]}")
 
 
 def _import_distributed():

@@ -127,6 +127,19 @@ def test_process_pool_worker_killed_mid_batch_loses_and_duplicates_nothing(machi
     assert 1 <= sum(int(r.worker.rsplit(":", 1)[1]) in killed for r in res.values()) <= 2
 
 
+def test_process_pool_without_restarts_reports_the_unfinished_cases(machine, cases):
+    killed = []
+
+    def kill_busy_worker(r):
+        if not killed:
+            killed.append(int(r.worker.rsplit(":", 1)[1]))
+            os.kill(killed[0], signal.SIGKILL)
+
+    with pytest.raises(BatchError, match=r"died 1 time\(s\) \(max_restarts=0\); \d+ load cases unfinished"):
+        run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor="process", workers=2, max_restarts=0,
+                  on_result=kill_busy_worker)
+
+
 def test_dask_local_cluster_matches_serial_bitwise(machine, cases, reference, tmp_path):
     pytest.importorskip("distributed", reason="needs dask.distributed (extra 'dask')")
     out = tmp_path / "out"
