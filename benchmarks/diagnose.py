@@ -1,0 +1,76 @@
+"""Diagnosis speed: 7 days at 60 s sampling (10,081 rows) with the full effect library.
+
+The vmc800 demonstrator is reduced once (not timed in the diagnosis figure; its time is printed), a
+7-day load case (`example_loads`: one-hour blocks of axis and spindle work with pauses, workshop air
+swinging daily) is simulated with a planted effect (the workspace-table zone's h at 14 instead of
+10 W/(m² K)) plus sensor noise (0.03 K, 0.3 µm), and ``diagnose`` runs on it with every library
+effect.  Target: ≤ 2 minutes.  Prints a table and ends with one JSON line; medians of ``--repeats``.
+
+    python benchmarks/diagnose.py --repeats 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+
+import numpy as np
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--days", type=float, default=7.0)
+    ap.add_argument("--dt", type=float, default=60.0, help="sample interval [s]")
+    ap.add_argument("--element-size-mm", type=float, default=80.0)
+    ap.add_argument("--order", type=int, default=150)
+    args = ap.parse_args(argv)
+
+    from hybridcomp.diagnose import Dataset, diagnose, prepare_model
+    from hybridcomp.diagnose.effects import library
+    from hybridcomp.diagnose.problem import build_problem
+    from hybridcomp.diagnose.data import parse_split
+    from hybridcomp.fem.loads import example_loads
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.models import load_machine
+
+    machine = load_machine("vmc800")
+    t0 = time.perf_counter()
+    model = build_model(machine, None, args.element_size_mm)
+    rom = prepare_model(machine, model=model, order=args.order, check_loads=example_loads(machine, 4.0, 60.0))
+    t_prepare = time.perf_counter() - t0
+    loads = example_loads(machine, 24.0 * args.days, args.dt)
+    U = loads.as_inputs(machine.reference_temperature_degC)
+    Y = rom.with_htc(ws_table=14.0).simulate(loads.time_s, U)[0]
+    rng = np.random.default_rng(0)
+    cols = {n: loads.values[:, j] for j, n in enumerate(loads.names)}
+    for k, s in enumerate(machine.sensors):
+        cols[f"{s.name}_degC"] = Y[:, k] + 20.0 + rng.normal(0, 0.03, Y.shape[0])
+    for k, d in enumerate(("dx", "dy", "dz")):
+        cols[f"{d}_um"] = Y[:, len(machine.sensors) + k] * 1e6 + rng.normal(0, 0.3, Y.shape[0])
+    ds = Dataset(loads.time_s, cols, "benchmark")
+    n_cand = len(library(build_problem(machine, rom, ds, parse_split("0:60%", ds.time_s), ())))
+    times, d = [], None
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        d = diagnose(machine, ds, "0:60%", rom=rom)
+        times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    causes = [f.candidate.describe(f.params) for f in d.causes]
+    print(f"| rows | ROM order | candidates | prepare ROM [s] | diagnosis median of {args.repeats} [s] | verdict | causes |")
+    print("|---|---|---|---|---|---|---|")
+    print(f"| {ds.time_s.size} | {rom.order} | {d.timings_s.get('candidates', n_cand)} | {t_prepare:.1f} | {med:.1f} | "
+          f"{d.verdict} | {'; '.join(causes)} |")
+    print(json.dumps({"benchmark": "diagnose", "rows": int(ds.time_s.size), "days": args.days, "dt_s": args.dt,
+                      "nodes": int(model.n), "order": int(rom.order), "candidates": d.timings_s.get("candidates"),
+                      "prepare_s": round(t_prepare, 2), "diagnosis_s": [round(t, 2) for t in times],
+                      "median_s": round(med, 2), "target_s": 120.0, "verdict": d.verdict, "causes": causes,
+                      "machine": platform.machine(), "python": platform.python_version()}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
