@@ -95,7 +95,7 @@ class PostgresServer:
     def _run(self, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
         env = {**os.environ, "LC_ALL": "C", "LANG": "C", "HOME": str(self.dir), "PGTZ": "UTC"}
         return subprocess.run([str(self.bin / args[0]), *args[1:]], cwd=self.dir, env=env, capture_output=True,
-                              text=True, timeout=timeout, **self.run_as)
+                              text=True, timeout=timeout, check=False, **self.run_as)
 
     def start(self) -> None:
         r = self._run("initdb", "-D", str(self.data), "-U", "postgres", "-A", "trust", "-E", "UTF8", "--no-locale",

@@ -24,7 +24,7 @@ from hybridcomp.fem.loads import Loads, example_loads, write_loads, write_output
 
 ELEMENT_SIZE_MM = 150.0
 N_CASES = 8
-CASE_ARGS = dict(duration_h=4.0, dt_s=60.0)  # 241 steps, about 0.15 s per case on the coarse mesh
+CASE_ARGS = {"duration_h": 4.0, "dt_s": 60.0}  # 241 steps, about 0.15 s per case on the coarse mesh
 
 
 def make_cases(machine) -> dict[str, Loads]:

@@ -7,8 +7,8 @@ pose at once while a reader watches, two monitors creating the schema of a new d
 
 from __future__ import annotations
 
+import itertools
 import json
-import os
 import subprocess
 import sys
 import textwrap
@@ -88,9 +88,8 @@ def test_add_get_round_trip_on_postgresql(chardiag, sets, fresh_postgres_url):
     # a second connection (another monitor) sees the same rows and the same schema version
     with db.CDDatabase(fresh_postgres_url) as other:
         assert other.get(ids["Z"]) == sets["warm"]["Z"]
-    with pytest.raises(db.CDDatabaseError, match="no id 999999"):
-        with db.CDDatabase(fresh_postgres_url) as store:
-            store.get(999999)
+    with pytest.raises(db.CDDatabaseError, match="no id 999999"), db.CDDatabase(fresh_postgres_url) as store:
+        store.get(999999)
 
 
 def test_search_finds_the_fitting_complete_set(chardiag, sets, fresh_postgres_url):
@@ -240,7 +239,7 @@ def test_activation_is_atomic_under_concurrent_writers(chardiag, sets, fresh_pos
     assert len(acts) == 2 * rounds
     assert len({e.id for e in acts}) == 2 * rounds
     # the log is a consistent history: each activation's "previous" is what the one before it activated
-    for before, after in zip(acts, acts[1:]):
+    for before, after in itertools.pairwise(acts):
         assert {d: int(v) for d, v in after.payload["previous"].items()} == before.payload["ids"]
     assert acts[-1].payload["ids"] == final
 
