@@ -98,6 +98,8 @@ class MonitorConfig:
     compensation_interval_s : compensation cycle in machine time [s]
     monitoring_interval_s : monitoring cycle in machine time [s]
     increment_s : histogram increment [s] (the monitoring interval is a whole multiple of it)
+    max_gap_s : samples farther apart than this are a recording gap, counted as standstill [s] (raise it for a
+        source that delivers samples more sparsely, e.g. OPC UA with a long publishing interval)
     threshold_K : |T_actual − T_reference| above which the active CD set no longer fits [K]
     model_drift_K : |ROM − measured| at a sensor above which a model-drift event is raised [K]
     max_offset_um : largest compensation offset magnitude [µm]
@@ -116,6 +118,7 @@ class MonitorConfig:
     compensation_interval_s: float = 5.0
     monitoring_interval_s: float = 900.0
     increment_s: float = 300.0
+    max_gap_s: float = 10.0
     threshold_K: float = 0.5
     model_drift_K: float = 1.0
     max_offset_um: float = 200.0
@@ -131,7 +134,7 @@ class MonitorConfig:
 
 _MONITOR_KEYS = {
     "machine", "pose_mm", "database", "rom", "compensation_interval_s", "monitoring_interval_s", "increment_s",
-    "threshold_K", "model_drift_K", "prometheus_port",
+    "threshold_K", "model_drift_K", "prometheus_port", "max_gap_s",
 }
 _SECTIONS = {
     "monitor": _MONITOR_KEYS,
@@ -324,6 +327,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         compensation_interval_s=comp,
         monitoring_interval_s=mon,
         increment_s=inc,
+        max_gap_s=m.number("max_gap_s", 10.0, positive=True),
         threshold_K=m.number("threshold_K", 0.5, positive=True),
         model_drift_K=m.number("model_drift_K", 1.0, positive=True),
         max_offset_um=c.number("max_offset_um", 200.0, positive=True),
@@ -359,6 +363,7 @@ rom = "vmc800.rom.npz"             # hybridcomp reduce --machine vmc800 --out vm
 compensation_interval_s = 5        # machine time between compensation cycles [s]
 monitoring_interval_s = 900        # machine time between monitoring cycles [s]
 increment_s = 300                  # histogram increment [s]
+max_gap_s = 10                     # samples farther apart are a recording gap (standstill) [s]
 threshold_K = 0.5                  # |T_actual - T_reference| that trips a switch or a generation [K]
 model_drift_K = 1.0                # |ROM - measured| at a sensor that raises a model-drift event [K]
 prometheus_port = 0                # 0: off; else Prometheus text metrics on 127.0.0.1:port/metrics

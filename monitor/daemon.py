@@ -420,7 +420,7 @@ class Monitor:
             warnings.simplefilter("always")
             try:
                 inc = increments_from_samples(self.machine, s, min(self.cfg.increment_s, max(s.time_s[-1] - s.time_s[0], 1e-6)),
-                                              source=f"monitor interval ending {boundary:g} s")
+                                              max_gap_s=self.cfg.max_gap_s, source=f"monitor interval ending {boundary:g} s")
                 loads = boundary_conditions(self.machine, inc)
                 error = None
             except (TraceFileError, ValueError) as exc:
@@ -686,7 +686,6 @@ async def run_monitor(
     rng = random.Random(seed)
     jobs: set[asyncio.Task] = set()
     attempt = 0
-    stopped_by = "end of data"
     last_beat = -math.inf
 
     async def job(request: dict) -> None:
@@ -713,9 +712,9 @@ async def run_monitor(
                  "active": monitor.active_ids, "degraded": monitor.status()["degraded"],
                  "regeneration_running": monitor.regeneration_running}))
 
-    start_jobs()
-    try:
-        while not stop.is_set():
+    async def consume() -> str:
+        nonlocal attempt
+        while True:
             connected = False
             try:
                 async for r in source.readings(start_after_s=monitor.last_time_s):
@@ -732,27 +731,42 @@ async def run_monitor(
                         while jobs:
                             await asyncio.wait(set(jobs))
                     beat()
-                    if stop.is_set():
-                        stopped_by = "signal"
-                        break
-                else:
-                    if getattr(source, "finished", True):
-                        break
+                if getattr(source, "finished", True):
+                    return "end of data"
             except SourceDisconnected as exc:
                 delay = backoff_delay(attempt, cfg.reconnect, rng.random())
                 log.warning("data source: %s; reconnecting in %.2f s (attempt %d)", exc, delay, attempt + 1)
                 if attempt == 0:
                     monitor.db.log_event("source", monitor.last_time_s, {"status": "disconnected", "error": str(exc)})
                 attempt += 1
-                try:
-                    await asyncio.wait_for(stop.wait(), delay)
-                except asyncio.TimeoutError:
-                    pass
-            if stop.is_set():
-                stopped_by = "signal"
-        if jobs and await_regeneration:
-            await asyncio.wait(set(jobs))
+                await clock.sleep(delay)
+
+    start_jobs()
+    consumer = asyncio.create_task(consume())
+    stopper = asyncio.create_task(stop.wait())
+    try:
+        await asyncio.wait({consumer, stopper}, return_when=asyncio.FIRST_COMPLETED)
+        if consumer.done():
+            stopped_by = consumer.result()  # (raises what the loop raised)
+            if await_regeneration and jobs:
+                await asyncio.wait(set(jobs))
+        else:
+            # a stop request: the reading being processed is complete (processing has no await inside), the
+            # state of the last monitoring boundary is in the database; wait for nothing else
+            stopped_by = "signal"
+            consumer.cancel()
+            try:
+                await consumer
+            except asyncio.CancelledError:
+                pass
     finally:
+        stopper.cancel()
+        if not consumer.done():
+            consumer.cancel()
+            try:
+                await consumer
+            except (asyncio.CancelledError, Exception):  # noqa: BLE001 - shutting down
+                pass
         for t in list(jobs):
             t.cancel()
         if jobs:
