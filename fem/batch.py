@@ -285,6 +285,48 @@ def write_case_atomically(out_dir: Path, result: CaseResult) -> Path:
     return path
 
 
+def read_case(path: Path, name: str, sensor_names: tuple[str, ...]) -> CaseResult:
+    """An outputs CSV written by :func:`write_case_atomically` back as a result (values as written, 6 decimals)."""
+    expected = ["time_s", *(f"{s}_degC" for s in sensor_names), "dx_um", "dy_um", "dz_um"]
+    with path.open() as fh:
+        header = fh.readline().strip().split(",")
+    if header != expected:
+        raise ValueError(f"{path}: header {header} is not the outputs of this machine ({expected})")
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    ns = len(sensor_names)
+    return CaseResult(name=name, time_s=data[:, 0], sensor_names=tuple(sensor_names), sensors_degC=data[:, 1:1 + ns],
+                      drift_um=data[:, 1 + ns:], worker="file", built_model=False, compute_s=0.0, cpu_s=0.0, path=path)
+
+
+def _write_json_atomically(path: Path, info: dict) -> None:
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex}.tmp"
+    try:
+        tmp.write_text(json.dumps(info, indent=2))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _resumable(out: Path, settings: dict, cases, sensor_names) -> dict[str, CaseResult]:
+    """The results an interrupted run of the same batch left in ``out`` (checked against its batch.json)."""
+    info_path = out / "batch.json"
+    files = {n: out / f"{n}.csv" for n in cases if (out / f"{n}.csv").exists()}
+    if not info_path.exists():
+        if files:
+            raise ValueError(f"{out}: has outputs ({sorted(files)[0]}.csv ...) but no batch.json saying how they "
+                             "were computed; cannot resume, use another output directory")
+        return {}
+    try:
+        old = json.loads(info_path.read_text())["settings"]
+    except (ValueError, KeyError) as exc:
+        raise ValueError(f"{info_path}: not a batch.json of 'hybridcomp batch run' ({exc})") from None
+    for key, value in settings.items():
+        if old.get(key) != value:
+            raise ValueError(f"{info_path}: the outputs in {out} were computed with {key} = {old.get(key)!r}, this "
+                             f"batch has {value!r}; cannot resume, use another output directory")
+    return {n: read_case(p, n, sensor_names) for n, p in files.items()}
+
+
 # --------------------------------------------------------------------------- executors
 
 
@@ -437,6 +479,7 @@ def run_batch(
     workers: int | None = None,
     threads_per_worker: int = 1,
     out_dir: str | Path | None = None,
+    resume: bool = False,
     progress: bool = False,
     warm: bool = True,
     max_restarts: int = 3,
@@ -457,6 +500,10 @@ def run_batch(
     workers : worker processes for ``"process"`` and ``"local"`` (default: the number of cores)
     threads_per_worker : BLAS / OpenMP threads of each worker process started here
     out_dir : if given, write ``out_dir/<case>.csv`` (outputs-CSV columns) atomically per case and ``batch.json``
+        (the settings, at the start; the cases, at the end)
+    resume : keep the outputs an interrupted run of the same batch (same settings in ``batch.json``) left in
+        ``out_dir`` and compute only the missing cases; kept cases come back as read from their file
+        (``worker="file"``, values rounded as written)
     progress : a progress bar over load cases (tqdm)
     warm : on Dask, build the operators on every worker before submitting the cases
     max_restarts : times a broken local process pool is replaced before giving up
@@ -478,6 +525,13 @@ def run_batch(
         raise ValueError(f"workers must be at least 1, got {workers}")
     if threads_per_worker < 1:
         raise ValueError(f"threads_per_worker must be at least 1, got {threads_per_worker}")
+    if isinstance(executor, str):
+        if executor not in ("serial", "process", "local") and "://" not in executor:
+            raise ValueError(f"executor {executor!r}: use 'serial', 'process', 'local' or a Dask scheduler "
+                             "address such as tcp://HOST:8786")
+    elif not (isinstance(executor, cf.Executor) or type(executor).__module__.startswith("distributed")):
+        raise TypeError(f"executor: expected a name, a concurrent.futures.Executor or a distributed.Client, "
+                        f"got {type(executor).__name__}")
     cases = read_loads_dir(loads, machine) if isinstance(loads, (str, Path)) else dict(loads)
     check_cases(cases, machine)
     pose = machine.check_pose(dict(pose_mm or {}))
@@ -485,17 +539,31 @@ def run_batch(
                      None if element_size_mm is None else float(element_size_mm),
                      hashlib.sha256(pickle.dumps(machine)).hexdigest())
     options = SimulationOptions(theta=float(theta), initial=initial, dt_s=dt_s)
+    if resume and out_dir is None:
+        raise ValueError("resume needs out_dir (the outputs of the interrupted run)")
+    settings = json.loads(json.dumps({
+        "machine": machine.name, "machine_sha256": machine.sha256, "machine_digest": spec.machine_digest,
+        "pose_mm": pose, "element_size_mm": spec.element_size_mm, "theta": float(theta), "initial": initial,
+        "dt_s": dt_s}))
     out = None
+    results: dict[str, CaseResult] = {}
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
+        if resume:
+            results = _resumable(out, settings, cases, tuple(s.name for s in machine.sensors))
+            log.info("resuming: %d of %d load cases already in %s", len(results), len(cases), out)
+        else:  # a fresh run replaces these outputs: none of an older batch may pass for this one's if interrupted
+            for name in cases:
+                (out / f"{name}.csv").unlink(missing_ok=True)
+        _write_json_atomically(out / "batch.json", {"settings": settings, "complete": False})
+    todo = {n: c for n, c in cases.items() if n not in results}
 
-    results: dict[str, CaseResult] = {}
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(cases), unit="case", desc="load cases")
+        bar = tqdm(total=len(cases), initial=len(results), unit="case", desc="load cases")
 
     def done(r: CaseResult) -> None:
         if r.name in results:  # a case reported twice (a retried task whose first attempt also finished)
@@ -512,24 +580,20 @@ def run_batch(
     t0 = time.perf_counter()
     kind = executor if isinstance(executor, str) else type(executor).__name__
     try:
-        if executor == "serial":
-            for name, case in cases.items():
+        if not todo:
+            pass
+        elif executor == "serial":
+            for name, case in todo.items():
                 done(run_case(spec, options, name, case))
         elif executor == "process":
-            _run_process_pool(workers or os.cpu_count() or 1, threads_per_worker, max_restarts, spec, options, cases, done)
+            _run_process_pool(workers or os.cpu_count() or 1, threads_per_worker, max_restarts, spec, options, todo, done)
         elif isinstance(executor, str):
-            if executor != "local" and "://" not in executor:
-                raise ValueError(f"executor {executor!r}: use 'serial', 'process', 'local' or a Dask scheduler "
-                                 "address such as tcp://HOST:8786")
             with dask_client(executor, workers, threads_per_worker) as client:
-                _run_dask(client, spec, options, cases, done, warm)
+                _run_dask(client, spec, options, todo, done, warm)
         elif isinstance(executor, cf.Executor):
-            _run_futures(executor, spec, options, cases, done)
-        elif type(executor).__module__.startswith("distributed"):
-            _run_dask(executor, spec, options, cases, done, warm)
+            _run_futures(executor, spec, options, todo, done)
         else:
-            raise TypeError(f"executor: expected a name, a concurrent.futures.Executor or a distributed.Client, "
-                            f"got {type(executor).__name__}")
+            _run_dask(executor, spec, options, todo, done, warm)
     finally:
         if bar is not None:
             bar.close()
@@ -539,21 +603,13 @@ def run_batch(
         raise BatchError(f"{len(missing)} load cases returned no result: {missing[:5]}")
     log.info("%d load cases on %s in %.2f s", len(cases), kind, wall)
     if out is not None:
-        info = {
-            "machine": machine.name,
+        _write_json_atomically(out / "batch.json", {
+            "settings": settings,
+            "complete": True,
             "machine_file": Path(machine.source).name,
-            "machine_sha256": machine.sha256,
-            "pose_mm": pose,
-            "element_size_mm": element_size_mm,
-            "theta": theta,
-            "initial": initial,
-            "dt_s": dt_s,
             "executor": kind,
             "wall_s": wall,
             "cases": {n: {"file": f"{n}.csv", "worker": results[n].worker, "compute_s": results[n].compute_s}
                       for n in cases},
-        }
-        tmp = out / f".batch.json.{os.getpid()}.tmp"
-        tmp.write_text(json.dumps(info, indent=2))
-        os.replace(tmp, out / "batch.json")
+        })
     return {n: results[n] for n in cases}

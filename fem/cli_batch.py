@@ -44,6 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("--theta", type=float, default=1.0, help="θ of the θ-method: 1 backward Euler (default), 0.5 Crank-Nicolson")
     r.add_argument("--initial", choices=("steady", "reference"), default="steady",
                    help="initial state: steady state of the first loads row (default) or the reference temperature")
+    r.add_argument("--resume", action="store_true",
+                   help="keep the outputs an interrupted run of the same batch (same settings in OUT/batch.json) "
+                   "left in OUT and compute only the missing cases")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -72,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{len(cases)} load cases of {machine.name} at {pose} on {executor} ...", file=sys.stderr)
         results = run_batch(machine, cases, pose_mm=pose, element_size_mm=args.element_size_mm, theta=args.theta,
                             initial=args.initial, dt_s=args.dt, executor=executor, workers=args.workers,
-                            out_dir=args.out, progress=not args.no_progress)
+                            out_dir=args.out, resume=args.resume, progress=not args.no_progress)
     except (MachineFileError, LoadsFileError, ValueError, ImportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

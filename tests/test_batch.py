@@ -83,7 +83,7 @@ def assert_files_once(out: Path, reference, sensor_names, tmp_path: Path):
         write_outputs(expected, t, sensor_names, sensors, drift)
         assert (out / f"{name}.csv").read_bytes() == expected.read_bytes(), name
     info = json.loads((out / "batch.json").read_text())
-    assert sorted(info["cases"]) == sorted(reference)
+    assert sorted(info["cases"]) == sorted(reference) and info["complete"] is True
 
 
 def test_process_pool_matches_serial_bitwise_builds_once_per_worker(machine, cases, reference, tmp_path):
@@ -357,3 +357,38 @@ def test_a_machine_changed_in_memory_does_not_reuse_the_cached_model(machine, ca
     changed = run_batch(cooler, one, element_size_mm=ELEMENT_SIZE_MM, executor="serial")["case00"]
     assert changed.built_model
     assert np.abs(changed.sensors_degC - first.sensors_degC).max() > 1e-3
+
+
+def test_resume_computes_only_the_missing_cases_and_refuses_other_settings(machine, cases, tmp_path):
+    three = dict(list(cases.items())[:3])
+    out = tmp_path / "out"
+    first = run_batch(machine, three, element_size_mm=ELEMENT_SIZE_MM, executor="serial", out_dir=out)
+    before = {n: (out / f"{n}.csv").read_bytes() for n in three}
+    # an interrupted run: one case not written yet, batch.json not marked complete
+    (out / "case01.csv").unlink()
+    info = json.loads((out / "batch.json").read_text())
+    (out / "batch.json").write_text(json.dumps({"settings": info["settings"], "complete": False}))
+    again = run_batch(machine, three, element_size_mm=ELEMENT_SIZE_MM, executor="serial", out_dir=out, resume=True)
+    assert [r.worker for r in again.values()] == ["file", first["case01"].worker, "file"]
+    assert {n: (out / f"{n}.csv").read_bytes() for n in three} == before
+    for name in ("case00", "case02"):  # read back: the written 6 decimals
+        np.testing.assert_allclose(again[name].drift_um, first[name].drift_um, rtol=0, atol=5e-7)
+        np.testing.assert_array_equal(again[name].time_s, first[name].time_s)
+    assert json.loads((out / "batch.json").read_text())["complete"] is True
+    with pytest.raises(ValueError, match="computed with theta = 1.0, this batch has 0.5"):
+        run_batch(machine, three, element_size_mm=ELEMENT_SIZE_MM, theta=0.5, executor="serial", out_dir=out,
+                  resume=True)
+    with pytest.raises(ValueError, match="computed with element_size_mm = 150.0, this batch has 120.0"):
+        run_batch(machine, three, element_size_mm=120.0, executor="serial", out_dir=out, resume=True)
+
+    # a fresh run with other settings, interrupted after its first case: the older outputs cannot pass for its own
+    def interrupt(r):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(machine, three, element_size_mm=ELEMENT_SIZE_MM, theta=0.5, executor="serial", out_dir=out,
+                  on_result=interrupt)
+    assert sorted(p.name for p in out.iterdir()) == ["batch.json", "case00.csv"]
+    resumed = run_batch(machine, three, element_size_mm=ELEMENT_SIZE_MM, theta=0.5, executor="serial", out_dir=out,
+                        resume=True)
+    assert [r.worker == "file" for r in resumed.values()] == [True, False, False]
