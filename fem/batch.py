@@ -313,7 +313,7 @@ def _resumable(out: Path, settings: dict, cases, sensor_names) -> dict[str, Case
     files = {n: out / f"{n}.csv" for n in cases if (out / f"{n}.csv").exists()}
     if not info_path.exists():
         if files:
-            raise ValueError(f"{out}: has outputs ({sorted(files)[0]}.csv ...) but no batch.json saying how they "
+            raise ValueError(f"{out}: has outputs ({min(files)}.csv ...) but no batch.json saying how they "
                              "were computed; cannot resume, use another output directory")
         return {}
     try:
