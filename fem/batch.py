@@ -25,7 +25,10 @@ The executor is a seam, not a framework:
 Results are returned to the caller, which writes one outputs CSV per case
 (``OUT/<case>.csv``, the ``outputs.csv`` columns) through a temporary file and
 an atomic rename, so a case is written exactly once and a crash never leaves a
-half-written file; the workers need no shared file system.
+half-written file; the workers need no shared file system.  ``OUT/batch.json``
+holds the settings from the start and the cases at the end, so an interrupted
+batch can be resumed (``resume=True``): the cases already written are kept,
+only the missing ones run.
 
 Reproducibility: the FE arithmetic is deterministic for a given number of BLAS
 threads, so every executor gives bitwise identical results when its processes
