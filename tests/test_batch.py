@@ -151,6 +151,15 @@ def test_dask_local_cluster_matches_serial_bitwise(machine, cases, reference, tm
     assert not any(r.built_model for r in res.values())
 
 
+def test_local_cluster_workers_run_one_blas_thread_without_malloc_trim():
+    pytest.importorskip("distributed", reason="needs dask.distributed (extra 'dask')")
+    from hybridcomp.fem.batch import dask_client
+
+    with dask_client("local", workers=1) as client:
+        for name, value in {"MALLOC_TRIM_THRESHOLD_": None, **WORKER_ENVIRONMENT}.items():
+            assert set(client.run(os.getenv, name).values()) == {value}, name
+
+
 # --------------------------------------------------------------------------- a real dask scheduler + 2 workers
 
 
