@@ -54,10 +54,7 @@ def run(args: argparse.Namespace) -> int:
         if args.data_only:
             from hybridcomp.diagnose.dataonly import diagnose_data_only, write_data_only_report
 
-            from hybridcomp.diagnose._threads import single_blas_thread
-
-            with single_blas_thread():
-                d = diagnose_data_only(ds, split, max_terms=args.max_terms)
+            d = diagnose_data_only(ds, split, max_terms=args.max_terms)
             summary = write_data_only_report(d, args.out, dataset_name=args.data.name, plots=not args.no_plots)
             fits = ", ".join(f"{c} {v['after']['fit_percent']:.1f} %" for c, v in summary["channels"].items())
             print(f"data-only diagnosis: validation fit {fits}; report {args.out / 'report.md'}")

@@ -182,13 +182,20 @@ def _greedy_temps(t, temps: dict[str, np.ndarray], y, train) -> list[Term]:
 
 
 def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 12, min_fit_gain: float = MIN_FIT_GAIN) -> DataOnlyDiagnosis:
-    """Diagnose a regression compensation model on a dataset alone.
+    """Diagnose a regression compensation model on a dataset alone (see the module docstring).
 
     Raises
     ------
     DatasetError
         no ``*_um`` channel or no ``*_degC`` sensor, a constant channel.
     """
+    from hybridcomp.diagnose._threads import single_blas_thread
+
+    with single_blas_thread():
+        return _diagnose_data_only(ds, split, max_terms, min_fit_gain)
+
+
+def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain: float) -> DataOnlyDiagnosis:
     t0 = time.perf_counter()
     targets = [n for n in ds.names if n.endswith("_um")]
     temps = [n for n in ds.names if n.endswith("_degC")]

@@ -1,0 +1,224 @@
+"""Datasets, column maps, splits, metrics, bad input, the data-only mode and the CLI of ``diagnose``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridcomp.cli import main
+from hybridcomp.diagnose import Dataset, DatasetError, parse_split, read_dataset
+from hybridcomp.diagnose.dataonly import diagnose_data_only, heating_cooling_lag
+from hybridcomp.diagnose.metrics import cross_correlation, ep95_curve, fit_percent, noise_level, p2p, rms
+from hybridcomp.diagnose.problem import first_order_lag
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "caiviac-spindle" / "measured.csv"
+
+
+# ------------------------------------------------------------------------------------------ metrics
+def test_fit_rms_p2p_exact():
+    y = np.array([1.0, 2.0, 3.0, 4.0])
+    assert fit_percent(y, y) == 100.0
+    assert fit_percent(y, np.full(4, 2.5)) == pytest.approx(0.0)
+    assert fit_percent(y, y + np.array([1.0, -1.0, 1.0, -1.0])) == pytest.approx(100 * (1 - 2 / np.sqrt(5)))
+    assert rms(np.array([3.0, -3.0])) == 3.0
+    assert p2p(np.array([-1.0, 2.0, 0.5])) == 3.0
+
+
+def test_ep95_against_brute_force():
+    rng = np.random.default_rng(0)
+    r = np.cumsum(rng.normal(size=200))
+    w, e = ep95_curve(np.arange(200) * 60.0, r, n_windows=12)
+    for ws, ev in zip(w, e):
+        k = int(round(ws / 60))
+        ranges = [np.ptp(r[i:i + k + 1]) for i in range(200 - k)]
+        assert ev == pytest.approx(np.percentile(ranges, 95))
+    assert w[0] == 60.0 and e[-1] == pytest.approx(np.ptp(r))
+
+
+def test_cross_correlation_finds_the_lag():
+    rng = np.random.default_rng(1)
+    s = rng.normal(size=500)
+    res = np.r_[np.zeros(7), s[:-7]]  # the residual follows the signal by 7 samples
+    lags, rho = cross_correlation(res, s, 20)
+    assert lags[np.argmax(rho)] == 7 and rho.max() > 0.95
+
+
+def test_noise_level_of_white_noise_on_a_slow_signal():
+    rng = np.random.default_rng(2)
+    t = np.arange(5000.0)
+    y = 5 * np.sin(t / 800) + rng.normal(0, 0.1, t.size)
+    assert noise_level(y) == pytest.approx(0.1, rel=0.08)
+
+
+def test_first_order_lag_exact_for_a_ramp():
+    """y' = (u − y)/τ for u = t from y(0) = 0: y = t − τ (1 − e^{−t/τ}); the first-order hold is exact."""
+    t = np.linspace(0, 5000, 51)
+    tau = 700.0
+    y = first_order_lag(t, t, tau)
+    y0 = t - tau * (1 - np.exp(-t / tau))
+    assert np.abs(y - y0).max() < 1e-9
+    # non-uniform grid: same answer
+    tn = np.r_[t[:10], t[10::2]]
+    assert np.abs(first_order_lag(tn, tn, tau) - (tn - tau * (1 - np.exp(-tn / tau)))).max() < 1e-9
+
+
+def test_heating_cooling_lag_uses_the_two_time_constants():
+    t = np.arange(0, 20000.0, 10.0)
+    s = (t < 10000).astype(float)
+    s[0] = 0.0
+    x = heating_cooling_lag(t, s, 1000.0, 3000.0)
+    assert x[t == 1000][0] == pytest.approx(1 - np.exp(-1), abs=0.01)
+    k = np.flatnonzero(t == 13000)[0]
+    assert x[k] == pytest.approx(x[np.flatnonzero(t == 10000)[0] - 1] * np.exp(-1), abs=0.01)
+
+
+# ------------------------------------------------------------------------------------------ input
+def _csv(path, header, rows):
+    path.write_text(",".join(header) + "\n" + "\n".join(",".join(f"{v:g}" for v in r) for r in rows) + "\n")
+    return path
+
+
+def test_column_map(tmp_path):
+    data = _csv(tmp_path / "d.csv", ["Time", "Spindle temp", "Z drift"], [[0, 20, 1], [60, 21, 2], [120, 22, 4]])
+    mp = tmp_path / "map.toml"
+    mp.write_text('[columns]\ntime_s = "Time"\nT1_degC = "Spindle temp"\ndz_um = "Z drift"\n[scale]\ndz_um = 1000.0\n')
+    ds = read_dataset(data, mp)
+    assert set(ds.names) == {"T1_degC", "dz_um"}
+    assert ds["dz_um"].tolist() == [1000.0, 2000.0, 4000.0]
+
+
+def test_map_naming_a_missing_column(tmp_path):
+    data = _csv(tmp_path / "d.csv", ["Time", "Temp"], [[0, 20], [60, 21]])
+    mp = tmp_path / "map.toml"
+    mp.write_text('[columns]\ntime_s = "Time"\nT1_degC = "Spindle temp"\n')
+    with pytest.raises(DatasetError, match=r"column 'Spindle temp' named by .*map.toml field 'columns.T1_degC' is not in the dataset"):
+        read_dataset(data, mp)
+
+
+def test_map_bad_project_name(tmp_path):
+    mp = tmp_path / "map.toml"
+    mp.write_text('[columns]\ntime_s = "Time"\nspindle_temp = "Temp"\n')
+    with pytest.raises(DatasetError, match="'columns.spindle_temp'.*no known unit suffix"):
+        read_dataset(_csv(tmp_path / "d.csv", ["Time", "Temp"], [[0, 20], [60, 21]]), mp)
+
+
+def test_no_time_column(tmp_path):
+    with pytest.raises(DatasetError, match="column 'time_s' is missing"):
+        read_dataset(_csv(tmp_path / "d.csv", ["t", "T1_degC"], [[0, 20], [60, 21]]))
+
+
+def test_time_not_increasing(tmp_path):
+    with pytest.raises(DatasetError, match="does not increase at row 2"):
+        read_dataset(_csv(tmp_path / "d.csv", ["time_s", "T1_degC"], [[0, 20], [60, 21], [30, 22]]))
+
+
+def test_split_forms():
+    t = np.arange(0, 100 * 3600.0, 1800.0)
+    s = parse_split("0:60%", t)
+    assert s.train.sum() == 120 and s.validation.sum() == 80
+    assert parse_split("0:24h", t).train.sum() == 48
+    assert parse_split(":72000s", t).train.sum() == 40
+
+
+def test_split_too_short_validation():
+    t = np.arange(1000) * 60.0
+    with pytest.raises(DatasetError, match="validation part has 10 samples.*at least 50"):
+        parse_split("0:99%", t)
+
+
+@pytest.mark.parametrize("spec", ["60%", "0:abc", "50%:10%", "0:120%"])
+def test_split_bad_spec(spec):
+    with pytest.raises(DatasetError, match="split"):
+        parse_split(spec, np.arange(1000) * 60.0)
+
+
+def test_constant_channel_is_an_error():
+    t = np.arange(200) * 60.0
+    ds = Dataset(t, {"T1_degC": np.full(200, 20.0), "dz_um": np.sin(t / 3000), "spindle_rpm": (t > 3000) * 5000.0})
+    with pytest.raises(DatasetError, match="channel 'dz_um' is constant|'T1_degC'"):
+        diagnose_data_only(Dataset(t, {**ds.columns, "dz_um": np.full(200, 1.0)}), parse_split("0:60%", t))
+
+
+def test_model_mode_bad_inputs(machine, tmp_path):
+    """Dataset without heat inputs (a trace) and without any measured channel: clear errors before any reduction."""
+    from hybridcomp.diagnose.core import diagnose
+
+    class NoRom:  # the checks come before the model is used
+        input_names = ("x_motor_W", "ambient_degC")
+        output_names = ("T1",)
+
+    t = np.arange(100) * 60.0
+    trace = Dataset(t, {"x_mm": np.zeros(100), "T1_degC": np.sin(t)})
+    with pytest.raises(DatasetError, match="no heat-input column.*hybridcomp histogram"):
+        diagnose(machine, trace, "0:60%", rom=NoRom())
+    no_channel = Dataset(t, {"x_motor_W": np.ones(100)})
+    with pytest.raises(DatasetError, match="no measured channel"):
+        diagnose(machine, no_channel, "0:60%", rom=NoRom())
+
+
+# ------------------------------------------------------------------------------------------ data-only
+def _spindle_data(seed=0, hours=40.0, dt=60.0):
+    """A spindle test: drift = lagged speed heating (τ = 1.5 h) seen by a sensor that lags by 40 min."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0, hours * 3600, dt)
+    blocks = rng.choice([0, 1500, 3000, 4500, 6000], size=int(hours / 2) + 1)
+    rpm = blocks[(t // 7200).astype(int)].astype(float)
+    heat = first_order_lag(t, (rpm / 6000) ** 1.0, 1.5 * 3600)
+    structure = 20 + 3 * heat
+    sensor = first_order_lag(t, structure, 40 * 60) + rng.normal(0, 0.01, t.size)
+    ambient = 20 + 0.5 * np.sin(2 * np.pi * t / 86400) + rng.normal(0, 0.01, t.size)
+    dz = 12 * (structure - 20) + rng.normal(0, 0.2, t.size)
+    return Dataset(t, {"spindle_rpm": rpm, "T1_degC": sensor, "Tamb_degC": ambient, "dz_um": dz})
+
+
+def test_data_only_finds_the_lag_and_gains():
+    ds = _spindle_data()
+    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s))
+    base = d.base["dz_um"]["fit_percent"]
+    after = d.extended["dz_um"]
+    from hybridcomp.diagnose.metrics import fit_percent as fp
+
+    gained = fp(ds["dz_um"][d.split.validation], after.y_hat[d.split.validation])
+    assert gained > 90.0 and gained > base + 5.0
+    kinds = {e["name"] for e in d.extensions["dz_um"]}
+    assert kinds & {"sensor_lag", "activity_lag", "heating_cooling", "autoregressive"}
+
+
+def test_data_only_cli(tmp_path):
+    ds = _spindle_data(hours=30.0, dt=120.0)
+    path = tmp_path / "m.csv"
+    cols = ["time_s", *ds.names]
+    path.write_text(",".join(cols) + "\n" + "\n".join(
+        ",".join(f"{v:.6g}" for v in row) for row in np.column_stack([ds.time_s] + [ds[c] for c in ds.names])) + "\n")
+    out = tmp_path / "out"
+    assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(out), "--train", "0:50%", "--no-plots"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["after"]["dz_um"]["fit_percent"] > s["before"]["dz_um"]["fit_percent"]
+    assert (out / "report.md").read_text().startswith("# Data-only diagnosis")
+
+
+def test_cli_bad_input_exit_code(tmp_path, capsys):
+    data = _csv(tmp_path / "d.csv", ["Time", "Temp"], [[0, 20], [60, 21]])
+    mp = tmp_path / "map.toml"
+    mp.write_text('[columns]\ntime_s = "Time"\nT1_degC = "Spindle temp"\n')
+    assert main(["diagnose", "--data", str(data), "--map", str(mp), "--out", str(tmp_path / "o")]) == 2
+    assert "'Spindle temp'" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.skipif(not REAL.is_file(), reason="real spindle data (shared/data/caiviac-spindle) not present next to the repository")
+def test_real_spindle_data_beats_the_static_regression():
+    """Train on the first half, validate on the second: the static regression's fits are reproduced exactly and the
+    named extensions improve every channel."""
+    ds = read_dataset(REAL)
+    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), max_terms=2)
+    ref = [d.reference[f"ch{i}_um"]["fit_percent"] for i in range(1, 6)]
+    assert np.round(ref, 1).tolist() == [39.5, 36.1, 70.1, 71.1, -58.2]
+    va = d.split.validation
+    for i in range(1, 6):
+        c = f"ch{i}_um"
+        assert fit_percent(ds[c][va], d.extended[c].y_hat[va]) > ref[i - 1] + 3.0
+        assert d.extensions[c]
