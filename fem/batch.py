@@ -70,7 +70,8 @@ log = logging.getLogger(__name__)
 WORKER_ENVIRONMENT = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 #: Dask settings for clusters started here: one BLAS thread per worker, and glibc's dynamic mmap threshold
-#: left alone (Dask's default MALLOC_TRIM_THRESHOLD_=65536 made the sparse solves 2.4x slower in workers)
+#: left alone (Dask's default MALLOC_TRIM_THRESHOLD_=65536 made scipy work 2.4x slower in workers in one
+#: measurement; on FE batches with CHOLMOD no difference was measured, so this is a precaution)
 DASK_CONFIG = {
     "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
     **{f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_ENVIRONMENT.items()},
@@ -212,8 +213,8 @@ def run_case(spec: ModelSpec, options: SimulationOptions, name: str, loads: Load
     t0, c0 = time.perf_counter(), time.process_time()
     if os.environ.get("MALLOC_TRIM_THRESHOLD_") and not _MALLOC_WARNED:
         _MALLOC_WARNED = True
-        log.warning("this worker runs with MALLOC_TRIM_THRESHOLD_=%s (Dask's default), which slows the sparse "
-                    "solves; start Dask workers with the setting removed (see fem.batch.DASK_CONFIG)",
+        log.warning("this worker runs with MALLOC_TRIM_THRESHOLD_=%s (Dask's default), which can slow scipy work "
+                    "in workers (2.4x measured); start Dask workers with the setting removed (see fem.batch.DASK_CONFIG)",
                     os.environ["MALLOC_TRIM_THRESHOLD_"])
     model, built, lock = cached_model(spec)
     if options.dt_s is not None:
