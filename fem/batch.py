@@ -446,9 +446,10 @@ def _run_dask(client, spec, options, cases, done, warm: bool) -> None:
     _, distributed = _import_distributed()
     if warm:
         client.run(warm_up, spec)  # build the operators on every worker at once, not on the first case of each
-    [spec_f] = client.scatter([spec], broadcast=True, hash=False)
+    # the spec (the machine definition, a few kB) travels with each task rather than scattered once: scattered
+    # data dies with the workers that hold it, a task's own arguments are resubmitted with it
     token = uuid.uuid4().hex[:8]
-    futures = {client.submit(run_case, spec_f, options, name, loads, key=f"hybridcomp-case-{name}-{token}", pure=False): name
+    futures = {client.submit(run_case, spec, options, name, loads, key=f"hybridcomp-case-{name}-{token}", pure=False): name
                for name, loads in cases.items()}
     seen: set[str] = set()
     try:
