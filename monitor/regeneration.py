@@ -19,6 +19,8 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+_MODELS: dict = {}  # FE models built in this worker process, by (machine file hash, pose, element size)
+
 
 @dataclass(frozen=True)
 class RegenerationRequest:
@@ -66,8 +68,14 @@ class RegenerationRequest:
         return RegenerationRequest(**d)
 
 
-def request_loads(req: RegenerationRequest):
-    """The request's load history as a ``fem.loads.Loads`` (°C air, first row = steady start)."""
+def request_loads(req: RegenerationRequest, dt_s: float = 60.0):
+    """The request's load history as a ``fem.loads.Loads`` on a ``dt_s`` grid (°C air).
+
+    Each history row holds the mean inputs over the increment that ends at its
+    time; the grid repeats them over that increment (piecewise constant), the
+    first grid row is the start of the first increment with its inputs (a
+    steady start).
+    """
     from hybridcomp.fem.loads import Loads
 
     t = np.asarray(req.loads_time_s, float)
@@ -80,7 +88,10 @@ def request_loads(req: RegenerationRequest):
     for j, n in enumerate(req.loads_names):
         if n.endswith("_degC"):
             V[:, j] += req.reference_temperature_degC
-    return Loads(np.concatenate([[start], t]), np.vstack([V[:1], V]), tuple(req.loads_names))
+    grid = np.arange(start, t[-1], dt_s)
+    grid = np.append(grid, t[-1]) if t[-1] - grid[-1] > 1e-9 else grid
+    k = np.clip(np.searchsorted(t, grid, side="left"), 0, t.size - 1)  # the increment (t[k-1], t[k]] holding τ
+    return Loads(grid, V[k], tuple(req.loads_names))
 
 
 def default_job(request: dict) -> dict:
@@ -100,10 +111,17 @@ def default_job(request: dict) -> dict:
     loads = request_loads(req)
     name = f"generated@{req.machine_time_s:.0f}s"
     sig = None if req.signature is None else np.asarray(req.signature, float)
-    data = simulate_load_cases(machine, {name: LoadCase(name, loads, None, sig)}, pose_mm=req.pose_mm or None,
-                               element_size_mm=req.element_size_mm)
+    pose = machine.check_pose(dict(req.pose_mm or {}))
+    key = (machine.sha256, tuple(sorted(pose.items())), req.element_size_mm)
+    if key not in _MODELS:  # the worker process lives on: build the FE model once
+        from hybridcomp.fem.model import build_model
+
+        _MODELS.clear()
+        _MODELS[key] = build_model(machine, pose, req.element_size_mm)
+    data = simulate_load_cases(machine, {name: LoadCase(name, loads, None, sig)}, pose_mm=pose,
+                               element_size_mm=req.element_size_mm, model=_MODELS[key])
     cds = fit_cd_set(data.columns, machine=machine.name, machine_sha256=machine.sha256,
-                     pose_mm=machine.check_pose(dict(req.pose_mm or {})), load_case=name, signature=sig,
+                     pose_mm=pose, load_case=name, signature=sig,
                      t_reference_degC=req.t_reference_degC, source=name)
     db = CDDatabase(req.database)
     try:
