@@ -37,6 +37,8 @@ def prepare_model(machine, *, rom=None, model=None, element_size_mm: float | Non
     from hybridcomp.rom.machine import reduce_model
 
     t0 = time.perf_counter()
+    if rom is not None and any("@" in n for n in rom.output_names):
+        body_rows = False  # already has per-body drift rows
     if model is None and (rom is None or (body_rows and rom.V is not None)):
         model = build_model(machine, pose_mm, element_size_mm)
     if rom is None:

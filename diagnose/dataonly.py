@@ -32,6 +32,8 @@ from hybridcomp.diagnose.problem import first_order_lag
 log = logging.getLogger(__name__)
 
 LAGS_H = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+EXPONENTS = (1.0, 2.0)
+MAX_INPUTS = 16
 SPLIT_LAGS_H = (0.25, 0.5, 1.0, 2.0, 4.0)
 SENSOR_LAGS_H = (0.1, 0.25, 0.5, 1.0, 2.0)
 AR_H = (0.05, 0.1, 0.25, 0.5, 1.0)
@@ -114,7 +116,7 @@ def candidate_terms(ds: Dataset, temps: list[str]) -> list[Term]:
     t = ds.time_s
     out = []
     for name, s in _activity_signals(ds).items():
-        for n in (1, 2):
+        for n in EXPONENTS:
             for tau in LAGS_H:
                 out.append(Term(f"lag({name}^{n}, {tau:g} h)", "activity_lag", {"signal": name, "exponent": n, "tau_h": tau},
                                 first_order_lag(t, s**n, tau * 3600)))
@@ -167,7 +169,7 @@ def _greedy_temps(t, temps: dict[str, np.ndarray], y, train) -> list[Term]:
     pool = [Term(n, "sensor", {"sensor": n}, v) for n, v in temps.items()]
     _, yh = _fit(t, chosen, y, train, None)
     best_bic = _bic(y, yh, train, 1)
-    while pool:
+    while pool and len(chosen) < MAX_INPUTS:
         trials = []
         for tm in pool:
             _, yh = _fit(t, chosen + [tm], y, train, None)

@@ -287,3 +287,30 @@ def test_extended_machine_with_new_source_and_material(machine, rom, loads, tmp_
 def test_material_dataclass_is_as_expected():
     """The expansion plant above replaces one field of Material; guard the field name."""
     assert "expansion_1_K" in {f.name for f in dataclasses.fields(Material)}
+
+
+def test_cli_model_mode(machine, fe, rom, loads, tmp_path, write_csv):
+    """``hybridcomp diagnose`` end to end on a saved reduced model: planted workspace offset, report files written."""
+    from hybridcomp.cli import main
+    from hybridcomp.rom import save_rom
+
+    U = loads.as_inputs(machine.reference_temperature_degC)
+    for z in machine.zones:
+        if z.air == "workspace":
+            U[:, column(loads, f"{z.name}_degC")] += 1.2
+    s, d = fe_run(fe, loads.time_s, U)
+    ds = dataset(machine, loads, s, d, seed=21)
+    names = list(ds.names)
+    path = write_csv(tmp_path / "measured.csv", ["time_s", *names],
+                     np.column_stack([ds.time_s] + [ds[n] for n in names]).tolist())
+    rom_path = save_rom(tmp_path / "rom.npz", rom)
+    out = tmp_path / "out"
+    rc = main(["diagnose", "--machine", "vmc800", "--data", str(path), "--rom", str(rom_path), "--out", str(out),
+               "--train", "0:60%", "--no-plots", "--effects", "workspace_offset,htc,power_scale,sensor_offset"])
+    assert rc == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["verdict"] == "explained"
+    assert [c["name"] for c in summary["causes"]] == ["workspace_offset"]
+    assert abs(summary["causes"][0]["parameters"]["dT [K]"] - 1.2) <= 0.2 * 1.2
+    assert "workspace (enclosure) air temperature offset" in (out / "report.md").read_text()
+    assert "cannot express" in (out / "machine_extended.toml").read_text()
