@@ -279,6 +279,29 @@ def test_dask_worker_killed_mid_batch_is_retried_without_duplicates(machine, cas
         assert int(res[name].worker.rsplit(":", 1)[1]) != killed["pid"], name
 
 
+def test_dask_batch_survives_all_workers_killed_and_restarted(machine, cases, reference, dask_cli_cluster, tmp_path):
+    from distributed import Client
+
+    killed = []
+    with Client(dask_cli_cluster, timeout="30s") as client:
+
+        def kill_all_workers(r):
+            if not killed:
+                for pid in client.run(os.getpid).values():
+                    os.kill(pid, signal.SIGKILL)  # both worker processes; their nannies start new ones
+                    killed.append(pid)
+
+        out = tmp_path / "out"
+        res = run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor=client, out_dir=out,
+                        on_result=kill_all_workers)
+        client.wait_for_workers(2, timeout=60)
+    assert len(killed) == 2
+    assert_identical(res, reference)
+    assert_files_once(out, reference, res["case00"].sensor_names, tmp_path)
+    after = [r for r in res.values() if int(r.worker.rsplit(":", 1)[1]) not in killed]
+    assert any(r.built_model for r in after)  # a new worker built the operators again
+
+
 # --------------------------------------------------------------------------- CLI and bad input
 
 
