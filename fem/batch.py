@@ -4,9 +4,10 @@ One machine at one pose, many load cases (CD training data, CD regeneration,
 the diagnosis' FE confirmation).  The expensive part is the model: meshing,
 assembly, the elastic adjoint solves for the drift rows and the factorisation
 of the stepping matrix.  Each worker process builds it once and keeps it in a
-per-process cache keyed by (machine SHA-256, pose, element size); tasks carry
-only their loads, and the factorisations cached on the model are reused by
-every later case with the same time step.
+per-process cache keyed by the machine (its file's SHA-256 and a digest of the
+object), the pose and the element size; tasks carry only their loads and the
+machine definition (a few kB), never matrices, and the factorisations cached on
+the model are reused by every later case with the same time step.
 
 The executor is a seam, not a framework:
 
