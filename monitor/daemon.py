@@ -543,7 +543,12 @@ class Monitor:
             self.event("generation", t, {"status": "finished", "ids": ids, "load_case": result.get("load_case", ""),
                                          "wall_s": result.get("wall_s")}, f"{_t(t)}@finished")
             self.counters.generations += 1
-            self.activate(ids, f"generated for the load case at {t:.0f} s", self.last_time_s)
+            try:
+                self.activate(ids, f"generated for the load case at {t:.0f} s", self.last_time_s)
+            except Exception as exc:  # noqa: BLE001 - a broken result must not stop the daemon
+                self.event("generation", t, {"status": "activation_failed", "ids": ids, "error": f"{type(exc).__name__}: {exc}"},
+                           f"{_t(t)}@activation_failed")
+                log.error("generated set %s for %.0f s cannot be activated: %s", ids, t, exc)
         else:
             self.event("generation", t, {"status": status, "error": error}, f"{_t(t)}@{status}")
             # do not start another job for a while (four monitoring intervals of machine time)

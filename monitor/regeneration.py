@@ -19,6 +19,12 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+N_SUPPORT = 4  # support points per input of a generated CD: a few hours of history fill a 4 × 4 × 4 grid
+MAX_INPUTS = 3  # at most this many sensors (chosen by BIC): sensors move together, more inputs extrapolate wildly
+# The recent load history is run on FE as it was measured and with the air around the machine shifted, so that
+# the CD learns how the drift follows the sensors when the air differs from what the histogram knows (a warmer
+# enclosure, a draught): (zones: "workspace" | "all", offset [K]).
+AIR_VARIANTS_K = (("all", 0.0), ("workspace", 2.0), ("workspace", -2.0), ("all", 1.5), ("all", -1.5))
 _MODELS: dict = {}  # FE models built in this worker process, by (machine file hash, pose, element size)
 
 
@@ -97,11 +103,13 @@ def request_loads(req: RegenerationRequest, dt_s: float = 60.0):
 def default_job(request: dict) -> dict:
     """BCs of the recent history → FE training run → three CDs → database (the daemon activates them).
 
-    Uses ``hybridcomp.chardiag.training`` and ``hybridcomp.chardiag.fit``; the
-    new CDs' T_reference is the structure model's temperatures at the decision.
+    Uses ``hybridcomp.chardiag.training`` and ``hybridcomp.chardiag.fit`` (``N_SUPPORT`` support points per
+    input). The history is run as measured and with the air shifted (``AIR_VARIANTS_K``), one table. The
+    new CDs' T_reference is the structure model's temperatures at the decision. The FE model is built once
+    per worker process.
     """
     from hybridcomp.chardiag.db import CDDatabase
-    from hybridcomp.chardiag.fit import fit_cd_set
+    from hybridcomp.chardiag.fit import FitOptions, fit_cd_set
     from hybridcomp.chardiag.training import LoadCase, simulate_load_cases
     from hybridcomp.models import load_machine
 
@@ -118,10 +126,19 @@ def default_job(request: dict) -> dict:
 
         _MODELS.clear()
         _MODELS[key] = build_model(machine, pose, req.element_size_mm)
-    data = simulate_load_cases(machine, {name: LoadCase(name, loads, None, sig)}, pose_mm=pose,
-                               element_size_mm=req.element_size_mm, model=_MODELS[key])
+    cases = {}
+    for zones, dK in AIR_VARIANTS_K:
+        V = loads.values.copy()
+        for z in machine.zones:
+            col = f"{z.name}_degC"
+            if dK and (zones == "all" or z.air == zones):
+                if col in loads.names:
+                    V[:, loads.names.index(col)] += dK
+        variant = f"{name}{'' if not dK else f' {zones} {dK:+g} K'}"
+        cases[variant] = LoadCase(variant, type(loads)(loads.time_s, V, loads.names), None, sig)
+    data = simulate_load_cases(machine, cases, pose_mm=pose, element_size_mm=req.element_size_mm, model=_MODELS[key])
     cds = fit_cd_set(data.columns, machine=machine.name, machine_sha256=machine.sha256,
-                     pose_mm=pose, load_case=name, signature=sig,
+                     pose_mm=pose, load_case=name, signature=sig, options=FitOptions(n_support=N_SUPPORT, select="bic", max_inputs=MAX_INPUTS),
                      t_reference_degC=req.t_reference_degC, source=name)
     db = CDDatabase(req.database)
     try:
