@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridcomp.diagnose.metrics import ep95_curve, strongest_correlations
+from hybridcomp.diagnose.metrics import cross_correlation, ep95_curve, strongest_correlations
 from hybridcomp.diagnose.selection import Diagnosis
 
 log = logging.getLogger(__name__)
@@ -42,7 +42,7 @@ def ep95_table(d: Diagnosis) -> dict:
     return out
 
 
-def _plots(d: Diagnosis, out: Path, ep: dict) -> list[str]:
+def _plots(d: Diagnosis, out: Path, ep: dict, corr: list) -> list[str]:
     try:
         import matplotlib
 
@@ -94,6 +94,23 @@ def _plots(d: Diagnosis, out: Path, ep: dict) -> list[str]:
     fig.savefig(out / "ep95.png", dpi=90)
     plt.close(fig)
     files.append("ep95.png")
+    if corr:
+        dt = float(np.median(np.diff(p.time_s)))
+        max_lag = max(1, min(int(4 * 3600 / dt), int(va.sum()) // 3))
+        fig, ax = plt.subplots(figsize=(8, 4))
+        for c in corr[:6]:
+            k = p.channels.index(c.channel)
+            lags, rho = cross_correlation(p.Y[va, k] - d.Y_before[va, k], p.signals[c.signal][va], max_lag)
+            ax.plot(lags * dt / 3600, rho, lw=1, label=f"{c.channel} vs {c.signal}")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel("lag [h] (> 0: the residual follows the signal)")
+        ax.set_ylabel("normalised cross-correlation")
+        ax.set_title("residual of the model as is (validation part)", fontsize=9)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "xcorr.png", dpi=90)
+        plt.close(fig)
+        files.append("xcorr.png")
     return files
 
 
@@ -120,7 +137,7 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
     summary["machine_extended"] = {"file": mpath.name, "applied": applied,
                                    "not_expressible": [{"cause": a, "reason": b} for a, b in missing]}
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    files = _plots(d, out, ep) if plots else []
+    files = _plots(d, out, ep, corr_before) if plots else []
 
     L = [f"# Diagnosis of {p.machine.name}" + (f" on {dataset_name}" if dataset_name else ""), ""]
     sp = summary["split"]

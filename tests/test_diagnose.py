@@ -241,7 +241,7 @@ def test_report_and_extended_machine(machine, fe, rom, loads, tmp_path):
     s, d = fe_run(fe.with_htc(ws_table=15.0), loads.time_s, U)
     dg = diagnose(machine, dataset(machine, loads, s, d, seed=3), "0:60%", rom=rom, kinds=["htc", "power_scale"])
     summary = write_report(dg, tmp_path)
-    for f in ("report.md", "summary.json", "machine_extended.toml", "residuals.png", "ep95.png"):
+    for f in ("report.md", "summary.json", "machine_extended.toml", "residuals.png", "ep95.png", "xcorr.png"):
         assert (tmp_path / f).is_file(), f
     assert set(summary) >= {"causes", "before", "after", "verdict"}
     cause = summary["causes"][0]
