@@ -21,7 +21,7 @@ an ``apply`` function that changes a :class:`~hybridcomp.diagnose.problem.Setup`
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -88,7 +88,6 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
         raise ValueError(f"unknown effect kind {unknown[0]!r} (library: {', '.join(KINDS)})")
     m = problem.machine
     out: list[Candidate] = []
-    names = list(problem.rom.input_names)
     zone_h = dict(zip(problem.rom.zone_names, problem.rom.h_W_m2K))
     t0 = problem.time_s[0]
 

@@ -259,7 +259,7 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
             if cand.key in banned or _conflicts(cand, [f.candidate for f in chosen]):
                 continue
             try:
-                (p,), (u,), Yhat = fit(problem, fixed, [cand])
+                (p,), (u,), _ = fit(problem, fixed, [cand])
             except (ValueError, np.linalg.LinAlgError) as exc:
                 log.debug("candidate %s failed: %s", cand.label, exc)
                 continue
