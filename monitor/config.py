@@ -76,6 +76,7 @@ class RegenerationConfig:
     timeout_s : wall-clock limit of one job [s]; a job over it is killed
     element_size_mm : FE element size for the job [mm]
     history_s : how much of the recent load history the job gets [s]
+    retry_after_s : after a failed or timed-out job, no new one for this long [s of machine time]
     """
 
     enabled: bool = True
@@ -83,6 +84,7 @@ class RegenerationConfig:
     timeout_s: float = 3600.0
     element_size_mm: float = 80.0
     history_s: float = 8 * 3600.0
+    retry_after_s: float = 3600.0
 
 
 @dataclass(frozen=True)
@@ -142,7 +144,7 @@ _SECTIONS = {
     "sensors": {"hold_s", "frozen_s", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
     "source": {"kind", "path", "speed", "start_s", "url", "nodes", "publishing_interval_ms", "stale_s"},
     "sink": {"kind", "path", "url", "nodes"},
-    "regeneration": {"enabled", "job", "timeout_s", "element_size_mm", "history_s"},
+    "regeneration": {"enabled", "job", "timeout_s", "element_size_mm", "history_s", "retry_after_s"},
     "reconnect": {"initial_s", "factor", "max_s", "jitter"},
 }
 SOURCE_KINDS = ("replay", "opcua")
@@ -304,6 +306,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         timeout_s=r.number("timeout_s", RegenerationConfig.timeout_s, positive=True),
         element_size_mm=r.number("element_size_mm", RegenerationConfig.element_size_mm, positive=True),
         history_s=r.number("history_s", RegenerationConfig.history_s, positive=True),
+        retry_after_s=r.number("retry_after_s", RegenerationConfig.retry_after_s, nonneg=True),
     )
     if ":" not in regen.job:
         raise ConfigError(f"{source}: regeneration.job {regen.job!r} must be 'module:function'")
@@ -399,6 +402,7 @@ job = "hybridcomp.monitor.regeneration:default_job"
 timeout_s = 3600                   # wall-clock limit of one generation job [s]
 element_size_mm = 80               # FE mesh of the job [mm]
 history_s = 28800                  # recent load history the job trains on [s]
+retry_after_s = 3600               # after a failed or timed-out job, none for this long [s of machine time]
 
 [reconnect]
 initial_s = 0.5                    # first retry after [s], then x factor up to max_s

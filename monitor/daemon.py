@@ -551,8 +551,8 @@ class Monitor:
                 log.error("generated set %s for %.0f s cannot be activated: %s", ids, t, exc)
         else:
             self.event("generation", t, {"status": status, "error": error}, f"{_t(t)}@{status}")
-            # do not start another job for a while (four monitoring intervals of machine time)
-            self.regen_blocked_until_s = (self.last_time_s or t) + 4 * self.cfg.monitoring_interval_s
+            # do not start another job for a while
+            self.regen_blocked_until_s = (self.last_time_s or t) + self.cfg.regeneration.retry_after_s
             log.warning("generation job for %.0f s %s: %s", t, status, error)
         self.pending = None
         self.persist()

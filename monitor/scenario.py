@@ -237,7 +237,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
         "source": {"kind": "replay", "path": str(trace), "speed": 0},
         "sink": {"kind": "none"},
         "regeneration": {"enabled": True, "timeout_s": 1800.0, "element_size_mm": element_size_mm,
-                         "history_s": history_s},
+                         "history_s": history_s, "retry_after_s": 900.0},
     }, "scenario", out)
     mon = Monitor(cfg, machine, rom, db, pkey)
     sink = MemorySink()
