@@ -158,7 +158,8 @@ def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dic
                                                 "t_reference_degC": active.t_reference_degC},
         "last_delta_T_K": None if state is None else state.get("last_delta_T_K"),
         "last_decision": None if state is None else state.get("last_decision"),
-        "last_machine_time_s": (beat or state or {}).get("last_time_s"),
+        "last_machine_time_s": max([x["last_time_s"] for x in (beat, state) if x and x.get("last_time_s") is not None],
+                                   default=None),
         "seconds_since_data": None if beat is None else now - beat["unix"],
         "seconds_since_boundary": None if state is None else now - state["updated_unix"],
         "degraded_sensors": None if beat is None else beat.get("degraded"),
@@ -178,6 +179,10 @@ def _summary(e) -> str:
         return f"active {p.get('ids')} ({p.get('reason')})"
     if e.kind == "generation":
         return f"{p.get('status')} {p.get('ids') or p.get('error') or ''}".strip()
+    if e.kind == "model_drift":
+        return f"structure model and sensors differ by {p.get('max_abs_K', float('nan')):.2f} K at {p.get('sensor')}"
+    if e.kind == "sensor":
+        return p.get("message", "")
     return str(p.get("message") or p)[:160]
 
 

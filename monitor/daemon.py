@@ -707,10 +707,10 @@ async def run_monitor(
             jobs.add(t)
             t.add_done_callback(jobs.discard)
 
-    def beat() -> None:
+    def beat(force: bool = False) -> None:
         nonlocal last_beat
         now = clock.monotonic()
-        if now - last_beat >= heartbeat_s:
+        if force or now - last_beat >= heartbeat_s:
             last_beat = now
             monitor.db.put_state(monitor.key + ":heartbeat", json.dumps(
                 {"unix": clock.unix(), "last_time_s": monitor.last_time_s, "offsets_um": monitor.offsets_um,
@@ -778,6 +778,8 @@ async def run_monitor(
             await asyncio.gather(*jobs, return_exceptions=True)
         regen.close()
         await sink.close()
+        if monitor.last_time_s is not None:
+            beat(force=True)
     return RunResult(monitor.status(), stopped_by)
 
 
