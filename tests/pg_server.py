@@ -73,6 +73,11 @@ def _skip_reason() -> str | None:
             pwd.getpwnam(SERVER_USER)
         except KeyError:
             return f"the tests run as root and there is no {SERVER_USER!r} OS user to run the PostgreSQL server"
+        base = Path(tempfile.gettempdir()).resolve()
+        for d in (base, *base.parents):
+            if not os.stat(d).st_mode & 0o001:
+                return (f"the temporary directory {base} is not reachable for the {SERVER_USER!r} OS user "
+                        f"({d} is not world-searchable); set TMPDIR to a directory that is")
     return None
 
 
