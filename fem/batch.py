@@ -456,6 +456,8 @@ def _run_dask(client, spec, options, cases, done, warm: bool) -> None:
     try:
         for f in distributed.as_completed(list(futures)):
             name = futures[f]
+            if f.status == "cancelled":
+                raise BatchError(f"load case {name!r} was cancelled on the Dask cluster (scheduler lost or restarted?)")
             if f.status != "finished":
                 exc = f.exception()
                 raise BatchError(f"load case {name!r} failed on the Dask cluster: {type(exc).__name__}: {exc}")
