@@ -594,9 +594,11 @@ def run_batch(
             for name, case in todo.items():
                 done(run_case(spec, options, name, case))
         elif executor == "process":
-            _run_process_pool(workers or os.cpu_count() or 1, threads_per_worker, max_restarts, spec, options, todo, done)
+            n = min(workers or os.cpu_count() or 1, len(todo))  # no worker without a case to build a model for
+            _run_process_pool(n, threads_per_worker, max_restarts, spec, options, todo, done)
         elif isinstance(executor, str):
-            with dask_client(executor, workers, threads_per_worker) as client:
+            n = min(workers or os.cpu_count() or 1, len(todo))
+            with dask_client(executor, n, threads_per_worker) as client:
                 _run_dask(client, spec, options, todo, done, warm)
         elif isinstance(executor, cf.Executor):
             _run_futures(executor, spec, options, todo, done)
