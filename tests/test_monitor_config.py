@@ -169,3 +169,31 @@ def test_cli_help_and_example_config(capsys, tmp_path):
     (tmp_path / "bad.toml").write_text("[monitor]\nmachine='vmc800'\n")
     assert main(["monitor", "run", "--config", str(tmp_path / "bad.toml")]) == 2
     assert "monitor.database is missing" in capsys.readouterr().err
+
+
+def test_metrics_endpoint_serves_the_status_on_localhost():
+    import asyncio
+
+    from hybridcomp.monitor.metrics import serve_metrics
+
+    class Stub:
+        def status(self):
+            return {"last_time_s": 1800.0, "switches": 2}
+
+    async def main():
+        server = await serve_metrics(Stub(), 0)
+        port = server.sockets[0].getsockname()[1]
+        assert server.sockets[0].getsockname()[0] == "127.0.0.1"
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+        await writer.drain()
+        body = await reader.read()
+        writer.close()
+        await writer.wait_closed()
+        server.close()
+        await server.wait_closed()
+        return body.decode()
+
+    text = asyncio.run(main())
+    assert text.startswith("HTTP/1.1 200 OK") and "hybridcomp_monitor_switches_total 2\n" in text
+    assert "hybridcomp_monitor_machine_time_seconds 1800\n" in text
