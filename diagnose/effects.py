@@ -139,7 +139,7 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
                 s.U[:, cols] *= ratio[:, None]
 
             out.append(Candidate("exponent", si.name, f"wrong speed-to-heat exponent of {si.name}", ("exponent [-]",),
-                                 (0.3,), (4.0,), (n0,), (n0,), False, "sim", apply, grid=(0.5, 0.8, 1.0, 1.3, 1.67, 2.0, 2.5, 3.0)))
+                                 (0.3,), (4.0,), (n0,), (n0,), False, "sim", apply, grid=(0.6, 1.0, 1.5, 2.2, 3.0)))
 
     zones = [z.name for z in m.zones]
     if "htc" in kinds:
@@ -151,7 +151,7 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
 
             out.append(Candidate("htc", z, f"wrong convection coefficient of zone {z}", ("h [W/(m2 K)]",), (0.25 * h0,),
                                  (4.0 * h0,), (h0,), (h0,), False, "sim", apply,
-                                 grid=tuple(h0 * np.array([0.35, 0.5, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0, 3.0]))))
+                                 grid=tuple(h0 * np.array([0.4, 0.6, 0.85, 1.2, 1.7, 2.5]))))
     if "htc_motion" in kinds and activity_mask(problem).any() and not activity_mask(problem).all():
         for z in zones:
             h0 = float(zone_h[z])
@@ -171,7 +171,7 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
                     (slice(None), k), first_order_lag(problem.time_s, Yc[:, k], tau * 60.0)))
 
             out.append(Candidate("sensor_lag", c, f"sensor lag of {c.removesuffix('_degC')}", ("tau [min]",), (0.0,), (240.0,),
-                                 (0.0,), (5.0,), False, "out", apply, grid=(1.0, 3.0, 6.0, 10.0, 20.0, 40.0, 80.0)))
+                                 (0.0,), (5.0,), False, "out", apply, grid=(2.0, 6.0, 15.0, 40.0, 100.0)))
         if "sensor_offset" in kinds:
             unit = "K" if problem.is_temperature(k) else "um"
             big = 20.0 if unit == "K" else 500.0

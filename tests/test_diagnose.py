@@ -31,7 +31,7 @@ def fe(machine):
 
 @pytest.fixture(scope="module")
 def rom(machine, fe):
-    return prepare_model(machine, model=fe, order=150, check_loads=example_loads(machine, 4.0, 60.0))
+    return prepare_model(machine, model=fe, order=150, check_loads=example_loads(machine, 1.0, 300.0))
 
 
 @pytest.fixture(scope="module")
