@@ -62,7 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.fem.cli_simulate import resample
-from hybridcomp.fem.loads import Loads, LoadsFileError, input_columns, read_loads, write_outputs
+from hybridcomp.fem.loads import Loads, LoadsFileError, in_model_order, input_columns, read_loads, write_outputs
 from hybridcomp.models.machine import Machine
 
 log = logging.getLogger(__name__)
@@ -256,24 +256,30 @@ def read_loads_dir(directory: str | Path, machine: Machine) -> dict[str, Loads]:
     return {p.stem: read_loads(p, machine) for p in files}
 
 
-def check_cases(cases: Mapping[str, Loads], machine: Machine) -> None:
-    """Names usable as file names, loads in the machine's input order, at least two rows each."""
+def prepare_cases(cases: Mapping[str, Loads], machine: Machine) -> dict[str, Loads]:
+    """The cases checked and in the machine's input order: names usable as file names, known columns only
+    (a missing heat input is zero power, a missing zone the reference temperature), at least two rows each."""
     expected = input_columns(machine)
     if not cases:
         raise ValueError("the batch has no load cases")
+    out = {}
     for name, loads in cases.items():
         if not isinstance(name, str) or not _CASE_NAME.match(name):
             raise ValueError(f"load case name {name!r}: use letters, digits and _ . + - (it names the output file)")
         if not isinstance(loads, Loads):
             raise TypeError(f"load case {name!r}: expected fem.loads.Loads, got {type(loads).__name__}")
         if tuple(loads.names) != expected:
-            raise LoadsFileError(f"load case {name!r}: columns {loads.names} are not the inputs of machine "
-                                 f"{machine.name!r} in order {expected} (read it with fem.loads.read_loads)")
+            try:
+                loads = in_model_order(loads, machine)
+            except LoadsFileError as exc:
+                raise LoadsFileError(f"load case {name!r}: {exc}") from None
         if loads.values.shape != (len(loads.time_s), len(expected)) or len(loads.time_s) < 2:
             raise LoadsFileError(f"load case {name!r}: needs at least two rows of {len(expected)} inputs, "
                                  f"got values of shape {loads.values.shape}")
         if np.any(np.diff(loads.time_s) <= 0):
             raise LoadsFileError(f"load case {name!r}: time_s does not increase strictly")
+        out[name] = loads
+    return out
 
 
 def write_case_atomically(out_dir: Path, result: CaseResult) -> Path:
@@ -540,8 +546,7 @@ def run_batch(
     elif not (isinstance(executor, cf.Executor) or type(executor).__module__.startswith("distributed")):
         raise TypeError(f"executor: expected a name, a concurrent.futures.Executor or a distributed.Client, "
                         f"got {type(executor).__name__}")
-    cases = read_loads_dir(loads, machine) if isinstance(loads, (str, Path)) else dict(loads)
-    check_cases(cases, machine)
+    cases = prepare_cases(read_loads_dir(loads, machine) if isinstance(loads, (str, Path)) else loads, machine)
     pose = machine.check_pose(dict(pose_mm or {}))
     spec = ModelSpec(machine, tuple(sorted((k, float(v)) for k, v in pose.items())),
                      None if element_size_mm is None else float(element_size_mm),

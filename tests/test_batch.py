@@ -331,9 +331,9 @@ def test_run_batch_rejects_bad_input(machine, cases):
     short = Loads(cases["case00"].time_s[:1], cases["case00"].values[:1], cases["case00"].names)
     with pytest.raises(ValueError, match="load case 'a': needs at least two rows"):
         run_batch(machine, {"a": short}, executor="serial")
-    swapped = Loads(cases["case00"].time_s, cases["case00"].values, tuple(reversed(cases["case00"].names)))
-    with pytest.raises(ValueError, match="load case 'a': columns"):
-        run_batch(machine, {"a": swapped}, executor="serial")
+    unknown = Loads(cases["case00"].time_s, cases["case00"].values, ("nonsense_W", *cases["case00"].names[1:]))
+    with pytest.raises(ValueError, match="load case 'a': loads column 'nonsense_W' is not an input"):
+        run_batch(machine, {"a": unknown}, executor="serial")
     with pytest.raises(ValueError, match="theta"):
         run_batch(machine, one, theta=0.2)
     with pytest.raises(TypeError, match="executor"):
@@ -355,6 +355,22 @@ def test_a_failing_case_names_itself(machine, cases):
     with pytest.raises(BatchError, match="load case 'b' failed: planted failure"):
         run_batch(machine, {"a": cases["case01"], "b": bad}, element_size_mm=ELEMENT_SIZE_MM, executor="process",
                   workers=1)
+
+
+def test_loads_in_another_column_order_or_with_columns_missing_give_the_same_results(machine, cases):
+    c = cases["case00"]
+    values = c.values.copy()
+    values[:, :3] = 0.0  # three heat inputs off
+    values[:, -1] = machine.reference_temperature_degC  # the last zone at the reference temperature
+    c = Loads(c.time_s, values, c.names)
+    reversed_order = Loads(c.time_s, c.values[:, ::-1], tuple(reversed(c.names)))
+    keep = list(range(3, len(c.names) - 1))
+    zeros_dropped = Loads(c.time_s, c.values[:, keep], tuple(c.names[j] for j in keep))
+    res = run_batch(machine, {"a": c, "b": reversed_order, "c": zeros_dropped}, element_size_mm=ELEMENT_SIZE_MM,
+                    executor="serial")
+    for name in ("b", "c"):
+        np.testing.assert_array_equal(res[name].drift_um, res["a"].drift_um)
+        np.testing.assert_array_equal(res[name].sensors_degC, res["a"].sensors_degC)
 
 
 def test_a_machine_changed_in_memory_does_not_reuse_the_cached_model(machine, cases):
