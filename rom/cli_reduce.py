@@ -40,6 +40,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--h-range", type=_h_range, default=(0.5, 2.0), metavar="LOW,HIGH",
                    help="heat-transfer coefficients the model must cover, as factors of nominal (default 0.5,2)")
     p.add_argument("--check-loads", type=Path, help="loads CSV of the FE check (default: the 16 h example day at 60 s)")
+    p.add_argument("--basis", choices=("krylov", "h2"), default="krylov",
+                   help="krylov: greedy rational Krylov basis, then its Gramian compression (default); h2: the "
+                   "one-sided basis with the smallest H2 error (L-BFGS inside a large Krylov surrogate), keeping "
+                   "the s = 0 block when the order allows; both keep the model symmetric, stable and affine in h")
     p.add_argument("--no-basis", action="store_true", help="do not store the basis V (smaller file, no full-field reconstruction)")
 
 
@@ -82,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         model = build_model(machine, pose, args.element_size_mm)
         print(f"reducing {model.n} nodes ...", file=sys.stderr)
         rom = reduce_model(model, tol_K=args.tol_K, tol_um=args.tol_um, order=args.order, h_range=args.h_range,
-                           check_loads=check, keep_basis=not args.no_basis)
+                           check_loads=check, keep_basis=not args.no_basis, basis=args.basis)
     save_rom(args.out, rom)
     summary = {"out": str(args.out), "order": rom.order, "seconds": round(time.perf_counter() - t0, 2)}
     if "check" in rom.meta:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from hybridcomp.rom.krylov import Reduction, Reductor, ThermalSystem, orthonormal_extension, project
+from hybridcomp.rom.krylov import ExpansionPoint, Reduction, Reductor, ThermalSystem, orthonormal_extension, project
 from hybridcomp.rom.reduced import ReducedModel, RomInputError
 
 log = logging.getLogger(__name__)
@@ -188,6 +188,38 @@ def gramian_directions(system: ThermalSystem, V: np.ndarray, h_list, input_scale
     return V @ la.solve_triangular(L.T, inter, lower=False)
 
 
+def _reduce_h2(system, reductor, samples, scale, tol, order, max_order, step, accept, fastest_time_s, maxiter):
+    """The H2-optimal one-sided basis (see :func:`reduce_model`): a Reduction and the method text."""
+    from hybridcomp.rom.h2 import h2_optimal_basis
+
+    h_list = samples[:3]
+    s0 = orthonormal_extension(np.zeros((system.n, 0)), reductor._blocks(0.0, system.h, 1), reductor.deflation_tol)
+    n_first = s0.shape[1]
+    # surrogate: a rational Krylov basis resolving down to 5 s, well above the reduced order (its own H2 error
+    # is orders of magnitude below the reduced model's)
+    sur_red = Reductor(system, tol, scale, h_list, n_s=12, fastest_time_s=min(5.0, fastest_time_s))
+
+    def basis_of(r):
+        N = min(system.n, max(300, 4 * r))
+        V_big = sur_red.reduce(order=N).V
+        fixed = s0 if r >= n_first else None
+        return h2_optimal_basis(system, V_big, r, h_list, scale, 1.0 / tol, maxiter=maxiter, fixed=fixed)
+
+    point = ExpansionPoint(0.0, tuple(float(v) for v in system.h), 1)
+    if order is not None:
+        V = basis_of(int(order))
+        pts = (point,) if order >= n_first else ()
+        return Reduction(V, pts, float("nan"), ()), "H2-optimal one-sided basis"
+    r = n_first
+    while True:
+        V = basis_of(r) if r > n_first else s0
+        if accept(V) or r >= max_order:
+            break
+        r = min(max_order, r + step)
+    return (Reduction(V, (point,), float("nan"), ()),
+            f"s = 0 block + {V.shape[1] - n_first} H2-optimal one-sided directions")
+
+
 def reduce_model(
     model,
     *,
@@ -204,6 +236,8 @@ def reduce_model(
     chunk: int | None = 8,
     compress: bool = True,
     compress_step: int = 4,
+    basis: str = "krylov",
+    h2_maxiter: int = 1500,
 ) -> ReducedModel:
     """Reduce a machine's FE model to a tolerance or an order, checked against FE on a load case.
 
@@ -225,6 +259,13 @@ def reduce_model(
         (summed over nominal h and both range ends, inputs scaled by their range, outputs by 1/tol);
         the smaller of the two models that passes the FE check is kept
     compress_step : directions added per compression step
+    basis : ``"krylov"`` (greedy rational Krylov, then the Gramian compression) or ``"h2"``: the one-sided
+        basis with the smallest H2 error found by :func:`hybridcomp.rom.h2.h2_optimal_basis` inside a
+        large Krylov surrogate (errors summed over nominal h and both range ends, inputs scaled by their
+        range in the check case, outputs by 1/tolerance); it contains the ``s = 0`` block whenever the
+        order allows (steady states exact), and in tolerance mode grows by ``chunk`` directions until the
+        FE check passes.  Both are one-sided Galerkin projections: symmetric, stable, affine in h.
+    h2_maxiter : L-BFGS iterations per H2-optimal basis
 
     Blocks are added greedily (see :class:`~hybridcomp.rom.krylov.Reductor`)
     until the reduced model, integrated by the same θ-method as FE (so that
@@ -238,6 +279,8 @@ def reduce_model(
 
     if not (tol_K > 0 and tol_um > 0):
         raise ValueError(f"tolerances must be positive, got tol_K={tol_K}, tol_um={tol_um}")
+    if basis not in ("krylov", "h2"):
+        raise ValueError(f"basis must be 'krylov' or 'h2', got {basis!r}")
     t0 = time.perf_counter()
     machine = model.machine
     system = system_from_model(model)
@@ -277,9 +320,13 @@ def reduce_model(
         log.info("order %d: FE check %s", V.shape[1], [(round(c.max_sensor_error_K, 4), round(c.max_drift_error_um, 4)) for c in res])
         return all(c.max_sensor_error_K <= safety * tol_K and c.max_drift_error_um <= safety * tol_um for c in res)
 
-    red = reductor.reduce(target=0.5, order=order, max_order=max_order, accept=accept, chunk=chunk)
-    method = "greedy Krylov"
-    if compress and order is None and red.points[0].complete:
+    if basis == "h2":
+        red, method = _reduce_h2(system, reductor, samples, scale, tol, order, max_order, chunk or 8, accept,
+                                 fastest_time_s, h2_maxiter)
+    else:
+        red = reductor.reduce(target=0.5, order=order, max_order=max_order, accept=accept, chunk=chunk)
+        method = "greedy Krylov"
+    if basis == "krylov" and compress and order is None and red.points[0].complete:
         # second stage: a larger Krylov basis compressed to its dominant Gramian directions, behind the
         # (exact-steady-state) first block; kept only if the FE check passes at a lower order
         big = reductor.reduce(order=min(max_order, max(2 * red.V.shape[1], 200)))

@@ -1,0 +1,66 @@
+"""One BLAS thread for the H2 optimisation: its products are small (N × r), so threads only wait.
+
+Measured on the 2-core development machine under load: the H2 tests took 266 s with the default
+OpenBLAS threads and about 10 s with one (threads spinning after every small product starve each
+other).  The same helper as ``hybridcomp.diagnose._threads`` (rom must not import diagnose).
+numpy and scipy wheels bundle OpenBLAS under ``numpy.libs`` / ``scipy.libs``; their
+``*_set_num_threads`` entry points are called through ctypes (what threadpoolctl does), and the
+previous count is restored afterwards.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import glob
+import logging
+import os
+
+log = logging.getLogger(__name__)
+
+_SET = ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads", "openblas_set_num_threads64_",
+        "openblas_set_num_threads")
+_GET = ("scipy_openblas_get_num_threads64_", "scipy_openblas_get_num_threads", "openblas_get_num_threads64_",
+        "openblas_get_num_threads")
+
+
+def _libraries() -> list:
+    libs = []
+    for pkg in ("numpy", "scipy"):
+        try:
+            mod = __import__(pkg)
+        except ImportError:  # pragma: no cover
+            continue
+        root = os.path.join(os.path.dirname(mod.__file__), os.pardir, f"{pkg}.libs")
+        for path in glob.glob(os.path.join(root, "*openblas*")):
+            try:
+                libs.append(ctypes.CDLL(path))
+            except OSError:
+                continue
+    return libs
+
+
+def _calls(lib):
+    s = next((getattr(lib, n) for n in _SET if hasattr(lib, n)), None)
+    g = next((getattr(lib, n) for n in _GET if hasattr(lib, n)), None)
+    return s, g
+
+
+@contextlib.contextmanager
+def single_blas_thread():
+    """Run the block with one OpenBLAS thread (no effect where the library is not found)."""
+    restore = []
+    for lib in _libraries():
+        s, g = _calls(lib)
+        if s is None or g is None:
+            continue
+        try:
+            restore.append((s, int(g())))
+            s(1)
+        except Exception as exc:  # pragma: no cover - a foreign BLAS build
+            log.debug("could not limit BLAS threads: %s", exc)
+    try:
+        yield
+    finally:
+        for s, n in restore:
+            s(n)
