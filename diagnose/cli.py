@@ -24,7 +24,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_machine_argument(p)
     p.add_argument("--data", required=True, type=Path, metavar="MEASURED.csv",
                    help="measured dataset: time_s, heat inputs <input>_W, zone air <zone>_degC (or Tamb_degC, Tws_degC), "
-                   "measured sensors <sensor>_degC and dx_um, dy_um, dz_um (unit-suffix names; other names via --map)")
+                   "measured sensors <sensor>_degC and dx_um, dy_um, dz_um (unit-suffix names; other names via --map); "
+                   "or a trace (time_s, x_mm ..., spindle_rpm, sensors, drift), turned into heat inputs by the histogram generator")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
     p.add_argument("--map", type=Path, metavar="MAP.toml",
                    help="column map: [columns] project_name = \"csv column\", optional [scale] project_name = factor")
@@ -33,6 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data-only", action="store_true",
                    help="no FE model: diagnose a multiple linear regression of the *_um channels on the *_degC sensors "
                    "(greedy input selection by BIC) with data-side extensions")
+    p.add_argument("--increment", type=float, default=60.0,
+                   help="a trace (axis positions, no *_W columns) is turned into heat inputs per increment of this "
+                   "length by the histogram generator [s] (default 60)")
     p.add_argument("--rom", type=Path, help="reduced model .npz of this machine (kept basis); default: reduce now")
     p.add_argument("--element-size-mm", type=float, help="FE element size for the reduction [mm] (default: machine file)")
     p.add_argument("--effects", help="comma-separated effect kinds to consider (default: the whole library)")
@@ -47,7 +51,16 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     try:
-        ds = read_dataset(args.data, args.map)
+        if args.data_only:
+            ds = read_dataset(args.data, args.map)
+        else:
+            from hybridcomp.diagnose.core import read_measured
+            from hybridcomp.models.machine import load_machine
+
+            if not args.increment > 0:
+                raise DatasetError(f"--increment must be positive, got {args.increment}")
+            machine = load_machine(args.machine)
+            ds = read_measured(args.data, machine, args.map, args.increment)
         split = parse_split(args.train, ds.time_s)
         if args.max_effects < 1:
             raise DatasetError(f"--max-effects must be at least 1, got {args.max_effects}")
@@ -61,9 +74,7 @@ def run(args: argparse.Namespace) -> int:
             return 0
         from hybridcomp.diagnose.core import diagnose, prepare_model
         from hybridcomp.diagnose.report import write_report
-        from hybridcomp.models.machine import load_machine
 
-        machine = load_machine(args.machine)
         kinds = [k.strip() for k in args.effects.split(",")] if args.effects else None
         if kinds:
             from hybridcomp.diagnose.effects import KINDS

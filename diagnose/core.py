@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from hybridcomp.diagnose._threads import single_blas_thread
-from hybridcomp.diagnose.data import Dataset, Split, parse_split
+from hybridcomp.diagnose.data import Dataset, DatasetError, Split, parse_split
 from hybridcomp.diagnose.effects import library
 from hybridcomp.diagnose.problem import body_drift_rows, build_problem, with_body_rows
 from hybridcomp.diagnose.selection import Diagnosis, select
@@ -82,6 +82,50 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     d.timings_s["total"] = time.perf_counter() - t0
     d.timings_s["candidates"] = len(cands)
     return d
+
+
+def dataset_from_trace(path, machine, increment_s: float = 60.0) -> Dataset:
+    """A measured trace (``time_s``, axis positions ``x_mm`` …, ``spindle_rpm``, measured ``Tamb_degC``, sensors
+    ``T1_degC`` …, drift ``dx_um`` …) turned into a diagnosis dataset.
+
+    The histogram generator makes the heat inputs and zone air per increment (its loads-CSV contract: values at
+    the trace start and at every increment end); the measured channels are interpolated to those times.
+
+    Parameters
+    ----------
+    path : trace CSV
+    machine : the machine (axes, sources)
+    increment_s : histogram increment [s]
+    """
+    from hybridcomp.histogram import boundary_conditions, increments_from_trace
+
+    from hybridcomp.diagnose.data import read_dataset
+
+    inc = increments_from_trace(path, machine, increment_s)
+    loads = boundary_conditions(machine, inc)
+    raw = read_dataset(path)
+    t = loads.time_s
+    cols = {n: loads.values[:, j] for j, n in enumerate(loads.names)}
+    for n in raw.names:
+        if n not in cols and (n.endswith("_um") or n.endswith("_degC")):
+            cols[n] = np.interp(t, raw.time_s, raw[n])
+    return Dataset(t, cols, f"{path} (trace in {increment_s:g} s increments)")
+
+
+def read_measured(path, machine, column_map=None, increment_s: float = 60.0) -> Dataset:
+    """Read a measured dataset for the model mode: a loads-form CSV (heat inputs ``*_W``) as it is, a trace (axis
+    positions, no heat inputs) through the histogram generator (:func:`dataset_from_trace`)."""
+    from hybridcomp.diagnose.data import read_dataset
+    from hybridcomp.histogram.trace import position_column
+
+    ds = read_dataset(path, column_map)
+    has_power = any(n.endswith("_W") for n in ds.names)
+    positions = [position_column(a.name) for a in machine.axes]
+    if not has_power and positions and all(p in ds.names for p in positions):
+        if column_map is not None:
+            raise DatasetError(f"{path}: a trace is read by its own column names; a column map is only for loads-form datasets")
+        return dataset_from_trace(path, machine, increment_s)
+    return ds
 
 
 def channel_residuals(d: Diagnosis) -> dict[str, np.ndarray]:

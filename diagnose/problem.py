@@ -213,7 +213,7 @@ def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tupl
     heat_cols = [n for n in names if n.endswith("_W")]
     present = [n for n in heat_cols if n in dataset]
     if heat_cols and not present:
-        hint = " (it looks like a trace: turn it into loads with `hybridcomp histogram` first)" if any(
+        hint = " (it looks like a trace: read it with diagnose.core.read_measured, or `hybridcomp histogram` first)" if any(
             c.endswith("_mm") for c in dataset.names) else ""
         raise DatasetError(
             f"{dataset.source}: no heat-input column of machine {machine.name!r} ({', '.join(heat_cols[:4])}, ...){hint}; "

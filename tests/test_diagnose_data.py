@@ -222,3 +222,32 @@ def test_real_spindle_data_beats_the_static_regression():
         c = f"ch{i}_um"
         assert fit_percent(ds[c][va], d.extended[c].y_hat[va]) > ref[i - 1] + 3.0
         assert d.extensions[c]
+
+
+def test_trace_becomes_a_dataset(machine, tmp_path):
+    """A trace with measured channels: heat inputs from the histogram generator, channels at the increment ends."""
+    from hybridcomp.diagnose.core import read_measured
+    from hybridcomp.histogram import boundary_conditions, increments_from_trace
+
+    t = np.arange(0.0, 7200.0 + 0.5, 1.0)
+    x = 300.0 * np.sin(2 * np.pi * t / 600.0)  # peak 3,142 mm/min, far below the max feed
+    rpm = np.where(t < 3600, 6000.0, 0.0)
+    T1 = 20.0 + t / 3600.0
+    dz = -3.0 * t / 3600.0
+    cols = {"time_s": t, "x_mm": x, "y_mm": 0 * t, "z_mm": 0 * t, "spindle_rpm": rpm, "Tamb_degC": 20.0 + 0 * t,
+            "T1_degC": T1, "dz_um": dz}
+    path = tmp_path / "trace.csv"
+    path.write_text(",".join(cols) + "\n" + "\n".join(",".join(f"{v:.6f}" for v in row)
+                                                       for row in np.column_stack(list(cols.values()))) + "\n")
+    ds = read_measured(path, machine, None, 300.0)
+    loads = boundary_conditions(machine, increments_from_trace(path, machine, 300.0))
+    assert np.array_equal(ds.time_s, loads.time_s) and ds.time_s[-1] == 7200.0
+    for j, n in enumerate(loads.names):
+        assert np.array_equal(ds[n], loads.values[:, j]), n
+    assert np.allclose(ds["T1_degC"], 20.0 + ds.time_s / 3600.0, atol=1e-6)
+    assert np.allclose(ds["dz_um"], -3.0 * ds.time_s / 3600.0, atol=1e-6)
+    assert ds["spindle_motor_W"][1] > 0 and ds["spindle_motor_W"][-1] == 0
+    mp = tmp_path / "map.toml"
+    mp.write_text('[columns]\ntime_s = "time_s"\nx_mm = "x_mm"\ny_mm = "y_mm"\nz_mm = "z_mm"\n')
+    with pytest.raises(DatasetError, match="a column map is only for loads-form datasets"):
+        read_measured(path, machine, mp, 300.0)
