@@ -541,7 +541,8 @@ class Monitor:
         if status == "finished" and result is not None:
             ids = {k: int(v) for k, v in result["ids"].items()}
             self.event("generation", t, {"status": "finished", "ids": ids, "load_case": result.get("load_case", ""),
-                                         "wall_s": result.get("wall_s")}, f"{_t(t)}@finished")
+                                         "wall_s": result.get("wall_s"), "notes": result.get("notes") or {}},
+                       f"{_t(t)}@finished")
             self.counters.generations += 1
             try:
                 self.activate(ids, f"generated for the load case at {t:.0f} s", self.last_time_s)

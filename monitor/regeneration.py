@@ -11,6 +11,7 @@ is stored in the database so that a restart can resubmit it).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import asdict, dataclass, fields
@@ -105,11 +106,13 @@ def default_job(request: dict) -> dict:
 
     Uses ``hybridcomp.chardiag.training`` and ``hybridcomp.chardiag.fit`` (``N_SUPPORT`` support points per
     input). The history is run as measured and with the air shifted (``AIR_VARIANTS_K``), one table. The
-    new CDs' T_reference is the structure model's temperatures at the decision. The FE model is built once
-    per worker process.
+    new CDs' T_reference is the structure model's temperatures at the decision. A direction whose drift no
+    sensor explains in the history keeps the active set's CD (relabelled; noted in the result). The FE
+    model is built once per worker process.
     """
+    from hybridcomp.chardiag.cd import DIRECTIONS
     from hybridcomp.chardiag.db import CDDatabase
-    from hybridcomp.chardiag.fit import FitOptions, fit_cd_set
+    from hybridcomp.chardiag.fit import CDFitError, FitOptions, fit_cd
     from hybridcomp.chardiag.training import LoadCase, simulate_load_cases
     from hybridcomp.models import load_machine
 
@@ -137,12 +140,26 @@ def default_job(request: dict) -> dict:
         variant = f"{name}{'' if not dK else f' {zones} {dK:+g} K'}"
         cases[variant] = LoadCase(variant, type(loads)(loads.time_s, V, loads.names), None, sig)
     data = simulate_load_cases(machine, cases, pose_mm=pose, element_size_mm=req.element_size_mm, model=_MODELS[key])
-    cds = fit_cd_set(data.columns, machine=machine.name, machine_sha256=machine.sha256,
-                     pose_mm=pose, load_case=name, signature=sig, options=FitOptions(n_support=N_SUPPORT, select="bic", max_inputs=MAX_INPUTS),
-                     t_reference_degC=req.t_reference_degC, source=name)
+    kw = dict(machine=machine.name, machine_sha256=machine.sha256, pose_mm=pose, load_case=name, signature=sig,
+              t_reference_degC=req.t_reference_degC, source=name)
     db = CDDatabase(req.database)
     try:
-        ids = {d: int(db.add(cd, load_case=name)) for d, cd in cds.items()}
+        cds, notes = {}, {}
+        for d in DIRECTIONS:
+            try:
+                cds[d] = fit_cd(data.columns, d, options=FitOptions(n_support=N_SUPPORT, select="bic",
+                                                                   max_inputs=MAX_INPUTS), **kw)
+            except CDFitError as exc:
+                # no sensor explains this direction's drift in the history (e.g. a direction that hardly
+                # moves): keep the active set's CD for it, labelled with the new load case
+                active = db.active_set(machine.name, req.pose_key)
+                if active is None:
+                    raise
+                notes[d] = f"kept the active CD ({exc})"
+                cds[d] = dataclasses.replace(active.cds[d], load_case=name, signature=np.asarray(
+                    sig if sig is not None else active.cds[d].signature, float),
+                    t_reference_degC=tuple((k, float(v)) for k, v in req.t_reference_degC.items()))
+        ids = {d: int(db.add(cds[d], load_case=name)) for d in DIRECTIONS}
     finally:
         db.close()
-    return {"ids": ids, "load_case": name, "wall_s": time.monotonic() - t0}
+    return {"ids": ids, "load_case": name, "wall_s": time.monotonic() - t0, "notes": notes}
