@@ -11,8 +11,9 @@ Tables (schema version :data:`SCHEMA_VERSION`, kept in ``meta``):
 * ``state``: a small key–value store (JSON text) for a daemon's state.
 
 Writers serialise per database: SQLite opens every write transaction with ``BEGIN IMMEDIATE`` (WAL mode, so
-readers never wait); PostgreSQL takes a transaction-scoped advisory lock per machine and pose for an
-activation. Two processes activating sets for one pose at once therefore leave one complete set active,
+readers never wait); PostgreSQL takes transaction-scoped advisory locks: one per machine and pose for an
+activation, one for every transaction that writes events (so ids become visible in order), one for schema
+creation and migration. Two processes activating sets for one pose at once therefore leave one complete set active,
 never a mixture.
 """
 
@@ -36,6 +37,9 @@ from hybridcomp.chardiag.xmlio import cd_from_bytes, cd_to_bytes
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
+# event writers serialise on this lock, so event ids become visible in commit order (a reader tailing with
+# ``since_id`` never skips an event that commits after a later id)
+EVENTS_LOCK = "hybridcomp events"
 
 
 class CDDatabaseError(RuntimeError):
@@ -218,19 +222,36 @@ class CDDatabase:
                 time.sleep(delay)
                 delay *= 2
 
+    def _lock(self, conn, name: str) -> None:
+        """On PostgreSQL, a transaction-scoped advisory lock (SQLite's BEGIN IMMEDIATE already serialises writers)."""
+        if self.dialect == "postgresql":
+            key = zlib.crc32(name.encode()) - 2**31
+            conn.execute(self._sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": key})
+
     def _init_schema(self) -> None:
+        """Create the tables, or bring an older schema up to :data:`SCHEMA_VERSION`, in one serialised
+        transaction: two processes opening an old database at once run each migration step once. Migration
+        steps alter existing tables; new tables come from the table definitions."""
         sa = self._sa
         meta = self.t["meta"]
-        try:
-            def init(conn):
-                self.md.create_all(conn, checkfirst=True)
-                row = conn.execute(sa.select(meta.c.value).where(meta.c.key == "schema_version")).first()
-                if row is None:
-                    conn.execute(meta.insert().values(key="schema_version", value=str(SCHEMA_VERSION)))
-                    return SCHEMA_VERSION
-                return int(row[0])
 
-            version = self._retry(init, "creating the schema")
+        def init(conn):
+            self._lock(conn, "hybridcomp schema")
+            self.md.create_all(conn, checkfirst=True)
+            row = conn.execute(sa.select(meta.c.value).where(meta.c.key == "schema_version")).first()
+            if row is None:
+                conn.execute(meta.insert().values(key="schema_version", value=str(SCHEMA_VERSION)))
+                return SCHEMA_VERSION
+            version = int(row[0])
+            while version < SCHEMA_VERSION:
+                log.info("%s: migrating the schema from version %d", _redact(self.url), version)
+                MIGRATIONS[version](conn)
+                version += 1
+                conn.execute(meta.update().where(meta.c.key == "schema_version").values(value=str(version)))
+            return version
+
+        try:
+            version = self._retry(init, "creating or migrating the schema")
         except sa.exc.IntegrityError:  # another process created it at the same moment
             version = self.schema_version()
         except sa.exc.SQLAlchemyError as exc:
@@ -238,15 +259,6 @@ class CDDatabase:
         if version > SCHEMA_VERSION:
             raise CDDatabaseError(f"{_redact(self.url)}: meta.schema_version is {version}, newer than this "
                                   f"hybridcomp's {SCHEMA_VERSION}: upgrade hybridcomp")
-        while version < SCHEMA_VERSION:
-            step = MIGRATIONS[version]
-
-            def migrate(conn, step=step, v=version):
-                step(conn)
-                conn.execute(meta.update().where(meta.c.key == "schema_version").values(value=str(v + 1)))
-
-            self._retry(migrate, f"migrating the schema from version {version}")
-            version += 1
 
     def schema_version(self) -> int:
         sa = self._sa
@@ -399,9 +411,8 @@ class CDDatabase:
             raise ValueError(f"activate: needs one CD id per direction {DIRECTIONS}, got {sorted(ids)}")
 
         def run(conn):
-            if self.dialect == "postgresql":
-                lock = zlib.crc32(f"{machine}\0{pose}".encode()) - 2**31
-                conn.execute(sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": lock})
+            self._lock(conn, f"active {machine}\0{pose}")
+            self._lock(conn, EVENTS_LOCK)
             if event_key is not None and conn.execute(sa.select(ev.c.id).where(ev.c.key == event_key)).first():
                 return None
             for d, cd_id in ids.items():
@@ -448,6 +459,7 @@ class CDDatabase:
         text = json.dumps(dict(payload), default=_json_default)
 
         def run(conn):
+            self._lock(conn, EVENTS_LOCK)
             if key is not None and conn.execute(sa.select(ev.c.id).where(ev.c.key == key)).first():
                 return None
             return conn.execute(ev.insert().values(kind=kind, machine_time_s=machine_time_s, created=_now(),

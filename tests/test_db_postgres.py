@@ -323,10 +323,6 @@ def test_a_reader_tailing_events_misses_none_on_sqlite(chardiag, tmp_path):
     assert len(everything) == 2 and sorted(seen) == everything
 
 
-@pytest.mark.xfail(strict=True, reason="chardiag.db: on PostgreSQL event ids are taken at INSERT but become visible "
-                   "at COMMIT, so a reader tailing with since_id skips an event whose writer commits after a later "
-                   "one; fix: take one transaction advisory lock in every transaction that inserts events (then "
-                   "remove this mark)")
 def test_a_reader_tailing_events_misses_none_on_postgresql(chardiag, fresh_postgres_url):
     db, _ = chardiag
     seen, everything = _tail_while_an_earlier_writer_is_still_committing(db, fresh_postgres_url)
@@ -372,10 +368,6 @@ def _two_monitors_upgrade_at_once(db, url: str, monkeypatch) -> list:
     return errors
 
 
-@pytest.mark.xfail(strict=True, reason="chardiag.db: two monitors opening an old database at once both run the "
-                   "migration step (the second fails: column exists); fix: on PostgreSQL take an advisory lock and "
-                   "re-read meta.schema_version in the migrating transaction, skip steps already done (then remove "
-                   "this mark)")
 def test_two_monitors_upgrading_the_schema_at_once_on_postgresql(chardiag, fresh_postgres_url, monkeypatch):
     db, _ = chardiag
     assert _two_monitors_upgrade_at_once(db, fresh_postgres_url, monkeypatch) == [None, None]
