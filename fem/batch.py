@@ -597,7 +597,11 @@ def run_batch(
             pass
         elif executor == "serial":
             for name, case in todo.items():
-                done(run_case(spec, options, name, case))
+                try:
+                    r = run_case(spec, options, name, case)
+                except Exception as exc:  # noqa: BLE001 - named like the pool's and Dask's failures
+                    raise BatchError(f"load case {name!r} failed: {exc}") from exc
+                done(r)
         elif executor == "process":
             n = min(workers or os.cpu_count() or 1, len(todo))  # no worker without a case to build a model for
             _run_process_pool(n, threads_per_worker, max_restarts, spec, options, todo, done)

@@ -349,11 +349,12 @@ class BrokenLoads(Loads):
         raise ValueError("planted failure")
 
 
-def test_a_failing_case_names_itself(machine, cases):
+@pytest.mark.parametrize("executor", ["serial", "process"])
+def test_a_failing_case_names_itself(machine, cases, executor):
     c = cases["case00"]
     bad = BrokenLoads(c.time_s, c.values, c.names)
     with pytest.raises(BatchError, match="load case 'b' failed: planted failure"):
-        run_batch(machine, {"a": cases["case01"], "b": bad}, element_size_mm=ELEMENT_SIZE_MM, executor="process",
+        run_batch(machine, {"a": cases["case01"], "b": bad}, element_size_mm=ELEMENT_SIZE_MM, executor=executor,
                   workers=1)
 
 
