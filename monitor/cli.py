@@ -106,7 +106,7 @@ def _run(args) -> int:
     cfg = load_config(args.config)
     if args.speed is not None:
         cfg = dataclasses.replace(cfg, source=dataclasses.replace(cfg.source, speed=args.speed))
-    machine, rom, pose, pkey, db = open_everything(cfg)
+    machine, rom, _pose, pkey, db = open_everything(cfg)
     clock = WallClock()
     if cfg.source.kind == "replay":
         source = ReplaySource(cfg.source.path, machine, cfg.source.speed, clock, cfg.source.start_s)

@@ -37,7 +37,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
-
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.increments import increments_from_samples
 from hybridcomp.histogram.signature import SignatureLayout, signatures
@@ -622,7 +621,7 @@ class Regenerator:
             result = dict(result)
             result.setdefault("wall_s", time.monotonic() - t0)
             return result, None, "finished"
-        except asyncio.TimeoutError:
+        except TimeoutError:
             self.kill()
             return None, f"no result after {self.timeout_s:g} s: job killed", "timeout"
         except asyncio.CancelledError:

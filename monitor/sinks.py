@@ -122,13 +122,13 @@ class OpcUaSink:
     counted in :attr:`failed`.
     """
 
-    def __init__(self, url: str, nodes: dict[str, str], backoff: Backoff = Backoff(), clock=None, timeout_s: float = 2.0):
+    def __init__(self, url: str, nodes: dict[str, str], backoff: Backoff | None = None, clock=None, timeout_s: float = 2.0):
         from hybridcomp.monitor.sources import WallClock, _asyncua
 
         self._ua = _asyncua()
         self.url = url
         self.nodes = dict(nodes)
-        self.backoff = backoff
+        self.backoff = backoff or Backoff()
         self.clock = clock or WallClock()
         self.timeout_s = timeout_s
         self._client = None

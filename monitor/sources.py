@@ -23,7 +23,14 @@ from collections.abc import AsyncIterator, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from hybridcomp.histogram.trace import DRIFT, SPINDLE_RPM, TIME, air_columns, position_column, velocity_column
+from hybridcomp.histogram.trace import (
+    DRIFT,
+    SPINDLE_RPM,
+    TIME,
+    air_columns,
+    position_column,
+    velocity_column,
+)
 from hybridcomp.models.machine import Machine
 
 log = logging.getLogger(__name__)
@@ -256,7 +263,10 @@ class OpcUaSource:
         self._air = [c for c in air_columns(machine) if c in nodes]
 
     def _reading(self, v: Mapping[str, float]) -> Reading:
-        g = lambda k: float(v.get(k, math.nan)) if v.get(k) is not None else math.nan  # noqa: E731
+        def g(k: str) -> float:
+            x = v.get(k)
+            return math.nan if x is None else float(x)
+
         return Reading(
             g(TIME), tuple(g(c) for c in self._axes), g(SPINDLE_RPM) if SPINDLE_RPM in self.nodes else 0.0,
             {s: g(f"{s}_degC") for s in self._sensors}, {c: g(c) for c in self._air},
@@ -267,7 +277,7 @@ class OpcUaSource:
         client = ua.Client(self.url, timeout=self.timeout_s)
         try:
             await client.connect()
-        except (OSError, asyncio.TimeoutError, ua.ua.UaError) as exc:
+        except (TimeoutError, OSError, ua.ua.UaError) as exc:
             raise SourceDisconnected(f"{self.url}: cannot connect: {exc!r}") from None
         try:
             by_id = {}
@@ -306,7 +316,7 @@ class OpcUaSource:
                 if start_after_s is not None and r.time_s <= start_after_s:
                     continue
                 yield r
-        except (OSError, asyncio.TimeoutError, ConnectionError, ua.ua.UaError) as exc:
+        except (TimeoutError, OSError, ConnectionError, ua.ua.UaError) as exc:
             if isinstance(exc, SourceDisconnected):
                 raise
             raise SourceDisconnected(f"{self.url}: connection lost: {exc!r}") from None

@@ -6,10 +6,19 @@ import math
 
 import numpy as np
 import pytest
-
-from hybridcomp.monitor.config import ConfigError, example_config, load_config, parse_config
+from hybridcomp.monitor.config import (
+    ConfigError,
+    example_config,
+    load_config,
+    parse_config,
+)
 from hybridcomp.monitor.regeneration import RegenerationRequest, request_loads
-from hybridcomp.monitor.scenario import drift_metrics, fit_mlr, predict_mlr, window_ranges
+from hybridcomp.monitor.scenario import (
+    drift_metrics,
+    fit_mlr,
+    predict_mlr,
+    window_ranges,
+)
 from hybridcomp.monitor.sources import SourceFileError, read_replay
 
 BASE = {"monitor": {"machine": "vmc800", "database": "cd.db", "rom": "r.npz"}, "source": {"path": "t.csv"},

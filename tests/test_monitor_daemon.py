@@ -17,13 +17,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from hybridcomp.fem.loads import example_loads
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.increments import increments_from_samples
 from hybridcomp.histogram.trace import samples
 from hybridcomp.monitor.config import parse_config
-from hybridcomp.monitor.daemon import Monitor, Regenerator, run_monitor
+from hybridcomp.monitor.daemon import Monitor, run_monitor
 from hybridcomp.monitor.sinks import MemorySink
 from hybridcomp.monitor.sources import ListSource, ReplaySource, read_replay
 from hybridcomp.rom import save_rom

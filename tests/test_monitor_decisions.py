@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import pytest
-
 from hybridcomp.monitor.decisions import (
     Backoff,
     Candidate,
