@@ -17,7 +17,7 @@ write_report(d, "out/")
 ```
 """
 
-from hybridcomp.diagnose.core import DEFAULT_SPLIT, diagnose, prepare_model
+from hybridcomp.diagnose.core import DEFAULT_SPLIT, dataset_from_trace, diagnose, prepare_model, read_measured
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, parse_split, read_column_map, read_dataset
 from hybridcomp.diagnose.effects import KINDS, Candidate, library, simulate
 from hybridcomp.diagnose.selection import Diagnosis, Fitted
@@ -31,12 +31,14 @@ __all__ = [
     "Diagnosis",
     "Fitted",
     "Split",
+    "dataset_from_trace",
     "diagnose",
     "library",
     "parse_split",
     "prepare_model",
     "read_column_map",
     "read_dataset",
+    "read_measured",
     "simulate",
     "write_report",
 ]

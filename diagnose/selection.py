@@ -271,9 +271,10 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
         table = [{"label": s["candidate"].describe(s["params"]), "kind": s["candidate"].kind, "target": s["candidate"].target,
                   "bic_drop": float(s["bic_drop"]), "validation_gain": float(s["gain"]),
                   "at_bound": at_bound(s["candidate"], s["params"])} for s in scores[:15]]
-        # the best few by screening are refitted jointly with the effects already accepted
+        # the best few by screening (training BIC, among those that also gain on validation) are refitted
+        # jointly with the effects already accepted
         joint = []
-        for s in [s for s in scores if s["bic_drop"] >= min_bic_drop][:top_joint]:
+        for s in [s for s in scores if s["bic_drop"] >= min_bic_drop and s["gain"] >= min_gain][:top_joint]:
             free = [f.candidate for f in chosen] + [s["candidate"]]
             if not chosen:
                 params, uncs, ev = [s["params"]], [s["unc"]], None

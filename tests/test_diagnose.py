@@ -186,6 +186,20 @@ def test_two_effects_at_once(machine, fe, rom, loads):
     _check(found[("htc", "ws_table")], 15.0, 10.0)
 
 
+def test_three_effects_with_a_sensor_offset(machine, fe, rom, loads):
+    """A channel-local effect (T6 reads high) next to two structural ones."""
+    U = loads.as_inputs(machine.reference_temperature_degC)
+    U[:, column(loads, "spindle_motor_W")] *= 1.4
+    s, d = fe_run(fe.with_htc(ws_table=15.0), loads.time_s, U)
+    s[:, 5] += 0.4
+    dg = diagnose(machine, dataset(machine, loads, s, d, seed=99), "0:60%", rom=rom)
+    assert dg.verdict == "explained", dg.message
+    found = {f.candidate.key: f.params for f in dg.causes}
+    assert set(found) == {("power_scale", "spindle_motor"), ("htc", "ws_table"), ("sensor_offset", "T6_degC")}, found
+    _check(found[("sensor_offset", "T6_degC")], (0.4, 0.0), (0.0, 0.0))
+    _check(found[("htc", "ws_table")], 15.0, 10.0)
+
+
 def test_two_effects_workspace_and_expansion(machine, rom, loads):
     """A load-side and a structure-side effect together (drift channels only see the second)."""
     U = loads.as_inputs(machine.reference_temperature_degC)
