@@ -328,3 +328,13 @@ def test_cli_model_mode(machine, fe, rom, loads, tmp_path, write_csv):
     assert abs(summary["causes"][0]["parameters"]["dT [K]"] - 1.2) <= 0.2 * 1.2
     assert "workspace (enclosure) air temperature offset" in (out / "report.md").read_text()
     assert "cannot express" in (out / "machine_extended.toml").read_text()
+
+
+def test_body_drift_rows_sum_to_the_drift_rows(fe):
+    """The thermo-elastic map is linear in α per body: the per-body rows add up to G exactly."""
+    from hybridcomp.diagnose.problem import body_drift_rows
+
+    bodies, rows = body_drift_rows(fe)
+    assert bodies == tuple(b.name for b in fe.machine.bodies if b.name in bodies) and len(bodies) == 6
+    assert np.abs(rows.sum(axis=0) - fe.G).max() <= 1e-12 * np.abs(fe.G).max()
+    assert all(np.abs(r).max() > 0 for r in rows)
