@@ -106,6 +106,8 @@ class MonitorConfig:
     model_drift_K : |ROM − measured| at a sensor above which a model-drift event is raised [K]
     max_offset_um : largest compensation offset magnitude [µm]
     max_step_um : largest change of an offset per compensation cycle [µm]
+    blend_s : after a change of the active set the offsets move from the old to the new set's prediction
+        with this time constant [s of machine time] (0: at once, only rate limited)
     sensors : plausibility rules for the temperature sensors
     source, sink, regeneration : see their classes
     reconnect : backoff schedule for a dropped data source or sink
@@ -125,6 +127,7 @@ class MonitorConfig:
     model_drift_K: float = 1.0
     max_offset_um: float = 200.0
     max_step_um: float = 5.0
+    blend_s: float = 300.0
     sensors: SensorRules = field(default_factory=SensorRules)
     source: SourceConfig = field(default_factory=SourceConfig)
     sink: SinkConfig = field(default_factory=SinkConfig)
@@ -140,7 +143,7 @@ _MONITOR_KEYS = {
 }
 _SECTIONS = {
     "monitor": _MONITOR_KEYS,
-    "compensation": {"max_offset_um", "max_step_um"},
+    "compensation": {"max_offset_um", "max_step_um", "blend_s"},
     "sensors": {"hold_s", "frozen_s", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
     "source": {"kind", "path", "speed", "start_s", "url", "nodes", "publishing_interval_ms", "stale_s"},
     "sink": {"kind", "path", "url", "nodes"},
@@ -335,6 +338,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         model_drift_K=m.number("model_drift_K", 1.0, positive=True),
         max_offset_um=c.number("max_offset_um", 200.0, positive=True),
         max_step_um=c.number("max_step_um", 5.0, positive=True),
+        blend_s=c.number("blend_s", 300.0, nonneg=True),
         sensors=rules,
         source=src,
         sink=sink,
@@ -374,6 +378,7 @@ prometheus_port = 0                # 0: off; else Prometheus text metrics on 127
 [compensation]
 max_offset_um = 200                # offsets are clamped to this magnitude [um]
 max_step_um = 5                    # and change by at most this much per compensation cycle [um]
+blend_s = 300                      # after a change of CD set: from the old to the new prediction with this time constant [s]
 
 [sensors]
 hold_s = 60                        # a bad reading is replaced by the last good value this long [s]

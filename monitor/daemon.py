@@ -48,6 +48,7 @@ from hybridcomp.monitor.decisions import (
     SensorState,
     accept_time,
     backoff_delay,
+    blend_offsets,
     check_sensor,
     decide,
     limit_offsets,
@@ -146,6 +147,9 @@ class Monitor:
         self.bias_K: dict[str, float] = {}
         self.sensors: dict[str, SensorState] = {s: SensorState() for s in self.sensor_names}
         self.offsets_um = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
+        self.blend_um = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
+        self.blend_time_s: float | None = None
+        self.blend_pending = False  # the active set changed: the next cycle starts a bumpless transfer
         self.carry: Reading | None = None  # last sample of the previous interval
         self.air_hold: dict[str, float] = {}
         self.pos_hold: list[float] = [a.mid_mm for a in machine.axes]
@@ -187,6 +191,9 @@ class Monitor:
             "bias_K": self.bias_K,
             "sensors": {k: v.to_dict() for k, v in self.sensors.items()},
             "offsets_um": self.offsets_um,
+            "blend_um": self.blend_um,
+            "blend_time_s": self.blend_time_s,
+            "blend_pending": self.blend_pending,
             "carry": None if c is None else [c.time_s, list(c.position_mm), c.spindle_rpm, dict(c.sensors_degC), dict(c.air_degC)],
             "air_hold": self.air_hold,
             "pos_hold": self.pos_hold,
@@ -240,6 +247,9 @@ class Monitor:
         self.bias_K = {k: (math.nan if v is None else v) for k, v in s["bias_K"].items()}
         self.sensors = {k: SensorState.from_dict(v) for k, v in s["sensors"].items()}
         self.offsets_um = s["offsets_um"]
+        self.blend_um = s.get("blend_um") or dict.fromkeys(self.offsets_um, 0.0)
+        self.blend_time_s = s.get("blend_time_s")
+        self.blend_pending = bool(s.get("blend_pending"))
         if s["carry"] is not None:
             t, p, r, sn, air = s["carry"]
             self.carry = Reading(t, tuple(p), r, {k: (math.nan if v is None else v) for k, v in sn.items()}, air)
@@ -364,6 +374,14 @@ class Monitor:
             target = dict(self.offsets_um)  # hold (zero before the first CD)
         else:
             self._eval_failed_logged = False
+            target = {k: float(v) for k, v in target.items()}
+            if self.blend_pending:  # bumpless transfer: continue from the offsets written last
+                self.blend_um = {k: self.offsets_um.get(k, 0.0) - v for k, v in target.items()}
+                self.blend_time_s = r.time_s
+                self.blend_pending = False
+            dt = 0.0 if self.blend_time_s is None else r.time_s - self.blend_time_s
+            target, self.blend_um = blend_offsets(target, self.blend_um, dt, self.cfg.blend_s)
+            self.blend_time_s = r.time_s
         applied, clamped, limited = limit_offsets(target, self.offsets_um, self.cfg.max_offset_um, self.cfg.max_step_um)
         self.offsets_um = applied
         ids = self.active_ids or {}
@@ -516,7 +534,9 @@ class Monitor:
         self.db.activate(self.machine.name, self.pose_key, ids, reason=reason, machine_time_s=t,
                          event_key=f"activation@{self.pose_key}@{_t(t)}@{ids['X']},{ids['Y']},{ids['Z']}")
         self.counters.switches += 1
+        had_set = self.active is not None
         self.reload_active()
+        self.blend_pending = had_set and self.cfg.blend_s > 0
 
     def _request(self, t: float, actual: Mapping[str, float], sig) -> dict:
         return RegenerationRequest(

@@ -5,6 +5,7 @@ these functions and acts on what they return; each is tested on its own
 (``tests/test_monitor_decisions.py``).
 
 * :func:`limit_offsets` — clamp the compensation offsets and limit their change per cycle;
+* :func:`blend_offsets` — bumpless transfer when the active CD set changes;
 * :func:`accept_time` — drop samples whose time stamp is repeated or goes backwards;
 * :func:`check_sensor` — NaN, frozen and spiking sensors: hold the last good value for a
   bounded time, then degrade (the structure model's estimate stands in), recover when the
@@ -58,6 +59,32 @@ def limit_offsets(
         limited |= s != c
         out[k] = s
     return out, clamped, limited
+
+
+def blend_offsets(
+    target_um: Mapping[str, float], blend_um: Mapping[str, float], dt_s: float, tau_s: float
+) -> tuple[dict[str, float], dict[str, float]]:
+    """Bumpless transfer after a change of the active CD set.
+
+    At the change the caller sets ``blend_um`` = offsets written before − the new set's prediction, so the
+    offsets continue where they were; the difference then decays as ``exp(−Δt / tau_s)``.
+
+    Parameters
+    ----------
+    target_um : the active set's prediction now [µm]
+    blend_um : the remaining difference from the previous cycle [µm]
+    dt_s : machine time since the previous cycle [s]
+    tau_s : decay time [s] (0: no blending)
+
+    Returns
+    -------
+    the blended target [µm] and the decayed difference [µm]
+    """
+    if not (dt_s >= 0 and tau_s >= 0):
+        raise ValueError(f"dt_s and tau_s must not be negative, got {dt_s}, {tau_s}")
+    f = 0.0 if tau_s == 0 else math.exp(-dt_s / tau_s)
+    left = {k: float(blend_um.get(k, 0.0)) * f for k in target_um}
+    return {k: float(v) + left[k] for k, v in target_um.items()}, left
 
 
 # --------------------------------------------------------------------------- time stamps

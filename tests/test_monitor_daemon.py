@@ -157,7 +157,7 @@ def values_at(r):
 def test_replay_compensates_every_cycle_and_switches_when_the_machine_warms_up(machine, rom, rom_file, trace, tmp_path):
     path, s, T = trace
     db, ids = make_db(tmp_path / "cd.db", machine, T)
-    cfg = config(rom_file, path, tmp_path)
+    cfg = config(rom_file, path, tmp_path, compensation={"blend_s": 0.0})
     mon, sink, res = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=0))
     duration = s.time_s[-1]
     # one offset per 5 s of machine time (samples every 10 s: one per sample), one decision per 15 min
@@ -186,6 +186,18 @@ def test_replay_compensates_every_cycle_and_switches_when_the_machine_warms_up(m
     # the ROM reproduces the trace's sensors (they come from it): no model drift
     assert not events(db, "model_drift")
     assert res.status["max_decision_s"] < 1.0
+
+    # with a bumpless transfer (blend_s) the offsets continue through the switch and approach the new set's
+    k = int(np.searchsorted(s.time_s, decisions[first][1])) + 1  # the first cycle after the decision
+    jump = abs(sink.rows[k].dz_um - sink.rows[k - 1].dz_um)
+    db2, _ = make_db(tmp_path / "cd2.db", machine, T)
+    _, sink2, _ = run(config(rom_file, path, tmp_path, compensation={"blend_s": 300.0}), machine, rom, db2,
+                      ReplaySource(path, machine, speed=0))
+    assert jump == pytest.approx(2.0)  # the two sets differ by more than max_step_um at the switch ...
+    assert abs(sink2.rows[k].dz_um - sink2.rows[k - 1].dz_um) < 0.1  # ... but blended the offsets do not jump
+    late = k + 360  # 1 h = 12 time constants later: the new set's prediction (e^-12 of a few µm left)
+    assert abs(sink2.rows[late].dz_um - sink.rows[late].dz_um) < 1e-3
+    assert abs(sink2.rows[k + 30].dz_um - sink.rows[k + 30].dz_um) > 0.1  # (5 min = 1 time constant: still blending)
 
 
 def test_model_drift_event_when_the_machine_departs_from_the_structure_model(machine, rom, rom_file, trace, tmp_path):

@@ -12,6 +12,7 @@ from hybridcomp.monitor.decisions import (
     SensorState,
     accept_time,
     backoff_delay,
+    blend_offsets,
     check_sensor,
     decide,
     limit_offsets,
@@ -48,6 +49,16 @@ def test_limit_offsets_untouched_within_limits():
 def test_limit_offsets_rejects_non_finite(bad):
     with pytest.raises(ValueError, match="dx_um"):
         limit_offsets({"dx_um": bad}, {}, 10.0, 1.0)
+
+
+def test_blend_offsets_continues_then_decays_exponentially():
+    new = {"dz_um": -10.0}
+    blend = {"dz_um": 4.0}  # written last: -6 µm, the new set says -10 µm
+    out, left = blend_offsets(new, blend, 0.0, 300.0)
+    assert out == {"dz_um": -6.0}
+    out, left = blend_offsets(new, left, 300.0, 300.0)
+    assert out["dz_um"] == pytest.approx(-10.0 + 4.0 / math.e) and left["dz_um"] == pytest.approx(4.0 / math.e)
+    assert blend_offsets(new, blend, 5.0, 0.0) == ({"dz_um": -10.0}, {"dz_um": 0.0})  # tau 0: at once
 
 
 # --------------------------------------------------------------------------- time
