@@ -289,7 +289,11 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
         if not ok:
             rounds.append(Round(None, table))
             break
-        best = max(ok, key=lambda j: j["bic_drop"])
+        top = max(j["bic_drop"] for j in ok)
+        # parsimony: a candidate with fewer parameters within the significance margin of the best wins
+        # (e.g. one h for a zone against separate h for motion and standstill that fit equally well)
+        close = [j for j in ok if j["bic_drop"] >= top - min_bic_drop]
+        best = min(close, key=lambda j: (len(j["params"][-1]), -j["bic_drop"]))
         new = best["free"][-1]
         rounds.append(Round(new.describe(best["params"][-1]), table))
         log.info("accepted %s (BIC drop %.1f, validation gain %.3f)", new.describe(best["params"][-1]), best["bic_drop"],
