@@ -10,9 +10,9 @@
 
 ```python
 from hybridcomp.models import load_machine
-from hybridcomp.diagnose import diagnose, prepare_model, read_dataset, write_report
+from hybridcomp.diagnose import diagnose, prepare_model, read_measured, write_report
 machine = load_machine("vmc800")
-d = diagnose(machine, read_dataset("measured.csv"), "0:60%", rom=prepare_model(machine))
+d = diagnose(machine, read_measured("measured.csv", machine), "0:60%", rom=prepare_model(machine))
 write_report(d, "out/")
 ```
 """
