@@ -183,6 +183,8 @@ class CDDatabase:
         self.dialect = self.url.split(":", 1)[0].split("+", 1)[0]
         if self.dialect == "sqlite":
             kwargs["connect_args"] = {"timeout": 60.0, "check_same_thread": False}
+        else:  # a monitor runs for weeks: survive a database server restart
+            kwargs["pool_pre_ping"] = True
         try:
             self.engine = sa.create_engine(self.url, **kwargs)
         except Exception as exc:  # noqa: BLE001 - any driver or URL problem
@@ -198,8 +200,8 @@ class CDDatabase:
                 cur.close()
 
             @sa.event.listens_for(self.engine, "begin")
-            def _begin(conn):
-                conn.exec_driver_sql("BEGIN IMMEDIATE")
+            def _begin(conn):  # writers take the write lock up front; readers get a snapshot and never wait
+                conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get("write") else "BEGIN")
 
         self.md = _tables(sa)
         self.t = self.md.tables
@@ -213,7 +215,7 @@ class CDDatabase:
         delay = 0.05
         for attempt in range(8):
             try:
-                with self.engine.begin() as conn:
+                with self.engine.connect().execution_options(write=True) as conn, conn.begin():
                     return fn(conn)
             except sa.exc.OperationalError as exc:
                 if attempt == 7:

@@ -142,3 +142,23 @@ def test_two_processes_activating_at_once_leave_a_consistent_set(tmp_path):
     assert acts[-1].payload["ids"] == active
     assert len(db.events("decision")) == 2 * n
     db.close()
+
+
+def test_readers_do_not_wait_for_a_writer(db):
+    import threading
+    import time
+
+    db.log_event("decision", 0.0, {"action": "keep"})
+    started = threading.Event()
+
+    def slow_write(conn):
+        started.set()
+        time.sleep(1.5)
+
+    writer = threading.Thread(target=lambda: db._retry(slow_write, "a long write"))
+    writer.start()
+    started.wait(5)
+    t0 = time.perf_counter()
+    assert len(db.events()) == 1 and db.get_state("x") is None
+    assert time.perf_counter() - t0 < 0.5  # WAL snapshot read, not queued behind BEGIN IMMEDIATE
+    writer.join()
