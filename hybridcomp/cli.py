@@ -9,6 +9,7 @@ from importlib import import_module
 
 # subcommand -> module with add_arguments(parser) and run(args) -> int
 SUBCOMMANDS = {
+    "demo": ("hybridcomp.demo", "the whole hybrid cycle on the bundled demonstrator: CDs, monitor, diagnosis, report"),
     "simulate": ("hybridcomp.fem.cli_simulate", "simulate a load case on the FE model and write outputs.csv"),
     "example-loads": ("hybridcomp.fem.cli_example_loads", "write a reproducible example loads CSV for a machine"),
     "machine": ("hybridcomp.models.cli", "check a machine file and print its inputs, sensors and mesh size"),

@@ -153,7 +153,8 @@ def planted_disturbance(machine, loads, disturbance_K: float, ramp_s: float = 72
 
 def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 2.0, rom_order: int | None = None,
                  basic_hours: float = 8.0, dt_s: float = 60.0, trace_rate_hz: float = 1.0,
-                 history_s: float = 4 * 3600.0, machine_name: str = "vmc800", plot: bool = True) -> ScenarioResult:
+                 history_s: float = 4 * 3600.0, machine_name: str = "vmc800", plot: bool = True,
+                 real_machine=None, day_hours: float | None = None, keep_basis: bool = False) -> ScenarioResult:
     """Run the hybrid scenario end to end (see the module docstring) and write table, plot and events.
 
     Parameters
@@ -166,15 +167,24 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     dt_s : FE time step and evaluation grid [s]
     trace_rate_hz : sampling rate of the trace the monitor replays [Hz]
     history_s : load history a generation job trains on [s]
+    machine_name : the machine of the models (ROM, CDs, generation jobs): a bundled name or a machine file
+    real_machine : the machine that plays the real one (``models.Machine``; default the models' machine); its
+        own source powers make its loads
+    day_hours : replay only the first hours of the day [h] (default the whole 16 h)
+    keep_basis : keep the ROM's projection basis in ``structure.rom.npz`` (for a diagnosis on the same model)
+
+    Besides the table, plot and events, ``recorded.csv`` holds what a measuring campaign would have recorded
+    on the real machine: the trace (positions, spindle speed, workshop air), the sensors and the drift.
     """
     from hybridcomp.chardiag.cd import pose_key
     from hybridcomp.chardiag.db import CDDatabase
     from hybridcomp.chardiag.fit import fit_cd_set
     from hybridcomp.chardiag.training import simulate_load_cases, standard_load_cases
-    from hybridcomp.fem.loads import read_loads
     from hybridcomp.fem.model import build_model
     from hybridcomp.fem.transient import simulate
-    from hybridcomp.histogram.scenarios import write_scenario
+    from hybridcomp.histogram.bcs import boundary_conditions
+    from hybridcomp.histogram.increments import increments_from_trace
+    from hybridcomp.histogram.scenarios import JOBSHOP_HOURS, write_scenario
     from hybridcomp.models import load_machine
     from hybridcomp.monitor.config import parse_config
     from hybridcomp.monitor.daemon import Monitor, Regenerator, run_monitor
@@ -191,26 +201,42 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     pose = machine.default_pose_mm()
     pkey = pose_key(pose)
 
-    # 1. the scenario and the real machine (FE + planted disturbance)
+    # 1. the day as the controller records it (trace_rate_hz samples), its BCs, and the real machine
+    #    (FE + planted disturbance) driven by the same BCs the models will derive from that record
     t0 = time.perf_counter()
     files = write_scenario("jobshop", machine, out / "scenario")
+    if day_hours is not None and not 0 < day_hours <= JOBSHOP_HOURS:
+        raise ValueError(f"day_hours must be in (0, {JOBSHOP_HOURS:g}], got {day_hours}")
+    t_end = (day_hours or JOBSHOP_HOURS) * 3600.0
+    controller = out / "jobshop_controller_trace.csv"
+    _write_monitor_trace(files["jobshop_trace.csv"], controller, trace_rate_hz, None, None, [], t_end=t_end)
     model = build_model(machine, pose, element_size_mm)
-    loads = _resample_loads(read_loads(files["jobshop_loads.csv"], machine), machine, dt_s)
-    real = planted_disturbance(machine, loads, disturbance_K)
-    res = simulate(model, real.time_s, real.as_inputs(machine.reference_temperature_degC), theta=0.5)
+    loads = _resample_loads(boundary_conditions(machine, increments_from_trace(controller, machine, dt_s)), machine, dt_s)
+    if real_machine is None:
+        real_machine, real_model, real_loads = machine, model, loads
+    else:
+        inc = increments_from_trace(controller, real_machine, dt_s)
+        real_loads = _resample_loads(boundary_conditions(real_machine, inc), real_machine, dt_s)
+        real_model = build_model(real_machine, pose, element_size_mm)
+    real = planted_disturbance(real_machine, real_loads, disturbance_K)
+    res = simulate(real_model, real.time_s, real.as_inputs(real_machine.reference_temperature_degC), theta=0.5)
     t = res.time_s
     T_meas = res.sensors_degC
     truth = res.drift_um
     timings["real_machine_s"] = time.perf_counter() - t0
     log.info("real machine: %d nodes, %d steps, |drift| up to %.1f µm", model.n, t.size, np.abs(truth).max())
 
-    # 2. the trace the monitor sees: the controller's samples at trace_rate_hz, sensors from the real machine
+    # 2. the trace the monitor sees: the controller's samples, sensors from the real machine; and what a
+    #    measuring campaign records (the same plus the drift)
     trace = out / "jobshop_monitor_trace.csv"
-    _write_monitor_trace(files["jobshop_trace.csv"], trace, trace_rate_hz, t, T_meas, [s.name for s in machine.sensors])
+    _write_monitor_trace(controller, trace, trace_rate_hz, t, T_meas, [s.name for s in machine.sensors])
+    recorded = out / "recorded.csv"
+    _write_monitor_trace(controller, recorded, trace_rate_hz, t, np.column_stack([T_meas, truth]),
+                         [f"{s.name}_degC" for s in machine.sensors] + list(DIRS), raw_names=True)
 
     # 3. the structure model
     t0 = time.perf_counter()
-    rom = reduce_model(model, order=rom_order, keep_basis=False)
+    rom = reduce_model(model, order=rom_order, keep_basis=keep_basis)
     rom_path = save_rom(out / "structure.rom.npz", rom)
     timings["reduction_s"] = time.perf_counter() - t0
 
@@ -278,10 +304,13 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
         for i in range(t.size):
             w.writerow([f"{t[i]:g}", *(f"{v:.4f}" for v in truth[i]), *(f"{v:.4f}" for p in preds.values() for v in p[i])])
     (out / "events.json").write_text(json.dumps(events, indent=1))
-    plot_path = _plot(out / "scenario.png", t, truth, preds, events) if plot else None
+    what = ([f"machine file {Path(real_machine.source).name}"] if real_machine is not machine else []) + \
+        ([f"workspace air {disturbance_K:+g} K"] if disturbance_K else [])
+    plot_path = _plot(out / "scenario.png", t, truth, preds, events, ", ".join(what) or "the nominal model") if plot else None
     m3 = {k_: v["3d"]["rms_um"] for k_, v in metrics.items()}
     summary = {
         "element_size_mm": element_size_mm, "nodes": int(model.n), "disturbance_K": disturbance_K, "rom_order": rom.order,
+        "models_machine": str(machine.source), "real_machine": str(real_machine.source), "day_hours": float(t[-1] / 3600),
         "rms_3d_um": m3,
         "hybrid_over_static": m3["hybrid monitor"] / m3["static default CDs"],
         "hybrid_over_uncompensated": m3["hybrid monitor"] / m3["no compensation"],
@@ -293,8 +322,8 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return ScenarioResult(metrics, table, events, {"table": out / "table.md", "plot": plot_path,
-                                                    "events": out / "events.json", "residuals": out / "residuals.csv"},
-                          summary)
+                                                    "events": out / "events.json", "residuals": out / "residuals.csv",
+                                                    "recorded": recorded, "rom": rom_path}, summary)
 
 
 def _event_brief(e) -> dict:
@@ -306,28 +335,36 @@ def _event_brief(e) -> dict:
     return {"action": p.get("action"), "reason": p.get("reason"), "delta_T_K": p.get("delta_T_K")}
 
 
-def _write_monitor_trace(src: Path, dst: Path, rate_hz: float, t_fe, T_fe, sensor_names) -> None:
-    """Every sample of ``src`` on the ``rate_hz`` grid, plus sensor columns interpolated from the FE outputs."""
+def _write_monitor_trace(src: Path, dst: Path, rate_hz: float, t_fe, T_fe, sensor_names, t_end: float = math.inf,
+                         raw_names: bool = False) -> None:
+    """Every sample of ``src`` on the ``rate_hz`` grid up to ``t_end`` [s], plus columns interpolated from the FE
+    outputs (``<sensor>_degC``, or the names as given with ``raw_names``)."""
+    names = list(sensor_names) if raw_names else [f"{n}_degC" for n in sensor_names]
     with src.open() as fi, dst.open("w") as fo:
         header = fi.readline().strip().split(",")
         ti = header.index("time_s")
-        fo.write(",".join(header + [f"{n}_degC" for n in sensor_names]) + "\n")
+        fo.write(",".join(header + names) + "\n")
         next_t = -math.inf
         rows = []
         for line in fi:
             f = line.strip().split(",")
             tt = float(f[ti])
+            if tt > t_end + 1e-9:
+                break
             if tt + 1e-9 < next_t:
                 continue
             next_t = tt + 1.0 / rate_hz
             rows.append((tt, f))
+        if not names:
+            fo.writelines(",".join(f) + "\n" for _, f in rows)
+            return
         times = np.array([r[0] for r in rows])
         T = np.column_stack([np.interp(times, t_fe, T_fe[:, j]) for j in range(T_fe.shape[1])])
         for (tt, f), Tr in zip(rows, T):
             fo.write(",".join(f + [f"{v:.4f}" for v in Tr]) + "\n")
 
 
-def _plot(path: Path, t, truth, preds, events):
+def _plot(path: Path, t, truth, preds, events, title: str = "a warmer workspace"):
     try:
         import matplotlib
 
@@ -348,7 +385,7 @@ def _plot(path: Path, t, truth, preds, events):
                 ax.axvline(e["machine_time_s"] / 3600.0, color="k", lw=0.5, alpha=0.4)
     axes[0].legend(ncol=3, fontsize=8)
     axes[-1].set_xlabel("time [h] (vertical lines: CD set activations by the monitor)")
-    fig.suptitle("job-shop day on the FE 'real machine' with a warmer workspace: residual TCP drift")
+    fig.suptitle(f"job-shop day on the FE 'real machine' ({title}): residual TCP drift")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
