@@ -207,6 +207,51 @@ def _summary(options, nominal, after, diag_summary: dict, out: Path, total_s: fl
     }
 
 
+def _ep95_plot(path: Path, rows: dict) -> Path | None:
+    """E_P95(range) against the window length, one curve per strategy."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for name, m in rows.items():
+        w = [float(k) / 3600.0 for k in m["p95_range_um"]]
+        v = list(m["p95_range_um"].values())
+        ax.plot(w, v, marker="o", ms=3, label=name, lw=2.0 if name.startswith("hybrid") else 1.0)
+    ax.set_xscale("log")
+    ax.set_xlabel("window length [h]")
+    ax.set_ylabel("E_P95(range) of the 3D residual [µm]")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _cd_table(db_path: Path) -> list[str]:
+    """The default CD set (the first activation): inputs, fit and reference temperatures."""
+    from hybridcomp.chardiag.db import CDDatabase
+
+    with CDDatabase(db_path) as db:
+        first = next((e for e in db.events("activation")), None)
+        if first is None:
+            return []
+        cds = {d: db.get(i) for d, i in first.payload["ids"].items()}
+    sensors = [k for k, _ in cds["X"].t_reference_degC]
+    lines = ["| CD | load case | active inputs | values | RMS fit residual [µm] | " + " | ".join(
+        f"T_ref {s} [°C]" for s in sensors) + " |", "|---" * (5 + len(sensors)) + "|"]
+    for d, cd in cds.items():
+        st = cd.fit_stats()
+        tref = cd.t_reference()
+        lines.append(f"| {cd.target} | {cd.load_case} | {', '.join(i.name for i in cd.active_inputs)} | {cd.n_values} | "
+                     f"{st.get('rms_residual_um', float('nan')):.3f} | " + " | ".join(f"{tref[s]:.2f}" for s in sensors) + " |")
+    return lines
+
+
 def _fmt_row(name: str, m: dict) -> str:
     cells = [f"{m['rms_um']:.2f}", f"{m['p2p_um']:.2f}"] + ["–" if v != v else f"{v:.2f}" for v in m["p95_range_um"].values()]
     return f"| {name} | " + " | ".join(cells) + " |"
@@ -231,6 +276,9 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
               "| strategy | RMS [µm] | P2P [µm] | " + " | ".join(f"E_P95 {w} [µm]" for w in windows) + " |",
               "|---|---|---|" + "---|" * len(windows)]
     lines += [_fmt_row(k, v) for k, v in rows.items()]
+    curve = _ep95_plot(out / "ep95.png", rows)
+    if curve is not None:
+        lines += ["", f"![E_P95(range) curves]({curve.name})"]
     lines += ["", f"Hybrid monitor beats the static default CDs: **{summary['hybrid_beats_static']}** "
               f"({rows['hybrid monitor']['rms_um']:.2f} against {rows['static default CDs']['rms_um']:.2f} µm RMS). "
               f"After the diagnosis the structure model predicts the real machine's drift to "
@@ -244,6 +292,12 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
         if res.files.get("plot"):
             rel = Path(res.files["plot"]).relative_to(out)
             lines += [f"![residuals, {label}]({rel})", ""]
+    cd_lines = _cd_table(out / "hybrid_nominal" / "cd.db")
+    if cd_lines:
+        lines += ["## The default CDs and their reference temperatures", "",
+                  "Fitted on FE runs of the basic load cases (each axis alone, the spindle alone, then cooling); "
+                  "T_ref: the structure model's sensor temperatures for that load case, which the monitor compares "
+                  "with the current ones.", ""] + cd_lines + [""]
     lines += ["## Monitoring decisions (nominal models)", "", "| machine time [h] | event | details |", "|---|---|---|"]
     for e in summary["events"]:
         t = e.get("machine_time_s")
