@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from hybridcomp.diagnose._threads import single_blas_thread
+from hybridcomp.fem.blas import single_blas_thread
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, parse_split
 from hybridcomp.diagnose.effects import library
 from hybridcomp.diagnose.problem import body_drift_rows, build_problem, with_body_rows

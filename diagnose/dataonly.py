@@ -191,7 +191,7 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 12, min_fit_g
     DatasetError
         no ``*_um`` channel or no ``*_degC`` sensor, a constant channel.
     """
-    from hybridcomp.diagnose._threads import single_blas_thread
+    from hybridcomp.fem.blas import single_blas_thread
 
     with single_blas_thread():
         return _diagnose_data_only(ds, split, max_terms, min_fit_gain)

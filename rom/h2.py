@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as la
 
-from hybridcomp.rom._threads import single_blas_thread
+from hybridcomp.fem.blas import single_blas_thread
 from hybridcomp.rom.krylov import ThermalSystem, project
 
 log = logging.getLogger(__name__)

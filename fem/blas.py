@@ -1,11 +1,12 @@
-"""One BLAS thread for the H2 optimisation: its products are small (N × r), so threads only wait.
+"""One BLAS thread around small dense work: reduced-model fits, the H2 optimisation.
 
-Measured on the 2-core development machine under load: the H2 tests took 266 s with the default
-OpenBLAS threads and about 10 s with one (threads spinning after every small product starve each
-other).  The same helper as ``hybridcomp.diagnose._threads`` (rom must not import diagnose).
-numpy and scipy wheels bundle OpenBLAS under ``numpy.libs`` / ``scipy.libs``; their
-``*_set_num_threads`` entry points are called through ctypes (what threadpoolctl does), and the
-previous count is restored afterwards.
+Their products are small (r × r, N × r), so BLAS threads only wait. Measured on the 2-core
+development machine: a greedy diagnosis selection took 4.5 s with one OpenBLAS thread and 180 s
+with the default two, and the H2 tests 10 s against 266 s (threads spinning after every small
+product starve each other; the FE time loop avoids dense BLAS for the same reason). numpy and
+scipy wheels bundle OpenBLAS under ``numpy.libs`` / ``scipy.libs``; their ``*_set_num_threads``
+entry points are called through ctypes (what threadpoolctl does), and the previous count is
+restored afterwards.
 """
 
 from __future__ import annotations
