@@ -29,13 +29,7 @@ import os
 import statistics
 import time
 
-
-def table(rows: list[dict], cols: list[str]) -> str:
-    w = [max(len(c), *(len(f"{r[c]}") for r in rows)) for c in cols]
-    line = " | ".join(c.ljust(k) for c, k in zip(cols, w))
-    out = [line, "-+-".join("-" * k for k in w)]
-    out += [" | ".join(f"{r[c]}".ljust(k) for c, k in zip(cols, w)) for r in rows]
-    return "\n".join(out)
+from _table import table  # benchmarks/_table.py, beside this script
 
 
 @contextlib.contextmanager

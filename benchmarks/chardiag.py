@@ -28,12 +28,7 @@ import time
 
 import numpy as np
 
-
-def table(rows: list[dict], cols: list[str]) -> str:
-    w = [max(len(c), *(len(f"{r[c]}") for r in rows)) for c in cols]
-    out = [" | ".join(c.ljust(k) for c, k in zip(cols, w)), "-+-".join("-" * k for k in w)]
-    out += [" | ".join(f"{r[c]}".ljust(k) for c, k in zip(cols, w)) for r in rows]
-    return "\n".join(out)
+from _table import table  # benchmarks/_table.py, beside this script
 
 
 def synthetic(n: int, d: int, seed: int = 0):

@@ -39,13 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def table(rows: list[dict], cols: list[str]) -> str:
-    w = [max(len(c), *(len(f"{r[c]}") for r in rows)) for c in cols]
-    line = " | ".join(c.ljust(k) for c, k in zip(cols, w))
-    out = [line, "-+-".join("-" * k for k in w)]
-    out += [" | ".join(f"{r[c]}".ljust(k) for c, k in zip(cols, w)) for r in rows]
-    return "\n".join(out)
+from _table import table  # benchmarks/_table.py, beside this script
 
 
 def max_err(a, b) -> float:
