@@ -54,14 +54,13 @@ def generate(out: Path, days: int, rate_hz: float, element_size_mm: float) -> di
     from hybridcomp.chardiag.db import CDDatabase
     from hybridcomp.chardiag.fit import fit_cd_set
     from hybridcomp.fem.model import build_model
-    from hybridcomp.histogram.bcs import boundary_conditions
     from hybridcomp.histogram.gcode import parse_gcode, sample_motion
-    from hybridcomp.histogram.increments import increments_from_samples
     from hybridcomp.histogram.scenarios import jobshop_ambient, jobshop_program
     from hybridcomp.histogram.trace import Samples
     from hybridcomp.models import load_machine
     from hybridcomp.rom import save_rom
-    from hybridcomp.rom.machine import inputs_from_columns, reduce_model, split_outputs
+    from hybridcomp.monitor.scenario import rom_sensor_temperatures
+    from hybridcomp.rom.machine import reduce_model
 
     machine = load_machine("vmc800")
     t0 = time.perf_counter()
@@ -87,17 +86,7 @@ def generate(out: Path, days: int, rate_hz: float, element_size_mm: float) -> di
     S = np.concatenate([S_day] * days + [[0.0]])
     A = amb(t)[:, None]
     s = Samples(t, P, None, S, ("Tamb_degC",), A, np.arange(t.size) + 2)
-    inc = increments_from_samples(machine, s, 300.0)
-    loads = boundary_conditions(machine, inc)
-    U = inputs_from_columns(rom, loads.names, loads.values)
-    # backward-Euler reading of the loads (row k+1 over increment k): the ROM stepped piecewise constant
-    x = rom.steady_state(U[0])
-    Y = [rom.outputs(x)]
-    for k in range(1, len(loads.time_s)):
-        x = rom.step(x, U[k], U[k], loads.time_s[k] - loads.time_s[k - 1])
-        Y.append(rom.outputs(x))
-    sens, _ = split_outputs(rom, np.array(Y))
-    T = np.column_stack([np.interp(t, loads.time_s, sens[:, j]) for j in range(sens.shape[1])])
+    T = rom_sensor_temperatures(machine, rom, s, 300.0)
     trace = out / "week.csv"
     names = ["time_s", "x_mm", "y_mm", "z_mm", "spindle_rpm", *(f"{p.name}_degC" for p in machine.sensors), "Tamb_degC"]
     block = np.column_stack([t, P, S, T, A])

@@ -118,6 +118,28 @@ def predict_mlr(coef: np.ndarray, T_degC: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- the scenario
 
 
+def rom_sensor_temperatures(machine, rom, samples, increment_s: float = 300.0) -> np.ndarray:
+    """Sensor temperatures [°C] at the sample times of a trace: the structure model on the trace's own BCs.
+
+    The BCs are the histogram generator's, per ``increment_s`` [s]; the ROM steps each increment with its
+    loads row held constant (the backward-Euler reading of the loads: row k+1 over increment k) and the
+    sensor temperatures are interpolated linearly to the sample times.
+    """
+    from hybridcomp.histogram.bcs import boundary_conditions
+    from hybridcomp.histogram.increments import increments_from_samples
+    from hybridcomp.rom.machine import inputs_from_columns, split_outputs
+
+    loads = boundary_conditions(machine, increments_from_samples(machine, samples, increment_s))
+    U = inputs_from_columns(rom, loads.names, loads.values)
+    x = rom.steady_state(U[0])
+    Y = [rom.outputs(x)]
+    for k in range(1, len(loads.time_s)):
+        x = rom.step(x, U[k], U[k], loads.time_s[k] - loads.time_s[k - 1])
+        Y.append(rom.outputs(x))
+    sens, _ = split_outputs(rom, np.array(Y))
+    return np.column_stack([np.interp(samples.time_s, loads.time_s, sens[:, j]) for j in range(sens.shape[1])])
+
+
 @dataclass(frozen=True)
 class ScenarioResult:
     """What :func:`run_scenario` produced: metrics per strategy, the Markdown table, events, files, a summary."""

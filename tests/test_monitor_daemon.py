@@ -18,15 +18,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hybridcomp.fem.loads import example_loads
-from hybridcomp.histogram.bcs import boundary_conditions
-from hybridcomp.histogram.increments import increments_from_samples
 from hybridcomp.histogram.trace import samples
 from hybridcomp.monitor.config import parse_config
 from hybridcomp.monitor.daemon import Monitor, run_monitor
+from hybridcomp.monitor.scenario import rom_sensor_temperatures
 from hybridcomp.monitor.sinks import MemorySink
 from hybridcomp.monitor.sources import ListSource, ReplaySource, read_replay
 from hybridcomp.rom import save_rom
-from hybridcomp.rom.machine import inputs_from_columns, split_outputs
 
 HOURS = 6.0
 DT_S = 10.0
@@ -62,16 +60,7 @@ def motion(machine, hours=HOURS, dt_s=DT_S, busy_h=3.0):
 
 def sensor_truth(machine, rom, s, offset_K=0.0):
     """Sensor temperatures [°C] at the sample times: the ROM on the trace's own BCs (5 min increments)."""
-    inc = increments_from_samples(machine, s, 300.0)
-    loads = boundary_conditions(machine, inc)
-    U = inputs_from_columns(rom, loads.names, loads.values)
-    x = rom.steady_state(U[0])
-    Y = [rom.outputs(x)]
-    for k in range(1, len(loads.time_s)):
-        x = rom.step(x, U[k], U[k], loads.time_s[k] - loads.time_s[k - 1])
-        Y.append(rom.outputs(x))
-    sens, _ = split_outputs(rom, np.array(Y))
-    return np.column_stack([np.interp(s.time_s, loads.time_s, sens[:, j]) for j in range(sens.shape[1])]) + offset_K
+    return rom_sensor_temperatures(machine, rom, s, 300.0) + offset_K
 
 
 def write_trace_csv(path, machine, s, T):
