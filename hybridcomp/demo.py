@@ -1,6 +1,7 @@
 """``hybridcomp demo``: the whole hybrid cycle on the bundled demonstrator, from one command.
 
-1. the machine (picture) and the bundled 16 h job-shop day (histograms);
+1. the machine (picture) and the bundled 16 h job-shop day (load factors and histograms, from the
+   controller's trace the monitor replays);
 2. a "real machine": the demonstrator with a planted effect the models do not know (by default the
    front spindle bearing dissipates 1.6 × its nominal power, a typical error of loss estimates);
 3. the hybrid scenario with the nominal models: default CDs of the basic load cases (FE training),
@@ -104,14 +105,13 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     machine = load_machine("vmc800")
-    stages = _Stages(["machine picture and the job-shop day", "real machine with the planted effect",
+    stages = _Stages(["machine picture", "real machine with the planted effect",
                       "hybrid scenario with the nominal models", "diagnosis of the recorded day",
                       "hybrid scenario with the extended machine file", "report"], progress)
     t_all = time.perf_counter()
 
     stages.next()
     pictures = _pictures(machine, out, options) if options.pictures else {}
-    day_plots = _day_plots(machine, out / "day")
 
     stages.next()
     real_path = planted_machine_file(machine, options.source, options.factor, out / "real_machine.toml")
@@ -133,6 +133,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     after = run_scenario(out / "hybrid_extended", machine_name=str(extended), **common)
 
     stages.next()
+    day_plots = _day_plots(machine, nominal.files["controller"], out / "day")
     summary = _summary(options, nominal, after, diag_summary, out, time.perf_counter() - t_all, stages.times)
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
     _report(out, options, summary, nominal, after, pictures, day_plots)
@@ -141,7 +142,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
 
 
 def _pictures(machine, out: Path, options: DemoOptions) -> dict:
-    """The machine at steady state under the job-shop day's mean load: temperature on the deformed structure."""
+    """The machine at steady state with every source at half its rated power: temperature on the deformed structure."""
     try:
         from hybridcomp.fem.export import render_png
         from hybridcomp.fem.loads import full_power_inputs
@@ -157,15 +158,14 @@ def _pictures(machine, out: Path, options: DemoOptions) -> dict:
         return {}
 
 
-def _day_plots(machine, day: Path) -> dict:
+def _day_plots(machine, trace: Path, day: Path) -> dict:
+    """Load factors and one increment's histograms of the replayed day, from the controller's trace."""
     from hybridcomp.histogram.increments import increments_from_trace
-    from hybridcomp.histogram.scenarios import write_scenario
 
-    files = write_scenario("jobshop", machine, day)
     try:
         from hybridcomp.histogram.plots import plot_factors, plot_increment
 
-        inc = increments_from_trace(files["jobshop_trace.csv"], machine, 300.0)
+        inc = increments_from_trace(trace, machine, 300.0)
         paths = {"load factors of the day": plot_factors(inc, day / "factors.png")}
         k = int(len(inc) * 0.3)  # an increment in the second block
         paths[f"histograms of increment {k}"] = plot_increment(inc, k, day / "increment.png")
@@ -312,7 +312,7 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
                         for k, v in c.get("parameters", {}).items())
         gain = c.get("gain", {}).get("validation_rss_reduction")
         lines.append(f"* **{c.get('label', c['name'])}**: {par}" + (f"; validation gain {100 * gain:.1f} %" if gain is not None else ""))
-    lines += ["", f"Full diagnosis report: [diagnosis/report.md](diagnosis/report.md); extended machine file: "
+    lines += ["", "Full diagnosis report: [diagnosis/report.md](diagnosis/report.md); extended machine file: "
               "[diagnosis/machine_extended.toml](diagnosis/machine_extended.toml).", ""]
     t = summary["timings_s"]
     lines += ["## Run time", "", "| stage | [s] |", "|---|---|"] + [f"| {k} | {v:.0f} |" for k, v in t.items()]

@@ -345,7 +345,8 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return ScenarioResult(metrics, table, events, {"table": out / "table.md", "plot": plot_path,
                                                     "events": out / "events.json", "residuals": out / "residuals.csv",
-                                                    "recorded": recorded, "rom": rom_path}, summary)
+                                                    "recorded": recorded, "rom": rom_path, "controller": controller},
+                          summary)
 
 
 def _event_brief(e) -> dict:
