@@ -367,15 +367,10 @@ def _term_weights(inputs, term_inputs, X):
     outside = np.zeros(n, bool)
     idx = np.zeros((n, 1), np.intp)
     w = np.ones((n, 1))
-    for j, m, s in zip(term_inputs, shape, strides):
-        inp = inputs[j]
-        u = (X[:, j] - inp.min) * ((m - 1) / (inp.max - inp.min))
-        bad = ~(u >= 0.0) | (u > m - 1)
-        if bad.any():
-            outside |= bad
-            u = np.clip(np.nan_to_num(u, nan=0.0), 0.0, m - 1)
-        i = np.minimum(u.astype(np.intp), m - 2)
-        f = (u - i)[:, None]
+    for j, s in zip(term_inputs, strides):
+        i, f, bad = _cells(inputs[j], X[:, j])
+        outside |= bad
+        f = f[:, None]
         base = (i * s)[:, None]
         idx = np.hstack([idx + base, idx + base + s])
         w = np.hstack([w * (1.0 - f), w * f])
