@@ -41,7 +41,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--element-size-mm", type=float, help="FE element size for the reduction [mm] (default: machine file)")
     p.add_argument("--effects", help="comma-separated effect kinds to consider (default: the whole library)")
     p.add_argument("--max-effects", type=int, default=4, help="most effects to name (default 4)")
-    p.add_argument("--max-terms", type=int, default=12, help="--data-only: most extension terms per channel (default 12)")
+    p.add_argument("--max-terms", type=int, default=16, help="--data-only: most search steps (extension terms added, "
+                   "inputs dropped) per channel (default 16)")
+    p.add_argument("--beam", type=int, default=16, help="--data-only: models kept per search step; 1 is greedy forward "
+                   "selection (default 16)")
+    p.add_argument("--no-selection-check", action="store_true", help="--data-only: skip the check that repeats the "
+                   "selection on half the validation part and scores it on the other half")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 
 
@@ -67,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
         if args.data_only:
             from hybridcomp.diagnose.dataonly import diagnose_data_only, write_data_only_report
 
-            d = diagnose_data_only(ds, split, max_terms=args.max_terms)
+            d = diagnose_data_only(ds, split, max_terms=args.max_terms, beam_width=args.beam,
+                                   selection_check=not args.no_selection_check)
             summary = write_data_only_report(d, args.out, dataset_name=args.data.name, plots=not args.no_plots)
             fits = ", ".join(f"{c} {v['after']['fit_percent']:.1f} %" for c, v in summary["channels"].items())
             print(f"data-only diagnosis: validation fit {fits}; report {args.out / 'report.md'}")

@@ -209,19 +209,56 @@ def test_cli_bad_input_exit_code(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_vectorised_scores_equal_refits():
+    """Every one-column extension scored in closed form (BIC on training rows, fit on validation rows) equals a
+    least-squares refit with that column, with and without the AR lag; existing and collinear columns are excluded."""
+    from hybridcomp.diagnose.dataonly import Term, _Library, _Scorer
+
+    rng = np.random.default_rng(3)
+    t = np.arange(400) * 60.0
+    cols = [np.cumsum(rng.normal(size=400)) for _ in range(6)]
+    cols.append(2.0 * cols[1] - cols[2])  # collinear with 1 and 2
+    y = 0.7 * cols[0] - 0.3 * cols[3] + first_order_lag(t, cols[4], 1800.0) + rng.normal(0, 0.1, 400)
+    lib = _Library(t, [Term(f"c{i}", "sensor", {}, c) for i, c in enumerate(cols)])
+    tr = np.arange(400) < 250
+    sc = _Scorer(lib, y, tr, ~tr)
+    for idx, ar in [((0,), None), ((0, 1, 2), None), ((3, 1), 0.25)]:
+        bics, fits = sc.additions(idx, ar)
+        for j in range(len(cols)):
+            if j in idx or (j == 6 and {1, 2} <= set(idx)):
+                assert bics[j] == np.inf and fits[j] == -np.inf
+                continue
+            b, f = sc.score(idx + (j,), ar)
+            assert bics[j] == pytest.approx(b, rel=1e-9, abs=1e-6) and fits[j] == pytest.approx(f, rel=1e-9, abs=1e-9)
+
+
+def test_selection_check_scores_rows_the_selection_did_not_see():
+    ds = _spindle_data(hours=30.0, dt=120.0)
+    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s))
+    sc = d.selection_check
+    assert sc["selected_on_h"][1] < sc["scored_on_h"][0]  # disjoint, in time order
+    assert sc["selected_on_h"][0] >= d.split.describe(ds.time_s)["validation_h"][0]
+    v = sc["channels"]["dz_um"]
+    assert v["extended"] > v["base"] + 5.0 and v["terms"]  # the planted lag generalises to unseen rows
+    off = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), selection_check=False)
+    assert off.selection_check is None
+    with pytest.raises(DatasetError, match="beam width"):
+        diagnose_data_only(ds, parse_split("0:50%", ds.time_s), beam_width=0)
+
+
 @pytest.mark.skipif(not REAL.is_file(), reason="real spindle data (shared/data/caiviac-spindle) not present next to the repository")
-def test_real_spindle_data_beats_the_static_regression():
-    """Train on the first half, validate on the second: the static regression's fits are reproduced exactly and the
-    named extensions improve every channel."""
+def test_real_spindle_data_reaches_85_percent_on_every_channel():
+    """Train on the first half, validate on the second: the static regression's fits are reproduced exactly; the
+    searched extensions reach a validation fit of 85 % on every channel, each extension named and each adding fit."""
     ds = read_dataset(REAL)
-    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), max_terms=2)
+    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), selection_check=False)
     ref = [d.reference[f"ch{i}_um"]["fit_percent"] for i in range(1, 6)]
     assert np.round(ref, 1).tolist() == [39.5, 36.1, 70.1, 71.1, -58.2]
     va = d.split.validation
     for i in range(1, 6):
         c = f"ch{i}_um"
-        assert fit_percent(ds[c][va], d.extended[c].y_hat[va]) > ref[i - 1] + 3.0
-        assert d.extensions[c]
+        assert fit_percent(ds[c][va], d.extended[c].y_hat[va]) >= 85.0, c
+        assert d.extensions[c] and all(e["name"] and e["gain"]["validation_fit_points"] >= 0.5 for e in d.extensions[c])
 
 
 def test_trace_becomes_a_dataset(machine, tmp_path):
