@@ -5,8 +5,9 @@ The reduced models of :mod:`hybridcomp.rom` are one-sided Galerkin projections
 (stable for every ``h > 0``) and ``h`` stays an affine parameter.  Among all
 such projections of order ``r``, :func:`h2_optimal_basis` looks for the
 subspace with the smallest H2 error (Yan and Lam's orthogonal-projection H2
-problem), by L-BFGS on the Grassmann manifold, inside a large Krylov subspace
-(the *surrogate*, whose own error is far below the reduced model's):
+problem), by preconditioned L-BFGS on the Grassmann manifold (see
+:func:`optimal_subspace`), inside a large Krylov subspace (the *surrogate*,
+whose own error is far below the reduced model's):
 
 * in the surrogate's ``M``-orthonormal modal coordinates at each sampled ``h``
   the system is diagonal, ``A = -diag(λ)``, so the Gramians and the
@@ -30,6 +31,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg as la
@@ -57,7 +59,7 @@ class ModalForm:
     c: np.ndarray
     T: np.ndarray
 
-    @property
+    @cached_property
     def h2_norm(self) -> float:
         """H2 norm ``sqrt(tr(c P c^T))`` with the closed-form Gramian ``P_ij = (b b^T)_ij / (λ_i + λ_j)``."""
         return float(np.sqrt(max(np.einsum("ij,ij->", self.c.T @ self.c, _cauchy(self.b @ self.b.T, self.lam, self.lam)), 0.0)))
@@ -180,45 +182,145 @@ def initial_basis(form: ModalForm, r: int) -> np.ndarray:
     return min(cands, key=lambda Q0: galerkin_error(form, Q0))
 
 
+def _reduced_scaled(form: ModalForm, Q: np.ndarray) -> np.ndarray:
+    """``Q`` (orthonormal, modal coordinates of ``form``) in the reduced model's modal frame, each column scaled
+    by the square root of its share of the reduced Gramians (diagonal of ``P_r / tr P_r + Q_r / tr Q_r``)."""
+    Ar = Q.T @ (form.lam[:, None] * Q)
+    mu, U = la.eigh(0.5 * (Ar + Ar.T))
+    Qu = Q @ U
+    p = np.sum((Qu.T @ form.b) ** 2, axis=1) / (2 * mu)
+    q = np.sum((form.c @ Qu) ** 2, axis=0) / (2 * mu)
+    w = p / max(p.sum(), np.finfo(float).tiny) + q / max(q.sum(), np.finfo(float).tiny)
+    return Qu * np.sqrt(np.maximum(w / w.max(), 1e-8))
+
+
+def _lbfgs(fun, x0: np.ndarray, maxiter: int, m: int = 50, ftol: float = 1e-13) -> tuple[np.ndarray, float, int, str]:
+    """Minimise ``fun`` (returns value and gradient) by L-BFGS: two-loop recursion, backtracking Armijo line search.
+
+    A few BLAS-1 operations per stored pair, so on tens of thousands of variables an iteration costs a
+    fraction of scipy's L-BFGS-B (which handles bounds, not needed here).  Returns ``x``, ``f``, the
+    iterations and why it stopped (``"maxiter"``, ``"converged"`` or ``"line search failed"``).
+    """
+    x = x0.copy()
+    f, g = fun(x)
+    S: list[np.ndarray] = []
+    Y: list[np.ndarray] = []
+    rho: list[float] = []
+    stalled = 0
+    for it in range(maxiter):
+        q = g.copy()
+        alphas = []
+        for s, y, r in zip(reversed(S), reversed(Y), reversed(rho)):
+            a = r * np.dot(s, q)
+            alphas.append(a)
+            q -= a * y
+        q *= np.dot(S[-1], Y[-1]) / np.dot(Y[-1], Y[-1]) if S else 1e-3 / max(np.linalg.norm(g), 1e-300)
+        for s, y, r, a in zip(S, Y, rho, reversed(alphas)):
+            q += (a - r * np.dot(y, q)) * s
+        gd = -np.dot(g, q)
+        if gd >= 0:  # not a descent direction (should not happen): restart from steepest descent
+            S, Y, rho = [], [], []
+            q = g * (1e-3 / max(np.linalg.norm(g), 1e-300))
+            gd = -np.dot(g, q)
+        t = 1.0
+        for _ in range(40):
+            xn = x - t * q
+            fn, gn = fun(xn)
+            if fn <= f + 1e-4 * t * gd:
+                break
+            t *= 0.5
+        else:
+            return x, f, it, "line search failed"
+        s, y = xn - x, gn - g
+        sy = np.dot(s, y)
+        if sy > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
+            S.append(s)
+            Y.append(y)
+            rho.append(1.0 / sy)
+            if len(S) > m:
+                del S[0], Y[0], rho[0]
+        stalled = stalled + 1 if f - fn <= ftol * abs(f) else 0
+        x, f, g = xn, fn, gn
+        if stalled >= 5:  # five iterations in a row without a relative decrease above ftol
+            return x, f, it + 1, "converged"
+    return x, f, maxiter, "maxiter"
+
+
 def optimal_subspace(forms: list[ModalForm], Z0: np.ndarray, maxiter: int = 2000,
-                     fixed: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """Orthonormal ``Z`` (common frame) minimising Σ_k J_k / ‖G_k‖² by L-BFGS; returns ``Z`` and that sum.
+                     fixed: np.ndarray | None = None, restart: int = 1000,
+                     precondition: bool = True, memory: tuple[int, int] = (50, 150),
+                     tail: float = 0.2) -> tuple[np.ndarray, float]:
+    """Orthonormal ``Z`` (common frame) minimising Σ_k J_k / ‖G_k‖² by preconditioned L-BFGS; returns ``Z`` and that sum.
 
     With ``fixed`` (orthonormal columns of the common frame), the basis is ``[fixed, Z]`` and only ``Z``,
     kept orthogonal to ``fixed``, is optimised (for example to keep steady states exact).
-    """
-    from scipy.optimize import minimize
 
+    The problem is badly conditioned: the decay rates span several decades, and so do the reduced
+    Gramians.  Two changes of variables, neither of which changes the subspace sought, precondition it:
+
+    * rows: the optimisation runs in the modal coordinates of the first form, on ``Y`` with
+      ``Z = diag(s) Y``, ``s_i ∝ λ_i^{-1/2}`` (slow modes move more per step);
+    * columns: every ``restart`` iterations L-BFGS restarts from the current subspace written in the
+      reduced modal frame with column ``j`` scaled by the square root of its share of the reduced
+      Gramians (with ``Z = Q R`` a column of norm ``d_j`` moves ``1/d_j²`` as fast, so the directions
+      that carry little of the reduced model's energy, where the error is flat, move further).
+
+    L-BFGS keeps ``memory[0]`` correction pairs, and ``memory[1]`` in the last ``tail`` fraction of the
+    iterations: close to the optimum the extra curvature pairs pay for their cost (order 80 of the
+    demonstrator, from the point reached after 30,000 iterations: 2,000 more iterations reduce the
+    relative error 1.064e-4 → 1.041e-4 with 50 pairs, → 0.945e-4 with 150).
+
+    ``precondition=False`` runs plain L-BFGS on ``Z`` (one run, no restarts, ``memory[0]`` pairs), for comparison.
+    """
     n, r = Z0.shape
-    F = np.zeros((n, 0)) if fixed is None else fixed
+    T0 = forms[0].T
+    # working frame: modal coordinates of forms[0]; maps[k] takes it to form k's modal coordinates
+    maps = [None] + [f.T.T @ T0 for f in forms[1:]]
+    F = np.zeros((n, 0)) if fixed is None else T0.T @ fixed
     f_count = F.shape[1]
     weights = [1.0 / f.h2_norm ** 2 for f in forms]
+    s = forms[0].lam ** -0.5 if precondition else np.ones(n)
+    s /= s.max()
+    if not precondition:
+        restart, tail = max(maxiter, 1), 0.0
 
-    def free(z):
-        Z = z.reshape(n, r)
+    def free(y):
+        Z = s[:, None] * y.reshape(n, r)
         return np.linalg.qr(Z - F @ (F.T @ Z))
 
-    def fun(z):
-        Qz, R = free(z)
+    def fun(y):
+        Qz, R = free(y)
         Q = np.hstack([F, Qz])
         J = 0.0
         g = np.zeros_like(Q)
-        for f, w in zip(forms, weights):
-            Jk, gk = galerkin_error(f, f.T.T @ Q, gradient=True)
+        for f, w, Tk in zip(forms, weights, maps):
+            Jk, gk = galerkin_error(f, Q if Tk is None else Tk @ Q, gradient=True)
             J += w * Jk
-            g += w * (f.T @ gk)
+            g += w * (gk if Tk is None else Tk.T @ gk)
         g = g[:, f_count:]
         g -= Q @ (Q.T @ g)
-        # invariance Z -> Z R: dZ enters the span as dZ R^-1, so the gradient in Z is g R^-T
-        return J, la.solve_triangular(R, g.T, lower=False, trans=0).T.ravel()
+        # invariance Z -> Z R: dZ enters the span as dZ R^-1, so the gradient in Z is g R^-T; Z = diag(s) Y
+        return J, (s[:, None] * la.solve_triangular(R, g.T, lower=False, trans=0).T).ravel()
 
+    Zw = T0.T @ Z0
+    Qz = np.linalg.qr(Zw - F @ (F.T @ Zw))[0]
+    nit, J, message = 0, float("nan"), "no iterations"
     with single_blas_thread():
-        res = minimize(fun, Z0.ravel(), jac=True, method="L-BFGS-B",
-                       options={"maxiter": maxiter, "maxcor": 50, "ftol": 1e-15, "gtol": 1e-14})
-    Z = np.hstack([F, free(res.x)[0]])
+        while nit < maxiter:
+            in_tail = nit >= (1 - tail) * maxiter
+            budget = min(restart, maxiter - nit) if in_tail else min(restart, int(np.ceil((1 - tail) * maxiter)) - nit)
+            y0 = ((_reduced_scaled(forms[0], Qz) if precondition else Qz) / s[:, None]).ravel()
+            y, J, k, message = _lbfgs(fun, y0, budget, m=memory[1] if in_tail else memory[0])
+            Qz = free(y)[0]
+            nit += max(k, 1)
+            if message != "maxiter":  # converged, or the line search failed: restarting will not help
+                break
+        if maxiter <= 0:
+            J = fun((Qz / s[:, None]).ravel())[0]
+    Z = T0 @ np.hstack([F, Qz])
     log.info("H2-optimal subspace of order %d (%d fixed): %d L-BFGS iterations, relative error² sum %.3g (%s)",
-             Z.shape[1], f_count, res.nit, res.fun, res.message)
-    return Z, float(res.fun)
+             Z.shape[1], f_count, nit, J, message)
+    return Z, J
 
 
 def h2_optimal_basis(system: ThermalSystem, V_big: np.ndarray, order: int, h_list, input_scale: np.ndarray,
