@@ -50,6 +50,7 @@ AR_H = (0.05, 0.1, 0.25, 0.5, 1.0)
 MIN_FIT_GAIN = 0.5  # validation fit points an extension must add
 MIN_BIC_DROP = 10.0
 BEAM_WIDTH = 16  # models kept per search step
+MAX_ROWS = 50_000  # longer datasets are thinned to every k-th row (the library's time constants are 6 min and longer)
 
 
 @dataclass(frozen=True)
@@ -374,6 +375,13 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
     if not temps:
         raise DatasetError(f"{ds.source}: --data-only needs temperature columns '*_degC'; columns: {', '.join(ds.names)}")
     check_channels(ds, targets, split)
+    stride = -(-ds.time_s.size // MAX_ROWS)
+    if stride > 1:
+        rows = np.arange(0, ds.time_s.size, stride)
+        log.warning("%s: %d rows; the diagnosis uses every %d. row (%d rows, median step %.0f s)", ds.source,
+                    ds.time_s.size, stride, rows.size, float(np.median(np.diff(ds.time_s[rows]))))
+        ds = ds.subset(rows)
+        split = Split(split.train[rows], split.validation[rows], split.text)
     t = ds.time_s
     tr, va = split.train, split.validation
     temp_vals = {n: ds[n] for n in temps if np.ptp(ds[n][tr]) > 0}
@@ -418,7 +426,8 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
         split_check = {"selected_on_h": [float(t[va1][0] / 3600), float(t[va1][-1] / 3600)],
                        "scored_on_h": [float(t[va2][0] / 3600), float(t[va2][-1] / 3600)], "channels": check}
     return DataOnlyDiagnosis(t, Y, split, reference, base, extended, extensions,
-                             {"total": time.perf_counter() - t0, "candidates": len(cands), "beam_width": beam_width},
+                             {"total": time.perf_counter() - t0, "candidates": len(cands), "beam_width": beam_width,
+                              "row_stride": stride},
                              split_check)
 
 
@@ -456,7 +465,8 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
          "split, sensor lags (lead terms), an autoregressive output lag; added (or sensor inputs dropped) by a beam search "
          f"(width {d.timings_s['beam_width']}) while the training BIC drops and the validation fit improves (the "
          "validation part takes part in this selection; the selection check below says how much that flatters).", "",
-         f"Training rows {s['split']['train_rows']}, validation rows {s['split']['validation_rows']}; "
+         f"Training rows {s['split']['train_rows']}, validation rows {s['split']['validation_rows']}"
+         f"{'' if d.timings_s['row_stride'] == 1 else ' (every %d. row of the dataset)' % d.timings_s['row_stride']}; "
          f"{d.timings_s['candidates']} candidate terms; {d.timings_s['total']:.1f} s.", "",
          "| channel | static, all temperatures: fit % | BIC-selected regression: fit % (RMS, P2P) | extended: fit % (RMS, P2P) |",
          "|---|---|---|---|"]

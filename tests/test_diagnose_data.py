@@ -246,6 +246,21 @@ def test_selection_check_scores_rows_the_selection_did_not_see():
         diagnose_data_only(ds, parse_split("0:50%", ds.time_s), beam_width=0)
 
 
+def test_long_dataset_is_thinned_and_still_diagnosed(monkeypatch, tmp_path):
+    """Above MAX_ROWS rows the diagnosis uses every k-th row (said in the report) and finds the planted lag as before."""
+    import hybridcomp.diagnose.dataonly as dataonly
+
+    ds = _spindle_data(hours=30.0, dt=30.0)  # 3,600 rows
+    monkeypatch.setattr(dataonly, "MAX_ROWS", 1000)
+    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), beam_width=2, selection_check=False)
+    assert d.timings_s["row_stride"] == 4 and d.time_s.size == 900 and np.all(np.diff(d.time_s) == 120.0)
+    assert d.split.train.sum() + d.split.validation.sum() == 900
+    va = d.split.validation
+    assert fit_percent(d.Y["dz_um"][va], d.extended["dz_um"].y_hat[va]) > 90.0
+    s = dataonly.write_data_only_report(d, tmp_path, plots=False)
+    assert "every 4. row" in (tmp_path / "report.md").read_text() and s["timings_s"]["row_stride"] == 4
+
+
 @pytest.mark.skipif(not REAL.is_file(), reason="real spindle data (shared/data/caiviac-spindle) not present next to the repository")
 def test_real_spindle_data_reaches_85_percent_on_every_channel():
     """Train on the first half, validate on the second: the static regression's fits are reproduced exactly; the
