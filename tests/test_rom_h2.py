@@ -96,3 +96,26 @@ def test_fixed_directions_stay_in_the_basis():
     np.testing.assert_allclose(Z.T @ Z, np.eye(7), atol=1e-10)
     np.testing.assert_allclose(fixed - Z @ (Z.T @ fixed), 0.0, atol=1e-10)
     assert J == pytest.approx(_rel_sum([f], Z), rel=1e-8)
+
+
+def test_reduce_cli_passes_h2_maxiter_and_rejects_a_negative_one(tmp_path, monkeypatch, capsys):
+    from hybridcomp.cli import main
+    from hybridcomp.rom import machine as rom_machine
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_reduce_model(model, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(rom_machine, "reduce_model", fake_reduce_model)
+    out = tmp_path / "rom.npz"
+    with pytest.raises(Stop):
+        main(["reduce", "--element-size-mm", "300", "--order", "30", "--basis", "h2", "--h2-maxiter", "7", "--out", str(out)])
+    assert seen["basis"] == "h2" and seen["h2_maxiter"] == 7
+    assert main(["reduce", "--basis", "h2", "--h2-maxiter", "-1", "--out", str(out)]) == 2
+    assert "--h2-maxiter must be a non-negative integer, got -1" in capsys.readouterr().err
+    assert not out.exists()
