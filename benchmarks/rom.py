@@ -106,6 +106,7 @@ def pymor_check(model, orders: list[int], irka_maxit: int = 50, input_scaling: s
         t0 = time.perf_counter()
         V = h2.h2_optimal_basis(system, surrogate, r, [h], scale, w, maxiter=h2_maxiter)
         row["h2opt_s"] = time.perf_counter() - t0
+        row["h2opt_maxiter"] = h2_maxiter
         row["h2opt_rel_H2"], row["h2opt_exact"] = galerkin(V)
         if r <= bt_max_order:
             t0 = time.perf_counter()
