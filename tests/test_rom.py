@@ -448,10 +448,12 @@ def test_h2_gradient_matches_finite_differences(small):
     Q = np.linalg.qr(rng.standard_normal((small.n, 6)))[0]
     D = rng.standard_normal(Q.shape)
     D -= Q @ (Q.T @ D)
-    _, g = h2.galerkin_error(form, Q, gradient=True)
+    J, g = h2.galerkin_error(form, Q, gradient=True)
     eps = 1e-6
     fd = (h2.galerkin_error(form, np.linalg.qr(Q + eps * D)[0]) - h2.galerkin_error(form, np.linalg.qr(Q - eps * D)[0])) / (2 * eps)
     assert np.sum(g * D) == pytest.approx(fd, rel=1e-5)
+    assert abs(fd) > 1e-6 * J  # not compared at a stationary point
+    np.testing.assert_allclose(Q.T @ g, 0.0, atol=1e-10 * np.abs(g).max())  # tangent to the Grassmann manifold
 
 
 def test_h2_optimal_one_sided_basis_within_twice_balanced_truncation(small):
