@@ -34,9 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, check_channels
-from hybridcomp.diagnose.metrics import channel_metrics, fit_percent
+from hybridcomp.diagnose.metrics import channel_metrics
 from hybridcomp.diagnose.problem import first_order_lag
 
 log = logging.getLogger(__name__)
@@ -298,7 +297,7 @@ def beam_search(scorer: _Scorer, start: tuple[int, ...], droppable: set[int], be
     for _ in range(max_steps):
         nxt: dict = {}
 
-        def offer(st: _State, idx, ar, bic, fit, step):
+        def offer(st: _State, idx, ar, bic, fit, step, nxt=nxt):
             if st.bic - bic >= min_bic_drop and fit - st.fit >= min_fit_gain:
                 new = _State(tuple(idx), ar, float(bic), float(fit), st.path + ((*step, fit - st.fit, st.bic - bic),))
                 if new.key not in nxt or nxt[new.key].fit < new.fit:
@@ -459,6 +458,8 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
     s = summary(d)
     s["dataset"] = dataset_name
     (out / "summary.json").write_text(json.dumps(s, indent=2, default=float))
+    stride = d.timings_s["row_stride"]
+    thinned = "" if stride == 1 else f" (every {stride}. row of the dataset)"
     L = [f"# Data-only diagnosis{' of ' + dataset_name if dataset_name else ''}", "",
          "Model under test: a multiple linear regression of each drift channel on the temperature sensors, inputs "
          "selected greedily by BIC on the training part. Extensions: lag terms of activity signals, heating/cooling "
@@ -466,7 +467,7 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
          f"(width {d.timings_s['beam_width']}) while the training BIC drops and the validation fit improves (the "
          "validation part takes part in this selection; the selection check below says how much that flatters).", "",
          f"Training rows {s['split']['train_rows']}, validation rows {s['split']['validation_rows']}"
-         f"{'' if d.timings_s['row_stride'] == 1 else ' (every %d. row of the dataset)' % d.timings_s['row_stride']}; "
+         f"{thinned}; "
          f"{d.timings_s['candidates']} candidate terms; {d.timings_s['total']:.1f} s.", "",
          "| channel | static, all temperatures: fit % | BIC-selected regression: fit % (RMS, P2P) | extended: fit % (RMS, P2P) |",
          "|---|---|---|---|"]

@@ -35,7 +35,6 @@ from functools import cached_property
 
 import numpy as np
 import scipy.linalg as la
-
 from hybridcomp.fem.blas import single_blas_thread
 from hybridcomp.rom.krylov import ThermalSystem, project
 
@@ -360,7 +359,7 @@ def h2_optimal_basis(system: ThermalSystem, V_big: np.ndarray, order: int, h_lis
         if Wf is not None:
             # the most significant start directions outside the fixed ones
             Z0 = Z0 - Wf @ (Wf.T @ Z0)
-            U, s, _ = la.svd(Z0, full_matrices=False)
+            U = la.svd(Z0, full_matrices=False)[0]
             Z0 = U[:, :n_free]
     Z0 = Z0[:, :n_free]
     if Wf is not None:

@@ -7,12 +7,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from hybridcomp.cli import main
 from hybridcomp.diagnose import Dataset, DatasetError, parse_split, read_dataset
 from hybridcomp.diagnose.dataonly import diagnose_data_only, heating_cooling_lag
-from hybridcomp.diagnose.metrics import cross_correlation, ep95_curve, fit_percent, noise_level, p2p, rms
+from hybridcomp.diagnose.metrics import (
+    cross_correlation,
+    ep95_curve,
+    fit_percent,
+    noise_level,
+    p2p,
+    rms,
+)
 from hybridcomp.diagnose.problem import first_order_lag
+
+from hybridcomp.cli import main
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "caiviac-spindle" / "measured.csv"
 
@@ -248,7 +255,7 @@ def test_selection_check_scores_rows_the_selection_did_not_see():
 
 def test_long_dataset_is_thinned_and_still_diagnosed(monkeypatch, tmp_path):
     """Above MAX_ROWS rows the diagnosis uses every k-th row (said in the report) and finds the planted lag as before."""
-    import hybridcomp.diagnose.dataonly as dataonly
+    from hybridcomp.diagnose import dataonly
 
     ds = _spindle_data(hours=30.0, dt=30.0)  # 3,600 rows
     monkeypatch.setattr(dataonly, "MAX_ROWS", 1000)

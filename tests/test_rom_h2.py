@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.linalg as la
-
 from hybridcomp.rom import h2
 
 
@@ -85,8 +84,9 @@ def test_fixed_directions_stay_in_the_basis():
 
 
 def test_reduce_cli_passes_h2_maxiter_and_rejects_a_negative_one(tmp_path, monkeypatch, capsys):
-    from hybridcomp.cli import main
     from hybridcomp.rom import machine as rom_machine
+
+    from hybridcomp.cli import main
 
     seen = {}
 
