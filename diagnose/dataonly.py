@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, check_channels
 from hybridcomp.diagnose.metrics import channel_metrics
 from hybridcomp.diagnose.problem import first_order_lag

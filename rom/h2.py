@@ -35,6 +35,7 @@ from functools import cached_property
 
 import numpy as np
 import scipy.linalg as la
+
 from hybridcomp.fem.blas import single_blas_thread
 from hybridcomp.rom.krylov import ThermalSystem, project
 

@@ -7,19 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hybridcomp.diagnose import Dataset, DatasetError, parse_split, read_dataset
-from hybridcomp.diagnose.dataonly import diagnose_data_only, heating_cooling_lag
-from hybridcomp.diagnose.metrics import (
-    cross_correlation,
-    ep95_curve,
-    fit_percent,
-    noise_level,
-    p2p,
-    rms,
-)
-from hybridcomp.diagnose.problem import first_order_lag
 
 from hybridcomp.cli import main
+from hybridcomp.diagnose import Dataset, DatasetError, parse_split, read_dataset
+from hybridcomp.diagnose.dataonly import diagnose_data_only, heating_cooling_lag
+from hybridcomp.diagnose.metrics import cross_correlation, ep95_curve, fit_percent, noise_level, p2p, rms
+from hybridcomp.diagnose.problem import first_order_lag
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "caiviac-spindle" / "measured.csv"
 

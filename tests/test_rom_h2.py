@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.linalg as la
+
 from hybridcomp.rom import h2
 
 
@@ -84,9 +85,8 @@ def test_fixed_directions_stay_in_the_basis():
 
 
 def test_reduce_cli_passes_h2_maxiter_and_rejects_a_negative_one(tmp_path, monkeypatch, capsys):
-    from hybridcomp.rom import machine as rom_machine
-
     from hybridcomp.cli import main
+    from hybridcomp.rom import machine as rom_machine
 
     seen = {}
 
