@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         model = build_model(machine, pose, args.element_size_mm)
         print(f"reducing {model.n} nodes ...", file=sys.stderr)
         rom = reduce_model(model, tol_K=args.tol_K, tol_um=args.tol_um, order=args.order, h_range=args.h_range,
-                           check_loads=check, keep_basis=not args.no_basis, basis=args.basis,
+                           check_loads=check, keep_basis=not args.no_basis, basis=args.basis, progress=True,
                            **({} if args.h2_maxiter is None else {"h2_maxiter": args.h2_maxiter}))
     save_rom(args.out, rom)
     summary = {"out": str(args.out), "order": rom.order, "seconds": round(time.perf_counter() - t0, 2)}

@@ -249,7 +249,7 @@ def _lbfgs(fun, x0: np.ndarray, maxiter: int, m: int = 50, ftol: float = 1e-13) 
 def optimal_subspace(forms: list[ModalForm], Z0: np.ndarray, maxiter: int = 2000,
                      fixed: np.ndarray | None = None, restart: int = 1000,
                      precondition: bool = True, memory: tuple[int, int] = (50, 150),
-                     tail: float = 0.2) -> tuple[np.ndarray, float]:
+                     tail: float = 0.2, progress: bool = False) -> tuple[np.ndarray, float]:
     """Orthonormal ``Z`` (common frame) minimising Σ_k J_k / ‖G_k‖² by preconditioned L-BFGS; returns ``Z`` and that sum.
 
     With ``fixed`` (orthonormal columns of the common frame), the basis is ``[fixed, Z]`` and only ``Z``,
@@ -271,6 +271,7 @@ def optimal_subspace(forms: list[ModalForm], Z0: np.ndarray, maxiter: int = 2000
     relative error 1.064e-4 → 1.041e-4 with 50 pairs, → 0.945e-4 with 150).
 
     ``precondition=False`` runs plain L-BFGS on ``Z`` (one run, no restarts, ``memory[0]`` pairs), for comparison.
+    ``progress`` shows a progress bar (stderr) over the iterations with the relative H2 error reached.
     """
     n, r = Z0.shape
     T0 = forms[0].T
@@ -305,6 +306,11 @@ def optimal_subspace(forms: list[ModalForm], Z0: np.ndarray, maxiter: int = 2000
     Zw = T0.T @ Z0
     Qz = np.linalg.qr(Zw - F @ (F.T @ Zw))[0]
     nit, J, message = 0, float("nan"), "no iterations"
+    bar = None
+    if progress and maxiter > 0:
+        from tqdm import tqdm
+
+        bar = tqdm(total=maxiter, unit="it", desc=f"H2-optimal basis, order {r + f_count}", leave=False)
     with single_blas_thread():
         while nit < maxiter:
             in_tail = nit >= (1 - tail) * maxiter
@@ -313,10 +319,15 @@ def optimal_subspace(forms: list[ModalForm], Z0: np.ndarray, maxiter: int = 2000
             y, J, k, message = _lbfgs(fun, y0, budget, m=memory[1] if in_tail else memory[0])
             Qz = free(y)[0]
             nit += max(k, 1)
+            if bar is not None:
+                bar.update(min(max(k, 1), maxiter - bar.n))
+                bar.set_postfix_str(f"relative H2 error {np.sqrt(max(J, 0.0) / len(forms)):.3g} (RMS over h)")
             if message != "maxiter":  # converged, or the line search failed: restarting will not help
                 break
         if maxiter <= 0:
             J = fun((Qz / s[:, None]).ravel())[0]
+    if bar is not None:
+        bar.close()
     Z = T0 @ np.hstack([F, Qz])
     log.info("H2-optimal subspace of order %d (%d fixed): %d L-BFGS iterations, relative error² sum %.3g (%s)",
              Z.shape[1], f_count, nit, J, message)
@@ -325,7 +336,7 @@ def optimal_subspace(forms: list[ModalForm], Z0: np.ndarray, maxiter: int = 2000
 
 def h2_optimal_basis(system: ThermalSystem, V_big: np.ndarray, order: int, h_list, input_scale: np.ndarray,
                      output_weight: np.ndarray, maxiter: int = 2000, start: np.ndarray | None = None,
-                     fixed: np.ndarray | None = None) -> np.ndarray:
+                     fixed: np.ndarray | None = None, progress: bool = False) -> np.ndarray:
     """Orthonormal basis (n × order) of the one-sided projection with (locally) smallest H2 error, within ``span(V_big)``.
 
     Parameters
@@ -341,6 +352,7 @@ def h2_optimal_basis(system: ThermalSystem, V_big: np.ndarray, order: int, h_lis
         truncation's right basis and the dominant Gramian eigenvectors of the surrogate at the first h
     fixed : optional directions the basis must contain (n × f, inside ``span(V_big)``), e.g. the
         ``s = 0`` Krylov block so that steady states stay exact
+    progress : show a progress bar of the optimisation (stderr)
 
     The first ``f`` columns of the result span ``fixed``.
     """
@@ -365,7 +377,7 @@ def h2_optimal_basis(system: ThermalSystem, V_big: np.ndarray, order: int, h_lis
     Z0 = Z0[:, :n_free]
     if Wf is not None:
         Z0 = Z0 - Wf @ (Wf.T @ Z0)
-    Z, _ = optimal_subspace(forms, np.linalg.qr(Z0)[0], maxiter, Wf)
+    Z, _ = optimal_subspace(forms, np.linalg.qr(Z0)[0], maxiter, Wf, progress=progress)
     V = np.linalg.qr(F @ Z)[0]
     log.info("H2-optimal one-sided basis of order %d in %.1f s", order, time.perf_counter() - t0)
     return V

@@ -188,7 +188,8 @@ def gramian_directions(system: ThermalSystem, V: np.ndarray, h_list, input_scale
     return V @ la.solve_triangular(L.T, inter, lower=False)
 
 
-def _reduce_h2(system, reductor, samples, scale, tol, order, max_order, step, accept, fastest_time_s, maxiter):
+def _reduce_h2(system, reductor, samples, scale, tol, order, max_order, step, accept, fastest_time_s, maxiter,
+               progress=False):
     """The H2-optimal one-sided basis (see :func:`reduce_model`): a Reduction and the method text."""
     from hybridcomp.rom.h2 import h2_optimal_basis
 
@@ -204,7 +205,8 @@ def _reduce_h2(system, reductor, samples, scale, tol, order, max_order, step, ac
         N = min(system.n, max(500, 4 * r))
         V_big = sur_red.reduce(order=N).V
         fixed = s0 if r >= n_first else None
-        return h2_optimal_basis(system, V_big, r, h_list, scale, 1.0 / tol, maxiter=maxiter, fixed=fixed)
+        return h2_optimal_basis(system, V_big, r, h_list, scale, 1.0 / tol, maxiter=maxiter, fixed=fixed,
+                                progress=progress)
 
     point = ExpansionPoint(0.0, tuple(float(v) for v in system.h), 1)
     if order is not None:
@@ -239,6 +241,7 @@ def reduce_model(
     compress_step: int = 4,
     basis: str = "krylov",
     h2_maxiter: int = 1500,
+    progress: bool = False,
 ) -> ReducedModel:
     """Reduce a machine's FE model to a tolerance or an order, checked against FE on a load case.
 
@@ -267,6 +270,7 @@ def reduce_model(
         order allows (steady states exact), and in tolerance mode grows by ``chunk`` directions until the
         FE check passes.  Both are one-sided Galerkin projections: symmetric, stable, affine in h.
     h2_maxiter : L-BFGS iterations per H2-optimal basis
+    progress : with ``basis="h2"``: a progress bar (stderr) over each basis's L-BFGS iterations
 
     Blocks are added greedily (see :class:`~hybridcomp.rom.krylov.Reductor`)
     until the reduced model, integrated by the same θ-method as FE (so that
@@ -323,7 +327,7 @@ def reduce_model(
 
     if basis == "h2":
         red, method = _reduce_h2(system, reductor, samples, scale, tol, order, max_order, chunk or 8, accept,
-                                 fastest_time_s, h2_maxiter)
+                                 fastest_time_s, h2_maxiter, progress)
     else:
         red = reductor.reduce(target=0.5, order=order, max_order=max_order, accept=accept, chunk=chunk)
         method = "greedy Krylov"

@@ -55,6 +55,17 @@ def test_optimum_over_two_forms_is_stationary_and_beats_its_start():
     assert _riemannian_grad_norm(forms, Z) < 1e-3 * _riemannian_grad_norm(forms, Z0)
 
 
+def test_progress_bar_reports_without_changing_the_result(capsys):
+    K, B, C, rng = _system(seed=5)
+    f = h2.modal_form(np.eye(K.shape[0]), K, B, C)
+    Z0 = np.linalg.qr(rng.standard_normal((K.shape[0], 5)))[0]
+    Z1, J1 = h2.optimal_subspace([f], Z0, maxiter=300, restart=100)
+    Z2, J2 = h2.optimal_subspace([f], Z0, maxiter=300, restart=100, progress=True)
+    assert J1 == J2 and np.array_equal(Z1, Z2)
+    err = capsys.readouterr().err
+    assert "H2-optimal basis, order 5" in err and f"relative H2 error {np.sqrt(J2):.3g}" in err
+
+
 def test_preconditioned_optimiser_beats_plain_lbfgs_at_equal_iterations():
     """The point of the row/column preconditioning: on a system whose decay rates span four decades it gets
     (much) closer to the optimum than plain L-BFGS on the QR parametrisation with the same number of
