@@ -148,55 +148,10 @@ def candidate_terms(ds: Dataset, temps: list[str]) -> list[Term]:
     return out
 
 
-def _fit(time_s, terms: list[Term], y: np.ndarray, train: np.ndarray, ar_tau_h: float | None):
-    X = np.column_stack([np.ones(y.size)] + [tm.values for tm in terms])
-    if ar_tau_h:
-        X = np.column_stack([first_order_lag(time_s, X[:, j], ar_tau_h * 3600) for j in range(X.shape[1])])
-    coef, *_ = np.linalg.lstsq(X[train], y[train], rcond=None)
-    return coef, X @ coef
-
-
-def decorrelation_samples(r: np.ndarray) -> int:
-    """Lag [samples] at which a residual's autocorrelation falls below 1/e (at least 1)."""
-    a = np.asarray(r, float) - np.mean(r)
-    m = 1 << int(np.ceil(np.log2(2 * a.size)))
-    f = np.fft.rfft(a, m)
-    ac = np.fft.irfft(f * np.conj(f), m)[: a.size]
-    if ac[0] <= 0:
-        return 1
-    below = np.flatnonzero(ac / ac[0] < np.exp(-1))
-    return int(max(1, below[0] if below.size else a.size))
-
-
-def _bic(y, y_hat, mask, k) -> float:
-    """BIC on the training rows.  (Dividing N by the residual's decorrelation length, tried on the spindle
-    test, selected fewer inputs and predicted the validation part worse.)"""
-    r = y[mask] - y_hat[mask]
-    return _bic_rss(float(r @ r), r.size, k)
-
-
 def _bic_rss(rss, n: int, k: int):
+    """BIC of a least-squares fit on ``n`` rows with ``k`` parameters.  (Dividing ``n`` by the residual's
+    decorrelation length, tried on the spindle test, selected fewer inputs and predicted the validation part worse.)"""
     return n * np.log(np.maximum(rss, 1e-300) / n) + k * np.log(n)
-
-
-def _greedy_temps(t, temps: dict[str, np.ndarray], y, train) -> list[Term]:
-    """Forward selection of temperature inputs by BIC on the training part."""
-    chosen: list[Term] = []
-    pool = [Term(n, "sensor", {"sensor": n}, v) for n, v in temps.items()]
-    _, yh = _fit(t, chosen, y, train, None)
-    best_bic = _bic(y, yh, train, 1)
-    while pool and len(chosen) < MAX_INPUTS:
-        trials = []
-        for tm in pool:
-            _, yh = _fit(t, chosen + [tm], y, train, None)
-            trials.append((_bic(y, yh, train, len(chosen) + 2), tm))
-        b, tm = min(trials, key=lambda x: x[0])
-        if b > best_bic - MIN_BIC_DROP:
-            break
-        chosen.append(tm)
-        pool.remove(tm)
-        best_bic = b
-    return chosen
 
 
 class _Library:
@@ -283,6 +238,21 @@ class _Scorer:
         fit = 100.0 * (1.0 - np.sqrt(np.einsum("ij,ij->j", E, E)) / self.den)
         bic = _bic_rss(rss, self.n, X.shape[1] + 1 + (ar_tau_h is not None))
         return np.where(new, bic, np.inf), np.where(new, fit, -np.inf)
+
+
+def forward_sensors(scorer: _Scorer, n_sensors: int) -> tuple[int, ...]:
+    """Forward selection of the sensor inputs (the first ``n_sensors`` library columns) by training BIC: the model
+    under test.  Each added input must lower the BIC by ``MIN_BIC_DROP``; at most ``MAX_INPUTS``."""
+    idx: tuple[int, ...] = ()
+    best = scorer.score(idx, None)[0]
+    while len(idx) < MAX_INPUTS:
+        bics = scorer.additions(idx, None)[0][:n_sensors]
+        j = int(np.argmin(bics))
+        if not bics[j] <= best - MIN_BIC_DROP:
+            break
+        idx += (j,)
+        best = float(bics[j])
+    return idx
 
 
 def beam_search(scorer: _Scorer, start: tuple[int, ...], droppable: set[int], beam_width: int = BEAM_WIDTH,
@@ -402,10 +372,9 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
         sc = _Scorer(lib, y, tr, va, ch)
         _, yh = sc.predict(every, None)
         reference[ch] = {**channel_metrics(y[va], yh[va]), "terms": len(every)}
-        base_terms = _greedy_temps(t, temp_vals, y, tr)
-        start = tuple(lib.index[tm.name] for tm in base_terms)
+        start = forward_sensors(sc, len(temp_vals))
         _, yh = sc.predict(start, None)
-        base[ch] = {**channel_metrics(y[va], yh[va]), "inputs": [tm.name for tm in base_terms]}
+        base[ch] = {**channel_metrics(y[va], yh[va]), "inputs": [lib.terms[i].name for i in start]}
         best = beam_search(sc, start, droppable, beam_width, max_terms, min_fit_gain)
         coef, yh = sc.predict(best.idx, best.ar_tau_h)
         extended[ch] = ChannelModel(ch, tuple(lib.terms[i] for i in best.idx), best.ar_tau_h, coef, yh)
