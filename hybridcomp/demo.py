@@ -134,7 +134,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
 
     stages.next()
     day_plots = _day_plots(machine, nominal.files["controller"], out / "day")
-    summary = _summary(options, nominal, after, diag_summary, out, time.perf_counter() - t_all, stages.times)
+    summary = _summary(options, nominal, after, diag_summary, time.perf_counter() - t_all, stages.times)
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
     _report(out, options, summary, nominal, after, pictures, day_plots)
     stages.next()
@@ -175,7 +175,7 @@ def _day_plots(machine, trace: Path, day: Path) -> dict:
         return {}
 
 
-def _summary(options, nominal, after, diag_summary: dict, out: Path, total_s: float, stage_s: dict) -> dict:
+def _summary(options, nominal, after, diag_summary: dict, total_s: float, stage_s: dict) -> dict:
     m0 = {k: v["3d"] for k, v in nominal.metrics.items()}
     m1 = {k: v["3d"] for k, v in after.metrics.items()}
     rows = {
@@ -338,8 +338,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not 0 < args.day_hours <= 16:
-        print(f"error: --day-hours must be in (0, 16], got {args.day_hours}", file=sys.stderr)
+    from hybridcomp.histogram.scenarios import JOBSHOP_HOURS
+
+    if not 0 < args.day_hours <= JOBSHOP_HOURS:
+        print(f"error: --day-hours must be in (0, {JOBSHOP_HOURS:g}], got {args.day_hours}", file=sys.stderr)
         return 2
     opts = DemoOptions(element_size_mm=args.element_size_mm, source=args.plant_source, factor=args.plant_factor,
                        day_hours=args.day_hours, basic_hours=args.basic_hours, rom_order=args.rom_order,
