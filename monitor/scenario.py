@@ -38,7 +38,6 @@ log = logging.getLogger(__name__)
 
 WINDOWS_S = (900.0, 1800.0, 3600.0, 2 * 3600.0, 4 * 3600.0, 8 * 3600.0, 15 * 3600.0)
 DIRS = ("dx_um", "dy_um", "dz_um")
-STRATEGIES = ("no compensation", "static default CDs", "hybrid monitor", "ROM direct", "MLR on sensors")
 
 
 # --------------------------------------------------------------------------- metrics (pure)
@@ -226,7 +225,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     # 1. the day as the controller records it (trace_rate_hz samples), its BCs, and the real machine
     #    (FE + planted disturbance) driven by the same BCs the models will derive from that record
     t0 = time.perf_counter()
-    files = write_scenario("jobshop", machine, out / "scenario")
+    files = write_scenario("jobshop", machine, out / "scenario", rate_hz=trace_rate_hz)
     if day_hours is not None and not 0 < day_hours <= JOBSHOP_HOURS:
         raise ValueError(f"day_hours must be in (0, {JOBSHOP_HOURS:g}], got {day_hours}")
     t_end = (day_hours or JOBSHOP_HOURS) * 3600.0
@@ -299,10 +298,9 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     hybrid = off[k]
 
     # 6. the other strategies
-    X = np.column_stack([T_meas, np.tile([pose[a.name] for a in machine.axes], (t.size, 1))])
-    names = [s.name for s in machine.sensors] + [a.name for a in machine.axes]
-    static = np.column_stack([default[d].evaluate(X[:, [names.index(n) for n in default[d].input_names]])[0]
-                              for d in ("X", "Y", "Z")])
+    measured = {f"{s.name}_degC": T_meas[:, j] for j, s in enumerate(machine.sensors)}
+    measured |= {f"{a.name.lower()}_mm": np.full(t.size, float(pose[a.name])) for a in machine.axes}
+    static = np.column_stack([default[d].evaluate_table(measured)[0] for d in ("X", "Y", "Z")])
     U = loads.as_inputs(machine.reference_temperature_degC)  # what the models know: no disturbance
     Y, _ = rom.simulate(loads.time_s, U)
     _, rom_drift = split_outputs(rom, Y)
