@@ -592,6 +592,7 @@ def run_batch(
 
     t0 = time.perf_counter()
     kind = executor if isinstance(executor, str) else type(executor).__name__
+    n = min(workers or os.cpu_count() or 1, len(todo))  # process or Dask workers: none without a case to build a model for
     try:
         if not todo:
             pass
@@ -603,10 +604,8 @@ def run_batch(
                     raise BatchError(f"load case {name!r} failed: {exc}") from exc
                 done(r)
         elif executor == "process":
-            n = min(workers or os.cpu_count() or 1, len(todo))  # no worker without a case to build a model for
             _run_process_pool(n, threads_per_worker, max_restarts, spec, options, todo, done)
         elif isinstance(executor, str):
-            n = min(workers or os.cpu_count() or 1, len(todo))
             with dask_client(executor, n, threads_per_worker) as client:
                 _run_dask(client, spec, options, todo, done, warm)
         elif isinstance(executor, cf.Executor):
