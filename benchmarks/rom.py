@@ -95,8 +95,8 @@ def pymor_check(model, orders: list[int], irka_maxit: int = 50, input_scaling: s
         return h2.general_h2_error(truth, *rom_mats) if truth is not None else float("nan")
 
     def galerkin(V):
-        lti = LTIModel.from_matrices(V.T @ (A @ V), V.T @ B, C @ V, E=V.T @ (E @ V))
         mats = (V.T @ (A @ V), V.T @ B, C @ V, V.T @ (E @ V))
+        lti = LTIModel.from_matrices(*mats[:3], E=mats[3])
         return (fom - lti).h2_norm() / fom_h2, exact(mats)
 
     rows = []
