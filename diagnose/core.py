@@ -84,7 +84,7 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     return d
 
 
-def dataset_from_trace(path, machine, increment_s: float = 60.0) -> Dataset:
+def dataset_from_trace(path, machine, increment_s: float = 60.0, raw: Dataset | None = None) -> Dataset:
     """A measured trace (``time_s``, axis positions ``x_mm`` …, ``spindle_rpm``, measured ``Tamb_degC``, sensors
     ``T1_degC`` …, drift ``dx_um`` …) turned into a diagnosis dataset.
 
@@ -96,6 +96,7 @@ def dataset_from_trace(path, machine, increment_s: float = 60.0) -> Dataset:
     path : trace CSV
     machine : the machine (axes, sources)
     increment_s : histogram increment [s]
+    raw : the trace file already read as a dataset (its own column names), if the caller has it
     """
     from hybridcomp.histogram import boundary_conditions, increments_from_trace
 
@@ -103,7 +104,8 @@ def dataset_from_trace(path, machine, increment_s: float = 60.0) -> Dataset:
 
     inc = increments_from_trace(path, machine, increment_s)
     loads = boundary_conditions(machine, inc)
-    raw = read_dataset(path)
+    if raw is None:
+        raw = read_dataset(path)
     t = loads.time_s
     cols = {n: loads.values[:, j] for j, n in enumerate(loads.names)}
     for n in raw.names:
@@ -124,7 +126,7 @@ def read_measured(path, machine, column_map=None, increment_s: float = 60.0) -> 
     if not has_power and positions and all(p in ds.names for p in positions):
         if column_map is not None:
             raise DatasetError(f"{path}: a trace is read by its own column names; a column map is only for loads-form datasets")
-        return dataset_from_trace(path, machine, increment_s)
+        return dataset_from_trace(path, machine, increment_s, raw=ds)  # read without a map: the trace as it is
     return ds
 
 
