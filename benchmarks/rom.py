@@ -133,8 +133,9 @@ def pymor_check(model, orders: list[int], irka_maxit: int = 50, input_scaling: s
     return rows
 
 
-def plot_h2(rows: list[dict], path: Path, title: str) -> Path:
-    """Relative H2 error against order: greedy Krylov, H2-optimal one-sided, balanced truncation, IRKA."""
+def plot_h2(run: dict, path: Path) -> Path:
+    """Relative H2 error against order of a :func:`run_pymor` result: greedy Krylov, H2-optimal one-sided,
+    balanced truncation, IRKA."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -143,6 +144,8 @@ def plot_h2(rows: list[dict], path: Path, title: str) -> Path:
     def col(key):
         return [float(r[key]) if isinstance(r[key], (int, float)) else float("nan") for r in rows]
 
+    rows = sorted(run["rows"], key=lambda row: row["order"])
+    title = f"vmc800, {run['nodes']} nodes, nominal h; inputs scaled: {run['input_scaling']}, outputs 1/tol"
     r = [row["order"] for row in rows]
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.semilogy(r, col("greedy_exact"), "s-", label="ours: greedy rational Krylov (one-sided)")
@@ -161,6 +164,24 @@ def plot_h2(rows: list[dict], path: Path, title: str) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def run_pymor(args) -> dict:
+    """The pyMOR cross-check of the command line (``--pymor`` or ``--pymor-only``): prints its table, plots it
+    (``--figure``) and returns ``{"nodes", "input_scaling", "rows"}`` for the JSON line."""
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.models import load_machine
+
+    model = build_model(load_machine("vmc800"), None, args.pymor_element_size_mm)
+    rows = pymor_check(model, [int(v) for v in args.pymor_orders.split(",")], args.irka_maxit,
+                       args.pymor_input_scaling, args.h2_maxiter)
+    run = {"nodes": model.n, "input_scaling": args.pymor_input_scaling, "rows": rows}
+    print(f"pyMOR cross-check at {model.n} nodes (relative H2 errors; inputs scaled: {args.pymor_input_scaling}, "
+          "outputs weighted by 1/tolerance)")
+    print(table([{k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows], list(rows[0])))
+    if args.figure:
+        plot_h2(run, args.figure)
+    return run
 
 
 def speed_child(path: str, hours: float, repeats: int) -> dict:
@@ -211,7 +232,7 @@ def main(argv=None) -> int:
                    help="inputs scaled by their largest magnitude on the example day (range) or not (unit)")
     p.add_argument("--h2-maxiter", type=int, default=45000, help="L-BFGS iterations of the H2-optimal basis "
                    "(the published pyMOR table: 45,000)")
-    p.add_argument("--figure", type=Path, help="with --pymor-only: plot the H2 errors against order to this PNG")
+    p.add_argument("--figure", type=Path, help="with --pymor or --pymor-only: plot the H2 errors against order to this PNG")
     p.add_argument("--plot-from", type=Path, help="only plot (--figure) from the JSON line of an earlier --pymor-only run")
     p.add_argument("--speed-child", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -219,23 +240,10 @@ def main(argv=None) -> int:
         print(json.dumps(speed_child(args.speed_child, args.hours, args.repeats)))
         return 0
     if args.plot_from:
-        data = json.loads(args.plot_from.read_text().strip().splitlines()[-1])["pymor"]
-        rows = sorted(data["rows"], key=lambda r: r["order"])
-        print(plot_h2(rows, args.figure, f"vmc800, {data['nodes']} nodes, nominal h; inputs scaled: {data['input_scaling']}, outputs 1/tol"))
+        print(plot_h2(json.loads(args.plot_from.read_text().strip().splitlines()[-1])["pymor"], args.figure))
         return 0
     if args.pymor_only:
-        from hybridcomp.fem.model import build_model
-        from hybridcomp.models import load_machine
-
-        m2 = build_model(load_machine("vmc800"), None, args.pymor_element_size_mm)
-        rows = pymor_check(m2, [int(v) for v in args.pymor_orders.split(",")], args.irka_maxit,
-                           args.pymor_input_scaling, args.h2_maxiter)
-        print(f"pyMOR cross-check at {m2.n} nodes (relative H2 errors; inputs scaled: {args.pymor_input_scaling}, "
-              "outputs weighted by 1/tolerance)")
-        print(table([{k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows], list(rows[0])))
-        if args.figure:
-            plot_h2(rows, args.figure, f"vmc800, {m2.n} nodes, nominal h; inputs scaled: {args.pymor_input_scaling}, outputs 1/tol")
-        print(json.dumps({"pymor": {"nodes": m2.n, "input_scaling": args.pymor_input_scaling, "rows": rows}}, default=str))
+        print(json.dumps({"pymor": run_pymor(args)}, default=str))
         return 0
 
     from hybridcomp.fem.loads import example_loads
@@ -359,14 +367,8 @@ def main(argv=None) -> int:
                            "week<=2s": week_s <= 2.0})
 
     if args.pymor:
-        m2 = build_model(machine, None, args.pymor_element_size_mm)
-        rows = pymor_check(m2, [int(v) for v in args.pymor_orders.split(",")], args.irka_maxit,
-                           args.pymor_input_scaling, args.h2_maxiter)
         print()
-        print(f"pyMOR cross-check at {m2.n} nodes (relative H2 errors, outputs weighted by 1/tolerance)")
-        print(table([{k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows],
-                    list(rows[0])))
-        result["pymor"] = {"nodes": m2.n, "rows": rows}
+        result["pymor"] = run_pymor(args)
     print()
     print(json.dumps(result, default=float))
     return 0
