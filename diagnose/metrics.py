@@ -99,6 +99,14 @@ def cross_correlation(res: np.ndarray, sig: np.ndarray, max_lag: int) -> tuple[n
     return lags, vals
 
 
+def lag_grid(time_s, max_lag_s: float = 4 * 3600.0) -> tuple[float, int]:
+    """Sample interval [s] of a series and the largest lag [samples] its cross-correlations look at: ``max_lag_s``,
+    at most a third of the series."""
+    t = np.asarray(time_s, float)
+    dt = float(np.median(np.diff(t)))
+    return dt, max(1, min(int(max_lag_s / dt), t.size // 3))
+
+
 def strongest_correlations(time_s, residuals: dict, signals: dict, max_lag_s: float = 4 * 3600.0, top: int = 8,
                            n_lags: int = 49) -> list[Correlation]:
     """The strongest |ρ| of every residual channel against every signal, over lags up to ``max_lag_s`` [s].
@@ -106,9 +114,7 @@ def strongest_correlations(time_s, residuals: dict, signals: dict, max_lag_s: fl
     Signals and residuals are compared as changes (first differences of a smoothed series would
     favour noise; the series themselves are used, mean removed), one best lag per pair.
     """
-    t = np.asarray(time_s, float)
-    dt = float(np.median(np.diff(t)))
-    max_lag = max(1, min(int(max_lag_s / dt), t.size // 3))
+    dt, max_lag = lag_grid(time_s, max_lag_s)
     out = []
     for c, r in residuals.items():
         for s, v in signals.items():

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridcomp.diagnose.metrics import cross_correlation, ep95_curve, strongest_correlations
+from hybridcomp.diagnose.metrics import cross_correlation, ep95_curve, lag_grid, strongest_correlations
 from hybridcomp.diagnose.selection import Diagnosis
 
 log = logging.getLogger(__name__)
@@ -95,8 +95,7 @@ def _plots(d: Diagnosis, out: Path, ep: dict, corr: list) -> list[str]:
     plt.close(fig)
     files.append("ep95.png")
     if corr:
-        dt = float(np.median(np.diff(p.time_s)))
-        max_lag = max(1, min(int(4 * 3600 / dt), int(va.sum()) // 3))
+        dt, max_lag = lag_grid(p.time_s[va])  # the lags strongest_correlations looked at
         fig, ax = plt.subplots(figsize=(8, 4))
         for c in corr[:6]:
             k = p.channels.index(c.channel)
