@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hybridcomp.histogram.increments import DEFAULT_MAX_GAP_S
 from hybridcomp.monitor.decisions import Backoff, SensorRules
 
 
@@ -122,7 +123,7 @@ class MonitorConfig:
     compensation_interval_s: float = 5.0
     monitoring_interval_s: float = 900.0
     increment_s: float = 300.0
-    max_gap_s: float = 10.0
+    max_gap_s: float = DEFAULT_MAX_GAP_S
     threshold_K: float = 0.5
     model_drift_K: float = 1.0
     max_offset_um: float = 200.0
@@ -333,7 +334,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         compensation_interval_s=comp,
         monitoring_interval_s=mon,
         increment_s=inc,
-        max_gap_s=m.number("max_gap_s", 10.0, positive=True),
+        max_gap_s=m.number("max_gap_s", DEFAULT_MAX_GAP_S, positive=True),
         threshold_K=m.number("threshold_K", 0.5, positive=True),
         model_drift_K=m.number("model_drift_K", 1.0, positive=True),
         max_offset_um=c.number("max_offset_um", 200.0, positive=True),
