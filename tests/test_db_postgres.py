@@ -296,7 +296,7 @@ def _tail_while_an_earlier_writer_is_still_committing(db, url: str) -> tuple[lis
     @sa.event.listens_for(a.engine, "commit")
     def hold(conn):  # A's INSERT has run (its id is taken); its commit waits
         at_commit.set()
-        go.wait(3)  # on SQLite the reader itself waits for this commit (reads run BEGIN IMMEDIATE too)
+        go.wait(3)  # on SQLite writer B waits for this commit (writes run BEGIN IMMEDIATE; reads do not wait)
 
     try:
         ta = threading.Thread(target=a.log_event, args=("sensor", 1.0, {"who": "a"}))
