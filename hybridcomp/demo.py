@@ -102,7 +102,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     from hybridcomp.monitor.scenario import run_scenario
     from hybridcomp.rom import load_rom
 
-    out = Path(out_dir)
+    out = Path(out_dir).resolve()  # once, against the caller's working directory
     out.mkdir(parents=True, exist_ok=True)
     machine = load_machine("vmc800")
     stages = _Stages(["machine picture", "real machine with the planted effect",

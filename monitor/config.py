@@ -233,7 +233,9 @@ def _database_url(text: str, base: Path) -> str:
 
 def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None = None) -> MonitorConfig:
     """Build a :class:`MonitorConfig` from parsed TOML, checking every key and value."""
-    base = Path(base_dir) if base_dir is not None else Path.cwd()
+    # resolved once, here: every path of the configuration leaves this function absolute, so no process that
+    # receives it (a generation worker with another working directory) can join it to a folder a second time
+    base = (Path(base_dir) if base_dir is not None else Path.cwd()).resolve()
     for sec in data:
         if sec not in _SECTIONS:
             raise ConfigError(f"{source}: unknown section [{sec}]{_hint(sec, _SECTIONS)}")

@@ -214,7 +214,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     from hybridcomp.rom import save_rom
     from hybridcomp.rom.machine import reduce_model, split_outputs
 
-    out = Path(out_dir)
+    out = Path(out_dir).resolve()  # once, against the caller's working directory (paths cross into the worker)
     out.mkdir(parents=True, exist_ok=True)
     timings = {}
     t_all = time.perf_counter()

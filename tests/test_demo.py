@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import pytest
 
@@ -11,11 +12,19 @@ pytest.importorskip("sqlalchemy", reason="the demo's CD database needs SQLAlchem
 from hybridcomp.cli import main  # noqa: E402
 
 
-def test_short_demo_names_the_planted_cause_and_hybrid_beats_static(tmp_path):
+def test_short_demo_names_the_planted_cause_and_hybrid_beats_static(tmp_path, monkeypatch, caplog):
+    # a relative --out, as README types it: the generation worker must write into the same database
+    monkeypatch.chdir(tmp_path)
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--element-size-mm", "150", "--day-hours", "6", "--basic-hours", "3",
+    assert main(["demo", "--out", "demo", "--element-size-mm", "150", "--day-hours", "6", "--basic-hours", "3",
                  "--no-pictures", "--no-progress"]) == 0
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], "the demo logged errors"
+    assert not (out / "hybrid_nominal" / "demo").exists(), "a relative path was joined twice"
     s = json.loads((out / "summary.json").read_text())
+    generated = [e["ids"] for e in s["events"] if e["kind"] == "generation" and e["status"] == "finished"]
+    activated = [e["ids"] for e in s["events"] if e["kind"] == "activation"]
+    assert generated, "the short demo should generate at least one CD set"
+    assert all(ids in activated for ids in generated), "a generated CD set was not activated"
     r = s["residual_3d"]
     # the diagnosis names the planted effect (front spindle bearing at 1.6 x its power) and recovers its factor
     assert s["diagnosis"]["verdict"] == "explained" and s["diagnosis"]["planted_cause_named"]
