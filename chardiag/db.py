@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.errors import HybridcompError
 from hybridcomp.chardiag.cd import DIRECTIONS, CDSet, CharDiagram, pose_key
 from hybridcomp.chardiag.xmlio import cd_from_bytes, cd_to_bytes
 
@@ -42,7 +43,7 @@ SCHEMA_VERSION = 1
 EVENTS_LOCK = "hybridcomp events"
 
 
-class CDDatabaseError(RuntimeError):
+class CDDatabaseError(HybridcompError, RuntimeError):
     """The CD database cannot be opened or used; the message names the URL, table and value."""
 
 

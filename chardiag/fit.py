@@ -29,13 +29,14 @@ import scipy.sparse as sp
 from scipy import stats
 from scipy.sparse.linalg import splu
 
+from hybridcomp.errors import HybridcompError
 from hybridcomp import __version__
 from hybridcomp.chardiag.cd import DIRECTIONS, TARGETS, CDError, CDInput, CharDiagram, Term, _term_weights
 
 log = logging.getLogger(__name__)
 
 
-class CDFitError(ValueError):
+class CDFitError(HybridcompError, ValueError):
     """Training data cannot give a CD; the message names the source, column and value."""
 
 

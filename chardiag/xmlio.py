@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from lxml import etree
 
+from hybridcomp.errors import HybridcompError
 from hybridcomp.chardiag.cd import CDError, CDInput, CharDiagram, Term
 
 NS = "urn:hybridcomp:characteristic-diagram:1"
@@ -28,7 +29,7 @@ MAX_BYTES = 16 * 1024 * 1024
 _Q = "{%s}" % NS
 
 
-class CDXmlError(ValueError):
+class CDXmlError(HybridcompError, ValueError):
     """A CD file is unsafe, invalid or for another machine; the message names the file, line and field."""
 
 

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.errors import HybridcompError
+
 log = logging.getLogger(__name__)
 
 MIN_VALIDATION_SAMPLES = 30
@@ -34,7 +36,7 @@ MIN_VALIDATION_FRACTION = 0.05
 MIN_TRAINING_SAMPLES = 30
 
 
-class DatasetError(ValueError):
+class DatasetError(HybridcompError, ValueError):
     """A measured dataset, column map or split is invalid; the message names the file, column and value."""
 
 

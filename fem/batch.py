@@ -61,6 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.errors import HybridcompError
 from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.loads import Loads, LoadsFileError, in_model_order, input_columns, read_loads, write_outputs
 from hybridcomp.models.machine import Machine
@@ -84,7 +85,7 @@ _MALLOC_WARNED = False
 _CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
-class BatchError(RuntimeError):
+class BatchError(HybridcompError, RuntimeError):
     """A batch could not be completed; the message names the case and the cause."""
 
 

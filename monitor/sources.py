@@ -23,6 +23,7 @@ from collections.abc import AsyncIterator, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from hybridcomp.errors import HybridcompError
 from hybridcomp.histogram.trace import (
     DRIFT,
     SPINDLE_RPM,
@@ -40,7 +41,7 @@ class SourceDisconnected(ConnectionError):
     """The data source lost (or could not make) its connection; the daemon reconnects with a backoff."""
 
 
-class SourceFileError(ValueError):
+class SourceFileError(HybridcompError, ValueError):
     """A replay trace is unusable; the message names the file, line and column."""
 
 

@@ -21,12 +21,13 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from hybridcomp.errors import HybridcompError
 from hybridcomp.rom.krylov import ReductionError, ThermalSystem
 
 NAMES = ("E", "A", "B", "C")
 
 
-class MatrixFileError(ValueError):
+class MatrixFileError(HybridcompError, ValueError):
     """An exported system is unreadable or not symmetric/definite; the message names the file and variable."""
 
 

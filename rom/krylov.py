@@ -37,12 +37,13 @@ import scipy.linalg as la
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
+from hybridcomp.errors import HybridcompError
 from hybridcomp.fem.solvers import Factor, factorize_spd, have_cholmod
 
 log = logging.getLogger(__name__)
 
 
-class ReductionError(ValueError):
+class ReductionError(HybridcompError, ValueError):
     """The system cannot be reduced as given (shapes, symmetry, definiteness)."""
 
 
