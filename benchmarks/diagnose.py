@@ -20,6 +20,8 @@ import time
 
 import numpy as np
 
+from hybridcomp.models.layout import DRIFT_COLUMNS
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -46,17 +48,17 @@ def main(argv=None) -> int:
     loads = example_loads(machine, 24.0 * args.days, args.dt)
     U = loads.as_inputs(machine.reference_temperature_degC)
     if args.case == "htc":
-        Y = rom.with_htc(ws_table=14.0).simulate(loads.time_s, U)[0]
+        Y = rom.with_htc(ws_table=14.0).integrate(loads.time_s, U)[0]
     else:
         U[:, loads.names.index("spindle_motor_W")] *= 1.4
-        Y = rom.with_htc(ws_table=15.0).simulate(loads.time_s, U)[0]
+        Y = rom.with_htc(ws_table=15.0).integrate(loads.time_s, U)[0]
         Y[:, 5] += 0.4
     rng = np.random.default_rng(0)
     cols = {n: loads.values[:, j] for j, n in enumerate(loads.names)}
     for k, s in enumerate(machine.sensors):
         cols[f"{s.name}_degC"] = Y[:, k] + 20.0 + rng.normal(0, 0.03, Y.shape[0])
-    for k, d in enumerate(("dx", "dy", "dz")):
-        cols[f"{d}_um"] = Y[:, len(machine.sensors) + k] * 1e6 + rng.normal(0, 0.3, Y.shape[0])
+    for k, d in enumerate(DRIFT_COLUMNS):
+        cols[d] = Y[:, len(machine.sensors) + k] * 1e6 + rng.normal(0, 0.3, Y.shape[0])
     ds = Dataset(loads.time_s, cols, "benchmark")
     times, d = [], None
     for _ in range(args.repeats):

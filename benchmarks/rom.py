@@ -194,11 +194,11 @@ def speed_child(path: str, hours: float, repeats: int) -> dict:
     rom = load_rom(path, machine)
     loads = example_loads(machine, hours, 60.0)
     t, U = loads.time_s, loads.as_inputs(machine.reference_temperature_degC)
-    rom.simulate(t, U)  # discretisation cached, as in the monitor's steady operation
+    rom.integrate(t, U)  # discretisation cached, as in the monitor's steady operation
     runs = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        rom.simulate(t, U)
+        rom.integrate(t, U)
         runs.append(time.perf_counter() - t0)
     x = rom.steady_state(U[0])
     n_steps = 20000
@@ -211,7 +211,7 @@ def speed_child(path: str, hours: float, repeats: int) -> dict:
     week_runs = []
     for _ in range(max(1, repeats // 2)):
         t0 = time.perf_counter()
-        rom.simulate(week.time_s, Uw)
+        rom.integrate(week.time_s, Uw)
         week_runs.append(time.perf_counter() - t0)
     return {"rom_16h_s": statistics.median(runs), "one_step_us": one_step_us, "week_1s_s": statistics.median(week_runs)}
 
@@ -290,7 +290,7 @@ def main(argv=None) -> int:
     step = round(60.0 / args.fine_dt)
     fine_s, fine_d = fe_fine.sensors_degC[::step], fe_fine.drift_um[::step]
 
-    Y, _ = rom.simulate(t, U)
+    Y, _ = rom.integrate(t, U)
     s_rom, d_rom = split_outputs(rom, Y)
     acc = [
         {"comparison": "FE CN 60 s vs FE CN fine (FE time error)", "sensor_K": max_err(fe_cn.sensors_degC, fine_s), "drift_um": max_err(fe_cn.drift_um, fine_d)},

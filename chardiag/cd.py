@@ -29,12 +29,14 @@ from functools import cached_property
 
 import numpy as np
 
-DIRECTIONS = ("X", "Y", "Z")
+from hybridcomp.errors import HybridcompError
+from hybridcomp.models.layout import DIRECTIONS
+
 TARGETS = {"X": "dx_um", "Y": "dy_um", "Z": "dz_um"}
 UNITS = ("degC", "mm")
 
 
-class CDError(ValueError):
+class CDError(HybridcompError, ValueError):
     """A characteristic diagram is inconsistent or cannot be evaluated; the message names the field and value."""
 
 

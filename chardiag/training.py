@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.errors import HybridcompError
+from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.fem.loads import Loads, in_model_order, read_loads
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.gcode import increments_from_motion, parse_gcode
@@ -43,7 +45,7 @@ log = logging.getLogger(__name__)
 STANDARD_CASES = ("basic", "simultaneous", "jobshop")
 
 
-class TrainingDataError(ValueError):
+class TrainingDataError(HybridcompError, ValueError):
     """A training-data file or load case is invalid; the message names the file, column and value."""
 
 
@@ -296,7 +298,7 @@ def simulate_load_cases(
         pos = case.positions_mm if case.positions_mm is not None else np.tile([pose[a] for a in axes], (len(t), 1))
         for j, a in enumerate(axes):
             block[f"{a.lower()}_mm"] = pos[:, j]
-        for j, d in enumerate(("dx_um", "dy_um", "dz_um")):
+        for j, d in enumerate(DRIFT_COLUMNS):
             block[d] = drift[:, j]
         for k, v in block.items():
             cols.setdefault(k, []).append(v)

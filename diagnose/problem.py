@@ -20,10 +20,11 @@ from scipy.signal import lfilter
 
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, check_channels
 from hybridcomp.diagnose.metrics import noise_level
+from hybridcomp.models.layout import DRIFT_COLUMNS, DRIFT_OUTPUTS
 
 log = logging.getLogger(__name__)
 
-DRIFT = ("dx", "dy", "dz")
+DRIFT = DRIFT_OUTPUTS
 # noise floors: below these a channel's noise estimate is not trusted (quantisation, smoothing)
 NOISE_FLOOR = {"degC": 0.002, "um": 0.02}
 
@@ -106,8 +107,8 @@ class Problem:
 
     def zone_columns(self, air: str) -> list[int]:
         """Model input indices of the zones with this kind of air (``ambient`` or ``workspace``)."""
-        names = list(self.rom.input_names)
-        return [names.index(f"{z.name}_degC") for z in self.machine.zones if z.air == air]
+        layout = self.machine.layout()
+        return [len(layout.heat_inputs) + i for i, kind in enumerate(layout.zone_air) if kind == air]
 
     def channel_unit(self, c: int) -> str:
         return "degC" if self.channels[c].endswith("_degC") else "um"
@@ -208,9 +209,10 @@ def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tupl
     DatasetError
         no heat-input column, no measured channel, a constant channel.
     """
+    layout = machine.layout()
     names = list(rom.input_names)
-    t_ref = machine.reference_temperature_degC
-    heat_cols = [n for n in names if n.endswith("_W")]
+    t_ref = layout.reference_temperature_degC
+    heat_cols = layout.heat_columns
     present = [n for n in heat_cols if n in dataset]
     if heat_cols and not present:
         hint = " (it looks like a trace: read it with diagnose.core.read_measured, or `hybridcomp histogram` first)" if any(
@@ -219,49 +221,33 @@ def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tupl
             f"{dataset.source}: no heat-input column of machine {machine.name!r} ({', '.join(heat_cols[:4])}, ...){hint}; "
             "columns found: " + ", ".join(dataset.names)
         )
-    nt = dataset.time_s.size
-    U = np.zeros((nt, len(names)))
-    air_measured = {}
-    for j, n in enumerate(names):
-        if n.endswith("_W"):
-            if n in dataset:
-                v = dataset[n]
-                if np.any(v < 0):
-                    raise DatasetError(f"{dataset.source}: column {n!r}: a heat power cannot be negative, got {v.min()}")
-                U[:, j] = v
-        else:
-            zone = machine.zones[[z.name for z in machine.zones].index(n.removesuffix("_degC"))]
-            alt = "Tws_degC" if zone.air == "workspace" else "Tamb_degC"
-            if n in dataset:
-                U[:, j] = dataset[n] - t_ref
-                air_measured[zone.name] = n
-            elif alt in dataset:
-                U[:, j] = dataset[alt] - t_ref
-                air_measured[zone.name] = alt
     out_names = list(rom.output_names)
-    sensor_names = [s.name for s in machine.sensors]
     channels, idx = [], []
-    for s in sensor_names:
-        if f"{s}_degC" in dataset:
-            channels.append(f"{s}_degC")
-            idx.append(out_names.index(s))
-    for d in DRIFT:
-        if f"{d}_um" in dataset:
-            channels.append(f"{d}_um")
-            idx.append(out_names.index(d))
+    for name, col in zip(layout.output_names, layout.output_columns):
+        if col in dataset:
+            channels.append(col)
+            idx.append(out_names.index(name))
     if not channels:
         raise DatasetError(
             f"{dataset.source}: no measured channel: expected sensor columns "
-            f"{', '.join(s + '_degC' for s in sensor_names)} and/or dx_um, dy_um, dz_um; columns found: {', '.join(dataset.names)}"
+            f"{', '.join(layout.sensor_columns)} and/or {', '.join(DRIFT_COLUMNS)}; columns found: {', '.join(dataset.names)}"
         )
     check_channels(dataset, channels, split)
+    if tuple(names) != layout.columns:
+        raise DatasetError(f"{dataset.source}: the reduced model's inputs are not those of machine {machine.name!r}")
+    for n in present:
+        if np.any(dataset[n] < 0):
+            raise DatasetError(f"{dataset.source}: column {n!r}: a heat power cannot be negative, got {dataset[n].min()}")
+    air_measured = layout.air_sources(dataset.names)  # zone -> the column its air temperature comes from
+    used = [*present, *dict.fromkeys(air_measured.values())]
+    U = layout.inputs(used, np.column_stack([dataset[c] for c in used]) if used else np.zeros((dataset.time_s.size, 0)),
+                      dataset.source, air_measured)
     Y = np.column_stack([dataset[c] for c in channels])
     sigma = np.array([max(noise_level(Y[:, k]), NOISE_FLOOR["degC" if c.endswith("_degC") else "um"])
                       for k, c in enumerate(channels)])
     sources = []
     for s in machine.heat_sources:
-        cols = tuple(names.index(f"{q}_W") for q in machine.heat_inputs()
-                     if q == s.name or q.startswith(f"{s.name}["))
+        cols = layout.source_columns(s.name)
         P = U[:, list(cols)].sum(axis=1)
         sources.append(SourceInfo(s.name, s.kind, s.body, cols, s.power_W, None if s.power_table else s.exponent, s.driver,
                                   _factor(machine, s, P)))
@@ -321,7 +307,7 @@ def raw_outputs(problem: Problem, setup: Setup, key=None) -> np.ndarray:
         return cache[("sim", key)]
     t, U = problem.time_s, setup.U
     if not setup.switch:
-        Y = _rom_variant(problem, setup.h).simulate(t, U)[0]
+        Y = _rom_variant(problem, setup.h).integrate(t, U)[0]
     else:
         active = activity_mask(problem)
         h_run, h_stop = dict(setup.h), dict(setup.h)
@@ -335,7 +321,7 @@ def raw_outputs(problem: Problem, setup: Setup, key=None) -> np.ndarray:
         Y = np.empty((t.size, problem.rom.C.shape[0]))
         x = "steady"
         for k0, k1 in zip(starts, ends):
-            Ys, x = roms[bool(state[k0])].simulate(t[k0:k1 + 1], U[k0:k1 + 1], initial=x)
+            Ys, x = roms[bool(state[k0])].integrate(t[k0:k1 + 1], U[k0:k1 + 1], initial=x)
             Y[k0:k1 + 1] = Ys
     if key is not None:
         if len([k for k in cache if k[0] == "sim"]) > 256:

@@ -16,70 +16,34 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.models.layout import (  # noqa: F401 - Loads and in_model_order re-exported for fem's callers
+    DRIFT_COLUMNS,
+    Loads,
+    LoadsColumnError,
+    in_model_order,
+    temperature_column,
+)
 from hybridcomp.models.machine import Machine
 
 
-class LoadsFileError(ValueError):
+class LoadsFileError(LoadsColumnError):
     """A loads CSV is invalid; the message names the file, row or column and value."""
 
 
-@dataclass(frozen=True)
-class Loads:
-    """A BC time series in model input order.
-
-    Attributes
-    ----------
-    time_s : times [s]
-    values : heat powers [W] and air temperatures [°C] (nt × nu), columns as ``names``
-    names : column names (``*_W``, ``*_degC``)
-    """
-
-    time_s: np.ndarray
-    values: np.ndarray
-    names: tuple[str, ...]
-
-    def as_inputs(self, reference_temperature_degC: float) -> np.ndarray:
-        """Model inputs: powers [W] and air temperature rises over the reference [K]."""
-        U = self.values.copy()
-        for j, n in enumerate(self.names):
-            if n.endswith("_degC"):
-                U[:, j] -= reference_temperature_degC
-        return U
-
-
 def input_columns(machine: Machine) -> tuple[str, ...]:
-    return tuple(f"{q}_W" for q in machine.heat_inputs()) + tuple(f"{z.name}_degC" for z in machine.zones)
+    """Loads columns of a machine in model input order (its layout's ``columns``)."""
+    return machine.layout().columns
 
 
 def full_power_inputs(machine: Machine) -> np.ndarray:
     """Model inputs with every source at its full power [W] (a moving source spread evenly over its
     rail segments) and every air temperature at the reference (rise 0 K), in ``input_columns`` order."""
-    names = input_columns(machine)
-    u = np.zeros(len(names))
+    layout = machine.layout()
+    u = np.zeros(layout.n_inputs)
     for s in machine.heat_sources:
-        if s.kind == "fixed":
-            u[names.index(f"{s.name}_W")] = s.power_W
-        else:
-            n = machine.axis(s.axis).n_segments
-            for k in range(n):
-                u[names.index(f"{s.name}[{k + 1}]_W")] = s.power_W / n
+        cols = list(layout.source_columns(s.name))
+        u[cols] = s.power_W / len(cols)
     return u
-
-
-def in_model_order(loads: Loads, machine: Machine) -> Loads:
-    """The same loads with every input column of the machine, in ``input_columns`` order: a missing heat input
-    is zero power, a missing zone the reference temperature; an unknown column is an error."""
-    expected = input_columns(machine)
-    unknown = [n for n in loads.names if n not in expected]
-    if unknown:
-        raise LoadsFileError(f"loads column {unknown[0]!r} is not an input of machine {machine.name!r}")
-    U = np.zeros((len(loads.time_s), len(expected)))
-    for j, name in enumerate(expected):
-        if name in loads.names:
-            U[:, j] = loads.values[:, loads.names.index(name)]
-        elif name.endswith("_degC"):
-            U[:, j] = machine.reference_temperature_degC
-    return Loads(loads.time_s, U, expected)
 
 
 def read_loads(path: str | Path, machine: Machine) -> Loads:
@@ -132,7 +96,10 @@ def read_loads(path: str | Path, machine: Machine) -> Loads:
         i = int(back[0])
         raise LoadsFileError(f"{path}: line {i + 3}: time_s {t[i + 1]} does not increase after {t[i]}")
     cols = [j for j, h in enumerate(header) if h != "time_s"]
-    return in_model_order(Loads(t, data[:, cols], tuple(header[j] for j in cols)), machine)
+    try:
+        return in_model_order(Loads(t, data[:, cols], tuple(header[j] for j in cols)), machine.layout(), str(path))
+    except LoadsColumnError as exc:
+        raise LoadsFileError(str(exc)) from None
 
 
 def _is_float(s: str) -> bool:
@@ -159,7 +126,7 @@ def write_outputs(path: str | Path, time_s: np.ndarray, sensor_names, sensors_de
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["time_s", *(f"{s}_degC" for s in sensor_names), "dx_um", "dy_um", "dz_um"])
+        w.writerow(["time_s", *(temperature_column(s) for s in sensor_names), *DRIFT_COLUMNS])
         for k in range(len(time_s)):
             w.writerow([f"{time_s[k]:.12g}", *(f"{v:.6f}" for v in sensors_degC[k]), *(f"{v:.6f}" for v in drift_um[k])])
 
@@ -173,7 +140,8 @@ def example_loads(machine: Machine, duration_h: float = 16.0, dt_s: float = 60.0
     """
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration_h * 3600 + 0.5 * dt_s, dt_s)
-    names = input_columns(machine)
+    layout = machine.layout()
+    names = layout.columns
     U = np.zeros((t.size, len(names)))
     n_blocks = int(np.ceil(duration_h))
     axis_f = {a.name: rng.uniform(0.1, 0.6, n_blocks) for a in machine.axes}
@@ -189,19 +157,17 @@ def example_loads(machine: Machine, duration_h: float = 16.0, dt_s: float = 60.0
         else:
             f = np.where(active, axis_f[s.driver][block], 0.0)
         p = machine.source_power_W(s, f)
-        if s.kind == "fixed":
-            U[:, names.index(f"{s.name}_W")] = p
-        else:
-            a = machine.axis(s.axis)
-            # share over rail segments: the job works mostly in the middle of the travel
-            w = np.exp(-0.5 * ((np.arange(a.n_segments) - (a.n_segments - 1) / 2) / max(a.n_segments / 3, 1)) ** 2)
-            w /= w.sum()
-            for k in range(a.n_segments):
-                U[:, names.index(f"{s.name}[{k + 1}]_W")] = p * w[k]
+        cols = layout.source_columns(s.name)
+        n = len(cols)
+        # a moving source's share over rail segments: the job works mostly in the middle of the travel
+        w = np.exp(-0.5 * ((np.arange(n) - (n - 1) / 2) / max(n / 3, 1)) ** 2)
+        w /= w.sum()
+        for k, j in enumerate(cols):
+            U[:, j] = p * w[k]
     t_ref = machine.reference_temperature_degC
     ambient = t_ref + 1.5 * np.sin(2 * np.pi * (t / 3600 - 9) / 24)
     lagged = t_ref + 1.5 * np.sin(2 * np.pi * (t / 3600 - 10) / 24)
     for z in machine.zones:
-        j = names.index(f"{z.name}_degC")
+        j = names.index(temperature_column(z.name))
         U[:, j] = ambient if z.air == "ambient" else lagged + 1.0 * active
     return Loads(t, U, names)

@@ -24,6 +24,16 @@ import scipy.sparse as sp
 from hybridcomp.fem import assembly
 from hybridcomp.fem.mesh import MM, MachineMesh, mesh_machine
 from hybridcomp.fem.solvers import solve_spd_few
+from hybridcomp.models.layout import (
+    DRIFT_OUTPUTS,
+    InputLayout,
+    Loads,
+    heat_input_name,
+    layout_from_names,
+    power_column,
+    temperature_column,
+)
+from hybridcomp.models.simulation import SimulationResult
 from hybridcomp.models.machine import HeatSource, Machine, MachineFileError
 
 log = logging.getLogger(__name__)
@@ -68,7 +78,7 @@ class ThermoElasticModel:
     @property
     def input_names(self) -> tuple[str, ...]:
         """Column names of the loads CSV this model reads, in input order."""
-        return tuple(f"{q}_W" for q in self.heat_names) + tuple(f"{z}_degC" for z in self.zone_names)
+        return tuple(map(power_column, self.heat_names)) + tuple(map(temperature_column, self.zone_names))
 
     @property
     def coords_m(self) -> np.ndarray:
@@ -91,6 +101,31 @@ class ThermoElasticModel:
             cols = [self.B] + [(h * (H @ np.ones(self.n)))[:, None] for h, H in zip(self.h_W_m2K, self.H)]
             self._cache[key] = np.hstack(cols)
         return self._cache[key]
+
+    def layout(self) -> InputLayout:
+        """This model's inputs and outputs (its own heat inputs and zones: a model built from an extended or
+        planted machine may have more than the machine it was given)."""
+        layout = self.machine.layout()
+        if layout.columns == self.input_names and layout.sensors == self.sensor_names:
+            return layout
+        return layout_from_names(self.input_names, self.sensor_names + DRIFT_OUTPUTS, self.reference_temperature_degC,
+                                 f"machine {self.machine.name!r}")
+
+    def simulate(self, loads: Loads, initial: str | np.ndarray = "steady", theta: float = 1.0,
+                 store_steps: tuple[int, ...] | None = None, progress: bool = False) -> SimulationResult:
+        """Run the model on a loads time series: sensor temperatures [°C] and drift [µm] at the loads' times.
+
+        Parameters
+        ----------
+        loads : heat powers [W] and air temperatures [°C] by loads column; a missing column is zero power or
+            the reference temperature, an unknown one an error
+        initial : ``"steady"`` (steady state of the first loads row), ``"reference"`` (zero rise) or a state [K]
+        theta, store_steps, progress : see :func:`hybridcomp.fem.transient.simulate`
+        """
+        from hybridcomp.fem.transient import simulate  # transient builds on this module
+
+        U = self.layout().inputs(loads.names, loads.values, "loads")
+        return simulate(self, loads.time_s, U, theta=theta, initial=initial, store_steps=store_steps, progress=progress)
 
     def with_htc(self, **h_W_m2K: float) -> ThermoElasticModel:
         """A copy with changed zone heat-transfer coefficients (no re-assembly)."""
@@ -165,7 +200,7 @@ def heat_input_matrix(machine: Machine, mm: MachineMesh, basis) -> tuple[np.ndar
             pts = _sample_box(lo, hi, max(spacing, 1e-3)) * MM if np.all(hi > lo) else np.zeros((3, 0))
             cells = mm.find_elements(pts, body=s.body) if pts.shape[1] else np.zeros(0, int)
             ok = cells >= 0
-            name = s.name if s.kind == "fixed" else f"{s.name}[{k + 1}]"
+            name = heat_input_name(s.name, None if s.kind == "fixed" else k + 1)
             if not ok.any():
                 raise MachineFileError(f"{machine.source}: heat source {name!r}: its patch lies outside its body {s.body!r}")
             P = assembly.probe_matrix(basis, pts[:, ok], cells[ok])

@@ -12,35 +12,15 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 
 from hybridcomp.fem.model import ThermoElasticModel
 from hybridcomp.fem.solvers import Factor, factorize_spd
+from hybridcomp.models.simulation import SimulationResult, initial_state
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SimulationResult:
-    """Outputs of a transient run.
-
-    Attributes
-    ----------
-    time_s : output times [s]
-    sensors_degC : sensor temperatures (nt × s) [°C]
-    drift_um : TCP-minus-table drift dx, dy, dz (nt × 3) [µm]
-    fields_K : temperature rise over the reference at the stored steps {step: (n,)} [K]
-    timings_s : factorisation and stepping wall times [s]
-    """
-
-    time_s: np.ndarray
-    sensors_degC: np.ndarray
-    drift_um: np.ndarray
-    fields_K: dict[int, np.ndarray] = field(default_factory=dict)
-    timings_s: dict = field(default_factory=dict)
 
 
 def _cached_factor(cache: dict, key: tuple, build, coords) -> Factor:
@@ -172,15 +152,7 @@ def simulate(
     U = np.asarray(inputs, float)
     if U.ndim != 2 or U.shape[1] != len(model.input_names):
         raise ValueError(f"inputs must have {len(model.input_names)} columns ({model.input_names}), got shape {U.shape}")
-    if isinstance(initial, str):
-        if initial == "steady":
-            x0 = steady_state(model, U[0])
-        elif initial == "reference":
-            x0 = np.zeros(model.n)
-        else:
-            raise ValueError(f"initial must be 'steady', 'reference' or a state vector, got {initial!r}")
-    else:
-        x0 = np.asarray(initial, float)
+    x0 = initial_state(initial, model.n, lambda: steady_state(model, U[0]))
     (sens, drift), fields, timings = integrate(
         model.M,
         model.A(),
@@ -201,6 +173,7 @@ def simulate(
         drift_um=drift * 1e6,
         fields_K=fields,
         timings_s=timings,
+        sensor_names=model.sensor_names,
     )
 
 

@@ -1,7 +1,7 @@
 """Boundary conditions from increments: heat power per source and rail segment, zone air temperatures.
 
-The result is a :class:`hybridcomp.fem.loads.Loads` with exactly the loads-CSV
-contract that ``hybridcomp simulate`` reads (``fem.loads.input_columns``).
+The result is a :class:`hybridcomp.models.layout.Loads` with every column of the machine's
+input layout, in model order: the loads-CSV contract that ``hybridcomp simulate`` reads.
 
 Powers per increment (``P(f)`` is ``machine.source_power_W``: the power law
 ``power_W f**exponent`` or the machine file's ``power_table``):
@@ -31,9 +31,9 @@ the CSV's own times applies row k+1 over exactly increment k, so the heat
 put in per increment is exact, and ``--initial steady`` starts from a machine
 that has stood still.
 
-Zones: a zone gets a ``<zone>_degC`` column only when the trace measured its
-air (``trace.zone_air_sources``); otherwise the column is omitted, which the
-loads contract reads as the reference temperature.
+Zones: a zone's ``<zone>_degC`` column follows the air the trace measured for it
+(``InputLayout.air_sources``); a zone whose air was not measured stays at the
+reference temperature.
 """
 
 from __future__ import annotations
@@ -41,9 +41,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from hybridcomp.fem.loads import Loads, input_columns, write_loads
+from hybridcomp.fem.loads import write_loads
 from hybridcomp.histogram.increments import Increments
-from hybridcomp.histogram.trace import zone_air_sources
+from hybridcomp.models.layout import Loads
 from hybridcomp.models.machine import SPINDLE, Machine
 
 
@@ -82,37 +82,33 @@ def heat_powers(machine: Machine, inc: Increments, power: str = "mean") -> tuple
         raise ValueError(f"increments are for axes {inc.axis_names}, machine {machine.name!r} has {[a.name for a in machine.axes]}")
     if power not in ("factor", "mean"):
         raise ValueError(f"power must be 'factor' or 'mean', got {power!r}")
-    names, cols = [], []
+    layout = machine.layout()
+    names = layout.heat_columns
+    P = np.zeros((len(inc), len(names)))
     factors = source_factors(machine, inc)
     for s in machine.heat_sources:
         f = factors[s.name]
         p = np.full(len(inc), s.power_W) if s.driver is None else machine.source_power_W(s, f)
+        cols = layout.source_columns(s.name)
         if s.kind == "fixed":
-            names.append(f"{s.name}_W")
-            cols.append(p)
+            P[:, cols[0]] = p
         else:
-            frac = inc.segment_fraction(s.axis)
-            for k in range(frac.shape[1]):
-                names.append(f"{s.name}[{k + 1}]_W")
-                cols.append(p * frac[:, k])
-    P = np.column_stack(cols) if cols else np.zeros((len(inc), 0))
+            P[:, list(cols)] = p[:, None] * inc.segment_fraction(s.axis)
     if power == "mean":
         for j, n in enumerate(inc.mean_power_inputs):
             P[:, names.index(n)] = inc.mean_power_W[:, j]
-    return tuple(names), P
+    return names, P
 
 
 def standstill_powers(machine: Machine) -> np.ndarray:
     """Heat power per heat input at standstill [W] (model order): ``P(0)``, spread evenly over rail segments."""
-    vals = []
+    layout = machine.layout()
+    vals = np.zeros(len(layout.heat_inputs))
     for s in machine.heat_sources:
         p = float(s.power_W) if s.driver is None else float(machine.source_power_W(s, 0.0))
-        if s.kind == "fixed":
-            vals.append(p)
-        else:
-            n = machine.axis(s.axis).n_segments
-            vals.extend([p / n] * n)
-    return np.asarray(vals, float)
+        cols = list(layout.source_columns(s.name))
+        vals[cols] = p / len(cols)
+    return vals
 
 
 def boundary_conditions(machine: Machine, inc: Increments, power: str = "mean") -> Loads:
@@ -126,22 +122,22 @@ def boundary_conditions(machine: Machine, inc: Increments, power: str = "mean") 
 
     Returns
     -------
-    Loads with ``time_s`` = [start of the trace, end of each increment] [s], heat
-    powers [W] for every heat input and air temperatures [°C] for the zones
-    whose air was measured.
+    Loads in model order with ``time_s`` = [start of the trace, end of each increment] [s], heat
+    powers [W] for every heat input and air temperatures [°C] for every zone (the reference
+    temperature where its air was not measured).
     """
     names, P = heat_powers(machine, inc, power)
-    expected = input_columns(machine)
-    if names != expected[: len(names)]:
-        raise AssertionError(f"heat inputs {names} do not follow the model order {expected}")  # guards the contract
-    zones = zone_air_sources(machine, inc.air_names)
-    znames = [z.name for z in machine.zones if z.name in zones]
-    Z = np.column_stack([inc.air_degC[:, inc.air_names.index(zones[z])] for z in znames]) if znames else np.zeros((len(inc), 0))
-    Z0 = np.array([inc.initial_air_degC[inc.air_names.index(zones[z])] for z in znames])
+    layout = machine.layout()
+    zones = layout.air_sources(inc.air_names)  # zone -> measured air column; the others stay at the reference
+    Z = np.column_stack([inc.air_degC[:, inc.air_names.index(zones[z])] if z in zones else
+                         np.full(len(inc), layout.reference_temperature_degC) for z in layout.zones]) \
+        if layout.zones else np.zeros((len(inc), 0))
+    Z0 = np.array([inc.initial_air_degC[inc.air_names.index(zones[z])] if z in zones else
+                   layout.reference_temperature_degC for z in layout.zones])
     first = np.concatenate([standstill_powers(machine), Z0])[None, :]
     values = np.vstack([first, np.hstack([P, Z])])
     time_s = np.concatenate([[inc.start_s[0]], inc.end_s])
-    return Loads(time_s, values, (*names, *(f"{z}_degC" for z in znames)))
+    return Loads(time_s, values, layout.columns)
 
 
 def write_bcs(path, loads: Loads) -> None:

@@ -186,16 +186,14 @@ class _Integrator:
         # moving sources and sources whose power is not proportional to the factor: mean power integrated too
         self.nl: list[tuple] = []  # (source, driver index (-1: spindle), column offset)
         self.nl_names: list[str] = []
+        layout = machine.layout()
         for src in machine.heat_sources:
             linear = src.power_table is None and src.exponent == 1.0
             if src.driver is None or (src.kind == "fixed" and linear):
                 continue
             d = -1 if src.driver == "spindle" else [a.name for a in machine.axes].index(src.driver)
             self.nl.append((src, d, len(self.nl_names)))
-            if src.kind == "fixed":
-                self.nl_names.append(f"{src.name}_W")
-            else:
-                self.nl_names.extend(f"{src.name}[{k + 1}]_W" for k in range(machine.axis(src.axis).n_segments))
+            self.nl_names.extend(layout.heat_columns[j] for j in layout.source_columns(src.name))
         self.origin: float | None = None
         self.t_last: float | None = None
         self.initial_air = np.full(len(air_names), np.nan)

@@ -37,19 +37,21 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.errors import HybridcompError
+from hybridcomp.models.layout import AMBIENT_COLUMN, DRIFT_COLUMNS, WORKSPACE_COLUMN
 from hybridcomp.models.machine import SPINDLE, Machine
 
 log = logging.getLogger(__name__)
 
 TIME = "time_s"
 SPINDLE_RPM = "spindle_rpm"
-AMBIENT = "Tamb_degC"
-WORKSPACE = "Tws_degC"
-DRIFT = ("dx_um", "dy_um", "dz_um")
+AMBIENT = AMBIENT_COLUMN
+WORKSPACE = WORKSPACE_COLUMN
+DRIFT = DRIFT_COLUMNS
 DEFAULT_CHUNK_ROWS = 65_536
 
 
-class TraceFileError(ValueError):
+class TraceFileError(HybridcompError, ValueError):
     """A trace (CSV or G-code) is invalid; the message names the file, line, column and value."""
 
 
@@ -69,35 +71,17 @@ def velocity_column(axis_name: str) -> str:
 
 def air_columns(machine: Machine) -> tuple[str, ...]:
     """Trace columns that can carry a measured air temperature for a zone of ``machine``."""
-    return (AMBIENT, WORKSPACE, *(f"{z.name}_degC" for z in machine.zones))
+    return (AMBIENT, WORKSPACE, *machine.layout().zone_columns)
 
 
 def zone_air_sources(machine: Machine, measured: tuple[str, ...]) -> dict[str, str]:
-    """Which measured trace column gives the air temperature of each zone.
+    """Which measured trace column gives the air temperature of each zone (:meth:`InputLayout.air_sources`).
 
     A zone's own column ``<zone>_degC`` wins; otherwise a workspace zone takes
     ``Tws_degC``, then ``Tamb_degC``; an ambient zone takes ``Tamb_degC``. Zones
-    without a measured column are left out (the loads CSV then omits them: the
-    reference temperature).
-
-    Parameters
-    ----------
-    machine : the machine whose zones are resolved
-    measured : names of the air columns present in the trace
-
-    Returns
-    -------
-    zone name -> trace column name
+    without a measured column are left out (they stay at the reference temperature).
     """
-    out = {}
-    for z in machine.zones:
-        own = f"{z.name}_degC"
-        order = [own, WORKSPACE, AMBIENT] if z.air == "workspace" else [own, AMBIENT]
-        for c in order:
-            if c in measured:
-                out[z.name] = c
-                break
-    return out
+    return machine.layout().air_sources(measured)
 
 
 @dataclass(frozen=True)

@@ -22,17 +22,19 @@ from typing import Any
 
 import numpy as np
 
+from hybridcomp.errors import HybridcompError
+from hybridcomp.models.layout import COORDINATES, InputLayout, input_layout
+
 log = logging.getLogger(__name__)
 
 Vec3 = tuple[float, float, float]
 FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
-DIRECTIONS = ("x", "y", "z")
 AIR_KINDS = ("ambient", "workspace")
 SPINDLE = "spindle"
 GEOMETRY_TOLERANCE_MM = 1e-6
 
 
-class MachineFileError(ValueError):
+class MachineFileError(HybridcompError, ValueError):
     """A machine file is invalid; the message names the file, field and value."""
 
 
@@ -251,16 +253,13 @@ class Machine:
             name = self.body(name).mounted_on
         return off
 
+    def layout(self) -> InputLayout:
+        """The model's inputs and outputs: names, kinds, order and units (:mod:`hybridcomp.models.layout`)."""
+        return input_layout(self)
+
     def heat_inputs(self) -> tuple[str, ...]:
         """Names of the heat inputs in the loads CSV, without the ``_W`` suffix."""
-        names: list[str] = []
-        for s in self.heat_sources:
-            if s.kind == "fixed":
-                names.append(s.name)
-            else:
-                n = self.axis(s.axis).n_segments
-                names.extend(f"{s.name}[{k + 1}]" for k in range(n))
-        return tuple(names)
+        return self.layout().heat_inputs
 
     def source_power_W(self, source: HeatSource, factor: float | np.ndarray) -> np.ndarray:
         """Power of a source at load factor ``factor`` (0 standstill .. 1 max speed) [W]."""
@@ -494,8 +493,8 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         if aname == SPINDLE:
             raise r.err("name", f"must not be {SPINDLE!r}, which names the spindle drive")
         d = r.get("direction", kind=str)
-        if d not in DIRECTIONS:
-            raise r.err("direction", f"must be one of {DIRECTIONS}, got {d!r}")
+        if d not in COORDINATES:
+            raise r.err("direction", f"must be one of {COORDINATES}, got {d!r}")
         moves = r.get("moves", kind=str)
         if moves not in body_names:
             raise r.err("moves", f"names an unknown body {moves!r}")
@@ -522,7 +521,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
                 or any(b <= a for a, b in zip(bounds, bounds[1:]))
             ):
                 raise r.err("segment_bounds_mm", f"must ascend from the travel min to max {tr!r}, got {bounds!r}")
-        axes.append(Axis(aname, DIRECTIONS.index(d), moves, (float(tr[0]), float(tr[1])), feed, tuple(float(b) for b in bounds)))
+        axes.append(Axis(aname, COORDINATES.index(d), moves, (float(tr[0]), float(tr[1])), feed, tuple(float(b) for b in bounds)))
     _unique(source, "axes", [a.name for a in axes])
     _unique(source, "axes[].moves", [a.moves for a in axes])
     axis_names = {a.name for a in axes}
@@ -636,12 +635,12 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
     for where, t in top.tables("supports"):
         r = _Reader(source, where, t, "support")
         dirs = r.get("directions", kind=list)
-        if not dirs or any(d not in DIRECTIONS for d in dirs) or len(set(dirs)) != len(dirs):
-            raise r.err("directions", f"must list distinct directions of {DIRECTIONS}, got {dirs!r}")
+        if not dirs or any(d not in COORDINATES for d in dirs) or len(set(dirs)) != len(dirs):
+            raise r.err("directions", f"must list distinct directions of {COORDINATES}, got {dirs!r}")
         body = r.get("body", None, str)
         if body is not None and body not in body_names:
             raise r.err("body", f"names an unknown body {body!r}")
-        supports.append(Support(_name_of(r), body or "", r.vec3("position_mm"), tuple(DIRECTIONS.index(d) for d in dirs)))
+        supports.append(Support(_name_of(r), body or "", r.vec3("position_mm"), tuple(COORDINATES.index(d) for d in dirs)))
     _unique(source, "supports", [s.name for s in supports])
 
     machine = Machine(

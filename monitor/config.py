@@ -14,11 +14,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hybridcomp.errors import HybridcompError
+from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.histogram.increments import DEFAULT_MAX_GAP_S
 from hybridcomp.monitor.decisions import Backoff, SensorRules
 
 
-class ConfigError(ValueError):
+class ConfigError(HybridcompError, ValueError):
     """The monitor configuration is invalid; the message names the file, the key and the value."""
 
 
@@ -301,9 +303,9 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         raise ConfigError(f"{source}: sink.path is missing (the {sink.kind} file for the offsets)")
     if sink.kind == "opcua" and not (sink.url and sink.nodes):
         raise ConfigError(f"{source}: sink.url and sink.nodes are needed for an OPC UA sink")
-    bad = [k for k in sink.nodes if k not in ("dx_um", "dy_um", "dz_um")]
+    bad = [k for k in sink.nodes if k not in DRIFT_COLUMNS]
     if bad:
-        raise ConfigError(f"{source}: sink.nodes.{bad[0]} is not an offset (dx_um, dy_um, dz_um)")
+        raise ConfigError(f"{source}: sink.nodes.{bad[0]} is not an offset ({', '.join(DRIFT_COLUMNS)})")
 
     r = _Reader(source, "regeneration", data.get("regeneration", {}))
     regen = RegenerationConfig(

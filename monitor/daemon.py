@@ -58,12 +58,14 @@ from hybridcomp.monitor.decisions import (
 )
 from hybridcomp.monitor.regeneration import RegenerationRequest
 from hybridcomp.monitor.sinks import Offset
+from hybridcomp.models.layout import DIRECTIONS
+from hybridcomp.rom.machine import inputs_from_columns
 from hybridcomp.monitor.sources import Reading, SourceDisconnected, WallClock
 
 log = logging.getLogger(__name__)
 
 STATE_VERSION = 1
-AXIS_INPUTS = ("X", "Y", "Z")
+AXIS_INPUTS = DIRECTIONS  # CD inputs that are axis positions
 
 
 def state_key(machine: str, pose_key: str) -> str:
@@ -132,7 +134,7 @@ class Monitor:
         self.axis_names = tuple(a.name for a in machine.axes)
         self.counters = Counters()
         self.layout = SignatureLayout.of(machine)
-        self.t_ref = float(rom.meta.get("reference_temperature_degC", machine.reference_temperature_degC))
+        self.t_ref = rom.layout().reference_temperature_degC
         n_inc = int(round(cfg.monitoring_interval_s / cfg.increment_s))
         self.history_rows = max(1, int(math.ceil(cfg.regeneration.history_s / cfg.increment_s)))
         self._n_inc = n_inc
@@ -431,8 +433,6 @@ class Monitor:
         self.persist()
 
     def _monitor(self, s: Samples, boundary: float) -> None:
-        from hybridcomp.rom.machine import inputs_from_columns
-
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
@@ -467,11 +467,12 @@ class Monitor:
             _, _, sig_rows = signatures(inc)
             w = inc.duration_s
             sig = (sig_rows * w[:, None]).sum(axis=0) / w.sum()
-        for k, dt in enumerate(dts):
-            u = U[k + 1]
-            if dt > 0:
-                self.x = self.rom.step(self.x, u, u, dt)  # piecewise constant over the increment (mean power)
-            self.history.append((float(times[k]), u.copy()))
+        # each increment's loads row held over it (mean power); empty increments are skipped
+        grid = np.concatenate([[times[0] - dts[0]], times])
+        keep = np.concatenate([[True], np.asarray(dts) > 0])
+        if keep[1:].any():
+            _, self.x = self.rom.integrate(grid[keep], U[:grid.size][keep], initial=self.x, hold="step")
+        self.history.extend((float(tk), U[k + 1].copy()) for k, tk in enumerate(times))
         self.rom_time_s = float(times[-1])
         y = self.rom.outputs(self.x)
         n_s = len(self.rom.output_names) - 3

@@ -34,10 +34,12 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.models.layout import DRIFT_COLUMNS
+
 log = logging.getLogger(__name__)
 
 WINDOWS_S = (900.0, 1800.0, 3600.0, 2 * 3600.0, 4 * 3600.0, 8 * 3600.0, 15 * 3600.0)
-DIRS = ("dx_um", "dy_um", "dz_um")
+DIRS = DRIFT_COLUMNS
 
 
 # --------------------------------------------------------------------------- metrics (pure)
@@ -126,16 +128,9 @@ def rom_sensor_temperatures(machine, rom, samples, increment_s: float = 300.0) -
     """
     from hybridcomp.histogram.bcs import boundary_conditions
     from hybridcomp.histogram.increments import increments_from_samples
-    from hybridcomp.rom.machine import inputs_from_columns, split_outputs
 
     loads = boundary_conditions(machine, increments_from_samples(machine, samples, increment_s))
-    U = inputs_from_columns(rom, loads.names, loads.values)
-    x = rom.steady_state(U[0])
-    Y = [rom.outputs(x)]
-    for k in range(1, len(loads.time_s)):
-        x = rom.step(x, U[k], U[k], loads.time_s[k] - loads.time_s[k - 1])
-        Y.append(rom.outputs(x))
-    sens, _ = split_outputs(rom, np.array(Y))
+    sens = rom.simulate(loads, hold="step").sensors_degC
     return np.column_stack([np.interp(samples.time_s, loads.time_s, sens[:, j]) for j in range(sens.shape[1])])
 
 
@@ -212,7 +207,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     from hybridcomp.monitor.sinks import MemorySink
     from hybridcomp.monitor.sources import ReplaySource
     from hybridcomp.rom import save_rom
-    from hybridcomp.rom.machine import reduce_model, split_outputs
+    from hybridcomp.rom.machine import reduce_model
 
     out = Path(out_dir).resolve()  # once, against the caller's working directory (paths cross into the worker)
     out.mkdir(parents=True, exist_ok=True)
@@ -301,9 +296,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     measured = {f"{s.name}_degC": T_meas[:, j] for j, s in enumerate(machine.sensors)}
     measured |= {f"{a.name.lower()}_mm": np.full(t.size, float(pose[a.name])) for a in machine.axes}
     static = np.column_stack([default[d].evaluate_table(measured)[0] for d in ("X", "Y", "Z")])
-    U = loads.as_inputs(machine.reference_temperature_degC)  # what the models know: no disturbance
-    Y, _ = rom.simulate(loads.time_s, U)
-    _, rom_drift = split_outputs(rom, Y)
+    rom_drift = rom.simulate(loads).drift_um  # what the models know: no disturbance
     T_train = np.column_stack([train.columns[f"{s.name}_degC"] for s in machine.sensors])
     D_train = np.column_stack([train.columns[d] for d in DIRS])
     mlr = predict_mlr(fit_mlr(T_train, D_train), T_meas)

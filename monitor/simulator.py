@@ -19,10 +19,12 @@ import signal
 import sys
 from pathlib import Path
 
+from hybridcomp.models.layout import DRIFT_COLUMNS
+
 log = logging.getLogger(__name__)
 
 NAMESPACE = "urn:hybridcomp:machine"
-OFFSETS = ("dx_um", "dy_um", "dz_um")
+OFFSETS = DRIFT_COLUMNS
 
 
 def node_ids(columns, ns: int = 2) -> dict[str, str]:

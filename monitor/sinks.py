@@ -18,11 +18,12 @@ import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.monitor.decisions import Backoff, backoff_delay
 
 log = logging.getLogger(__name__)
 
-DIRECTIONS = ("dx_um", "dy_um", "dz_um")
+DIRECTIONS = DRIFT_COLUMNS
 
 
 @dataclass(frozen=True)

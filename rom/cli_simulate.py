@@ -38,7 +38,7 @@ def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], 
         print(f"error: {exc}", file=sys.stderr)
         return 2
     ts = time.perf_counter()
-    Y, _ = rom.simulate(loads.time_s, U, initial=args.initial)
+    Y, _ = rom.integrate(loads.time_s, U, initial=args.initial)
     t_sim = time.perf_counter() - ts
     sensors_degC, drift_um = split_outputs(rom, Y)
     out: Path = args.out

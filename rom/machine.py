@@ -16,12 +16,13 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from hybridcomp.models.layout import DRIFT_OUTPUTS, LoadsColumnError
 from hybridcomp.rom.krylov import ExpansionPoint, Reduction, Reductor, ThermalSystem, orthonormal_extension, project
 from hybridcomp.rom.reduced import ReducedModel, RomInputError
 
 log = logging.getLogger(__name__)
 
-DRIFT_NAMES = ("dx", "dy", "dz")
+DRIFT_NAMES = DRIFT_OUTPUTS
 
 
 def system_from_model(model) -> ThermalSystem:
@@ -64,29 +65,21 @@ def to_reduced(system: ThermalSystem, red: Reduction, meta: dict, keep_basis: bo
 
 def split_outputs(rom: ReducedModel, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Machine ROM outputs (nt × q) → sensor temperatures [°C] and drift [µm]."""
-    if rom.output_names[-3:] != DRIFT_NAMES:
-        raise RomInputError("not a machine ROM: its last outputs are not dx, dy, dz")
-    t_ref = float(rom.meta.get("reference_temperature_degC", 0.0))
-    return Y[:, :-3] + t_ref, Y[:, -3:] * 1e6
+    layout = rom.layout()
+    ns = len(layout.sensors)
+    return Y[:, :ns] + layout.reference_temperature_degC, Y[:, ns:ns + 3] * 1e6
 
 
 def inputs_from_columns(rom: ReducedModel, names, values: np.ndarray, source: str = "loads") -> np.ndarray:
     """Model inputs (nt × nu) from named columns: ``*_W`` powers [W], ``*_degC`` air temperatures [°C].
 
     A missing column is zero power or the reference temperature; a column the
-    ROM has no input for is an error naming it.
+    ROM has no input for is an error naming it (:meth:`InputLayout.inputs`).
     """
-    values = np.asarray(values, float)
-    names = list(names)
-    unknown = [c for c in names if c not in rom.input_names]
-    if unknown:
-        raise RomInputError(f"{source}: column {unknown[0]!r} is not an input of the reduced model (inputs: {', '.join(rom.input_names)})")
-    t_ref = float(rom.meta.get("reference_temperature_degC", 0.0))
-    U = np.zeros((values.shape[0], rom.n_inputs))
-    for j, name in enumerate(rom.input_names):
-        if name in names:
-            U[:, j] = values[:, names.index(name)] - (t_ref if name.endswith("_degC") else 0.0)
-    return U
+    try:
+        return rom.layout().inputs(names, values, source)
+    except LoadsColumnError as exc:
+        raise RomInputError(str(exc)) from None
 
 
 @dataclass(frozen=True)
@@ -149,7 +142,7 @@ def theta_outputs(rom: ReducedModel, time_s, inputs, theta: float) -> np.ndarray
 
 def compare(rom: ReducedModel, time_s, inputs, fe: tuple[np.ndarray, np.ndarray], theta: float | None) -> CheckResult:
     """ROM minus FE on a load case: the exact ROM (``theta=None``) or the ROM by the FE's θ-method."""
-    Y = rom.simulate(time_s, inputs)[0] if theta is None else theta_outputs(rom, time_s, inputs, theta)
+    Y = rom.integrate(time_s, inputs)[0] if theta is None else theta_outputs(rom, time_s, inputs, theta)
     s, d = split_outputs(rom, Y)
     dt = float(np.max(np.diff(time_s))) if len(time_s) > 1 else 0.0
     return CheckResult(float(np.abs(s - fe[0]).max()), float(np.abs(d - fe[1]).max()), theta, dt)

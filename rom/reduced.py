@@ -31,18 +31,23 @@ import numpy as np
 import scipy.linalg as la
 from scipy.signal import lfilter
 
+from hybridcomp.errors import HybridcompError
+from hybridcomp.models.layout import InputLayout, Loads, LoadsColumnError, layout_from_names
+from hybridcomp.models.simulation import SimulationResult, initial_state
+
 log = logging.getLogger(__name__)
 
+HOLDS = ("linear", "step")
 FORMAT = "hybridcomp-rom"
 _ONE = np.ones(1)
 FORMAT_VERSION = 1
 
 
-class RomFileError(ValueError):
+class RomFileError(HybridcompError, ValueError):
     """A ROM file is unreadable, of another version, or does not belong to the given machine."""
 
 
-class RomInputError(ValueError):
+class RomInputError(HybridcompError, ValueError):
     """Inputs, states or step sizes do not fit the reduced model."""
 
 
@@ -279,9 +284,43 @@ class ReducedModel:
         d = self.discretize(dt_s)
         return d.Ad @ x + d.Bd0 @ u0 + d.Bd1 @ u1
 
-    def simulate(self, time_s: np.ndarray, inputs: np.ndarray, initial: str | np.ndarray = "steady",
-                 chunk: int = 65536) -> tuple[np.ndarray, np.ndarray]:
-        """Integrate over ``time_s`` with ``inputs`` (nt × nu) linear between samples.
+    def layout(self) -> InputLayout:
+        """The input layout of a machine ROM: its input and output names and the machine's reference temperature.
+
+        Raises
+        ------
+        RomInputError
+            not a machine ROM (an external system's inputs and outputs are raw model quantities)
+        """
+        t_ref = self.meta.get("reference_temperature_degC")
+        if t_ref is None:
+            raise RomInputError("not a machine ROM: its metadata has no 'reference_temperature_degC' (an external "
+                                "system's inputs and outputs are raw model quantities)")
+        try:
+            return layout_from_names(self.input_names, self.output_names, float(t_ref), "the reduced model")
+        except LoadsColumnError as exc:
+            raise RomInputError(f"not a machine ROM: {exc}") from None
+
+    def simulate(self, loads: Loads, initial: str | np.ndarray = "steady", hold: str = "linear") -> SimulationResult:
+        """Run a machine ROM on a loads time series: sensor temperatures [°C] and drift [µm].
+
+        Parameters
+        ----------
+        loads : heat powers [W] and air temperatures [°C] by loads column; a missing column is zero power or
+            the reference temperature, an unknown one an error
+        initial : ``"steady"`` (steady state of the first loads row), ``"reference"`` (zero rise) or a reduced state
+        hold : how the inputs vary between samples, see :meth:`integrate`
+        """
+        layout = self.layout()
+        U = layout.inputs(loads.names, loads.values, "loads")
+        Y, x = self.integrate(loads.time_s, U, initial, hold=hold)
+        ns = len(layout.sensors)
+        return SimulationResult(np.asarray(loads.time_s, float), Y[:, :ns] + layout.reference_temperature_degC,
+                                Y[:, ns:ns + 3] * 1e6, sensor_names=layout.sensors, final_state=x)
+
+    def integrate(self, time_s: np.ndarray, inputs: np.ndarray, initial: str | np.ndarray = "steady",
+                  chunk: int = 65536, hold: str = "linear") -> tuple[np.ndarray, np.ndarray]:
+        """Integrate over ``time_s`` with ``inputs`` (nt × nu), exactly.
 
         Parameters
         ----------
@@ -289,11 +328,15 @@ class ReducedModel:
         inputs : heat powers [W] and air temperature rises [K] in ``input_names`` order (nt × nu)
         initial : ``"steady"`` (steady state of the first inputs), ``"reference"`` (zero) or a reduced state
         chunk : steps per vectorised block (bounds memory)
+        hold : ``"linear"`` (first-order hold: inputs linear between samples) or ``"step"`` (row k held over
+            the interval that ends at sample k: the reading of the histogram's loads, mean power per increment)
 
         Returns
         -------
         outputs (nt × q) in output units and the final reduced state
         """
+        if hold not in HOLDS:
+            raise RomInputError(f"hold must be one of {HOLDS}, got {hold!r}")
         t = np.asarray(time_s, float)
         U = np.asarray(inputs, float)
         if t.ndim != 1 or t.size < 1:
@@ -304,17 +347,12 @@ class ReducedModel:
         if np.any(~(dts > 0)):
             k = int(np.flatnonzero(~(dts > 0))[0]) + 1
             raise RomInputError(f"step sizes must be positive: step {k} goes from {t[k - 1]} s to {t[k]} s")
-        if isinstance(initial, str):
-            if initial == "steady":
-                x = self.steady_state(U[0])
-            elif initial == "reference":
-                x = np.zeros(self.order)
-            else:
-                raise RomInputError(f"initial must be 'steady', 'reference' or a state, got {initial!r}")
-        else:
-            x = np.asarray(initial, float)
-            if x.shape != (self.order,):
-                raise RomInputError(f"initial state must have {self.order} entries, got shape {x.shape}")
+        try:
+            x = initial_state(initial, self.order, lambda: self.steady_state(U[0]))
+        except ValueError as exc:
+            raise RomInputError(str(exc)) from None
+        # with a step hold, the input at the start of each interval is the one at its end: U0[k - 1] = U[k]
+        U0 = U if hold == "linear" else np.vstack([U[1:], U[-1:]])
         Phi = self._modes()[1]
         Cz = self.C @ Phi
         z = Phi.T @ (self.M @ x)
@@ -326,13 +364,13 @@ class ReducedModel:
         if not uniform:
             for k in range(1, t.size):
                 d = self.discretize(dts[k - 1])
-                z = d.a * z + d.P0 @ U[k - 1] + d.P1 @ U[k]
+                z = d.a * z + d.P0 @ U0[k - 1] + d.P1 @ U[k]
                 Y[k] = Cz @ z
             return Y, Phi @ z
         d = self.discretize(dts[0])
         for k0 in range(0, t.size - 1, chunk):
             k1 = min(k0 + chunk, t.size - 1)
-            Z = d.P0 @ U[k0:k1].T + d.P1 @ U[k0 + 1:k1 + 1].T  # forcing per mode and step (r × L), rows contiguous
+            Z = d.P0 @ U0[k0:k1].T + d.P1 @ U[k0 + 1:k1 + 1].T  # forcing per mode and step (r × L), rows contiguous
             for j in range(self.order):
                 Z[j], _ = lfilter(_ONE, [1.0, -d.a[j]], Z[j], zi=[d.a[j] * z[j]])
             z = Z[:, -1].copy()

@@ -332,7 +332,7 @@ def test_run_batch_rejects_bad_input(machine, cases):
     with pytest.raises(ValueError, match="load case 'a': needs at least two rows"):
         run_batch(machine, {"a": short}, executor="serial")
     unknown = Loads(cases["case00"].time_s, cases["case00"].values, ("nonsense_W", *cases["case00"].names[1:]))
-    with pytest.raises(ValueError, match="load case 'a': loads column 'nonsense_W' is not an input"):
+    with pytest.raises(ValueError, match="load case 'a': loads: column 'nonsense_W' is not an input of machine 'vmc800'"):
         run_batch(machine, {"a": unknown}, executor="serial")
     with pytest.raises(ValueError, match="theta"):
         run_batch(machine, one, theta=0.2)

@@ -278,7 +278,7 @@ def test_extended_machine_with_new_source_and_material(machine, rom, loads, tmp_
     from hybridcomp.models import load_machine
 
     U = loads.as_inputs(machine.reference_temperature_degC)
-    Y = rom.simulate(loads.time_s, U)[0]
+    Y = rom.integrate(loads.time_s, U)[0]
     ds = dataset(machine, loads, Y[:, :8] + 20.0, Y[:, 8:11] * 1e6, seed=1)
     pb = build_problem(machine, rom, ds, parse_split("0:60%", ds.time_s), ("bed", "column", "saddle", "table", "headstock",
                                                                            "spindle"))

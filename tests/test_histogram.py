@@ -154,7 +154,10 @@ def test_workspace_column_and_no_air_columns(machine):
     col = {n: loads.values[-1, j] for j, n in enumerate(loads.names)}
     assert (col["ambient_degC"], col["floor_degC"], col["ws_table_degC"], col["ws_spindle_degC"]) == (19.0, 18.0, 23.0, 23.0)
     bare = boundary_conditions(machine, increments_from_samples(machine, samples(machine, t, {}), 300))
-    assert not [n for n in bare.names if n.endswith("_degC")]  # unmeasured air: columns omitted = reference temperature
+    # unmeasured air: the reference temperature, and the loads are always in model order
+    assert bare.names == machine.layout().columns
+    air = [j for j, n in enumerate(bare.names) if n.endswith("_degC")]
+    assert np.all(bare.values[:, air] == machine.reference_temperature_degC)
 
 
 def test_power_table_is_interpolated(machine):

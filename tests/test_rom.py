@@ -183,12 +183,12 @@ def test_exact_stepping_matches_the_analytic_ramp_response_at_any_step():
     # a ramp q = 0.01 t: T(t) = (a/k) (t - tau (1 - e^{-t/tau}))
     for dt in (1.0, 60.0, 3600.0, 20000.0):
         t = np.arange(0, 20001.0, dt)
-        Y, _ = r.simulate(t, (0.01 * t)[:, None], initial="reference")
+        Y, _ = r.integrate(t, (0.01 * t)[:, None], initial="reference")
         exact = 0.01 / k * (t - tau * (1 - np.exp(-t / tau)))
         np.testing.assert_allclose(Y[:, 0], exact, rtol=1e-10, atol=1e-12)
     # non-uniform steps (per-step path, discretisations cached per Δt) and single steps agree
     t = np.array([0.0, 10.0, 70.0, 100.0, 3700.0, 3710.0])
-    Y, x = r.simulate(t, (0.01 * t)[:, None], initial="reference")
+    Y, x = r.integrate(t, (0.01 * t)[:, None], initial="reference")
     np.testing.assert_allclose(Y[:, 0], 0.01 / k * (t - tau * (1 - np.exp(-t / tau))), rtol=1e-10, atol=1e-12)
     x1 = np.zeros(1)
     for t0, t1 in itertools.pairwise(t):
@@ -201,8 +201,8 @@ def test_step_size_does_not_change_the_rom_solution(rom, loads):
     U = loads.as_inputs(20.0)
     t_fine = np.arange(0, loads.time_s[-1] + 1, 20.0)
     U_fine = np.column_stack([np.interp(t_fine, loads.time_s, U[:, j]) for j in range(U.shape[1])])
-    Y60, x60 = rom.simulate(loads.time_s, U)
-    Y20, x20 = rom.simulate(t_fine, U_fine)
+    Y60, x60 = rom.integrate(loads.time_s, U)
+    Y20, x20 = rom.integrate(t_fine, U_fine)
     np.testing.assert_allclose(Y20[::3], Y60, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(x20, x60, rtol=1e-9, atol=1e-12)
 
@@ -210,13 +210,13 @@ def test_step_size_does_not_change_the_rom_solution(rom, loads):
 def test_state_save_and_restore_continues_exactly(rom, loads, tmp_path):
     U = loads.as_inputs(20.0)
     t = loads.time_s
-    Y_all, _ = rom.simulate(t, U)
+    Y_all, _ = rom.integrate(t, U)
     k = 50
-    _, x_mid = rom.simulate(t[: k + 1], U[: k + 1])
+    _, x_mid = rom.integrate(t[: k + 1], U[: k + 1])
     path = save_state(tmp_path / "state.json", rom.state(x_mid, t[k]))
     st = load_state(path)
     assert st.time_s == t[k]
-    Y_rest, _ = rom.simulate(t[k:], U[k:], initial=rom.restore(st))
+    Y_rest, _ = rom.integrate(t[k:], U[k:], initial=rom.restore(st))
     np.testing.assert_allclose(Y_rest, Y_all[k:], rtol=1e-10, atol=1e-13)
     with pytest.raises(RomInputError, match="belongs to reduced model"):
         one_mode().restore(st)
@@ -228,7 +228,7 @@ def test_save_load_round_trip(rom, machine, loads, tmp_path):
     back = load_rom(path, machine)
     assert back.order == rom.order and back.input_names == rom.input_names and back.rom_id == rom.rom_id
     U = loads.as_inputs(20.0)
-    np.testing.assert_array_equal(back.simulate(loads.time_s, U)[0], rom.simulate(loads.time_s, U)[0])
+    np.testing.assert_array_equal(back.integrate(loads.time_s, U)[0], rom.integrate(loads.time_s, U)[0])
     np.testing.assert_array_equal(back.V, rom.V)
     assert back.meta["machine"]["sha256"] == machine.sha256
 
@@ -263,9 +263,9 @@ def test_step_size_must_be_positive(rom, dt):
 def test_bad_time_grid_inputs_and_columns_are_named(rom):
     U = np.zeros((3, rom.n_inputs))
     with pytest.raises(RomInputError, match="step 2 goes from 60.0 s to 60.0 s"):
-        rom.simulate([0.0, 60.0, 60.0], U)
+        rom.integrate([0.0, 60.0, 60.0], U)
     with pytest.raises(RomInputError, match=r"inputs must be \(3, 40\)"):
-        rom.simulate([0.0, 60.0, 120.0], U[:, :5])
+        rom.integrate([0.0, 60.0, 120.0], U[:, :5])
     with pytest.raises(RomInputError, match=r"loads.csv: column 'c_axis_motor_W' is not an input of the reduced model"):
         inputs_from_columns(rom, ["x_motor_W", "c_axis_motor_W"], np.zeros((2, 2)), "loads.csv")
     U2 = inputs_from_columns(rom, ["x_motor_W", "ambient_degC"], np.array([[5.0, 21.5]]))

@@ -1,0 +1,281 @@
+"""The input layout of a machine: the one vocabulary every package speaks.
+
+A machine model (FE or reduced) has inputs, in this order:
+
+* one heat input per fixed source, ``<source>``, and per rail segment ``k = 1 … n`` of a
+  moving source, ``<source>[k]`` — loads column ``<input>_W``, power [W];
+* one air temperature per convection zone — loads column ``<zone>_degC`` [°C]; the model
+  itself takes the rise over the reference temperature [K];
+
+and outputs: one temperature per sensor (column ``<sensor>_degC`` [°C]) and the TCP-minus-table
+drift in three directions.  Directions have one spelling per layer:
+
+=======================  ======================  ==================================================
+layer                    spelling                where
+=======================  ======================  ==================================================
+machine file             ``x``, ``y``, ``z``      :data:`COORDINATES`: an axis's or support's direction
+CDs and axes             ``X``, ``Y``, ``Z``      :data:`DIRECTIONS`: CD XML, CD sets, axis names
+model outputs (SI)       ``dx``, ``dy``, ``dz``   :data:`DRIFT_OUTPUTS`: FE/ROM output names [m]
+files, tables, sinks     ``dx_um`` …              :data:`DRIFT_COLUMNS`: CSV columns, offsets [µm]
+=======================  ======================  ==================================================
+
+This module builds every heat-input name (:func:`heat_input_name`) and maps named columns to
+model inputs (:meth:`InputLayout.inputs`); no other module does either.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from hybridcomp.errors import HybridcompError
+
+if TYPE_CHECKING:  # the layout is built from a machine, but needs nothing else of it
+    from hybridcomp.models.machine import Machine
+
+COORDINATES = ("x", "y", "z")
+DIRECTIONS = ("X", "Y", "Z")
+DRIFT_OUTPUTS = ("dx", "dy", "dz")
+DRIFT_COLUMNS = ("dx_um", "dy_um", "dz_um")
+POWER_SUFFIX = "_W"
+TEMPERATURE_SUFFIX = "_degC"
+# measured air columns of a trace or dataset, by the kind of air a zone has
+AMBIENT_COLUMN = "Tamb_degC"
+WORKSPACE_COLUMN = "Tws_degC"
+
+
+class LoadsColumnError(HybridcompError, ValueError):
+    """A named column is not an input of the model; the message names the source, the column and the inputs."""
+
+
+def heat_input_name(source: str, segment: int | None = None) -> str:
+    """Name of a heat input: ``<source>`` (fixed source) or ``<source>[k]`` (rail segment ``k``, from 1)."""
+    return source if segment is None else f"{source}[{segment}]"
+
+
+def power_column(heat_input: str) -> str:
+    """Loads column of a heat input: ``<input>_W`` [W]."""
+    return heat_input + POWER_SUFFIX
+
+
+def temperature_column(name: str) -> str:
+    """Column of a temperature (sensor or zone air): ``<name>_degC`` [°C]."""
+    return name + TEMPERATURE_SUFFIX
+
+
+@dataclass(frozen=True)
+class InputLayout:
+    """Names, kinds, order and units of a machine model's inputs and outputs.
+
+    Attributes
+    ----------
+    heat_inputs : heat-input names in model order (``<source>``, ``<source>[k]``)
+    zones : convection zone names in model order
+    zone_air : kind of air per zone, ``"ambient"`` or ``"workspace"``
+    sensors : sensor names in output order
+    reference_temperature_degC : the state of zero rise, and the air temperature of a zone with no column [°C]
+    source_inputs : per heat source, its name and the indices of its heat inputs
+    model : what the layout belongs to, for messages (``machine 'vmc800'``)
+    """
+
+    heat_inputs: tuple[str, ...]
+    zones: tuple[str, ...]
+    zone_air: tuple[str, ...]
+    sensors: tuple[str, ...]
+    reference_temperature_degC: float
+    source_inputs: tuple[tuple[str, tuple[int, ...]], ...] = ()
+    model: str = "the model"
+
+    def __post_init__(self):
+        if len(self.zone_air) != len(self.zones):
+            raise ValueError(f"zone_air has {len(self.zone_air)} entries for {len(self.zones)} zones")
+        if not np.isfinite(self.reference_temperature_degC):
+            raise ValueError(f"reference_temperature_degC must be finite, got {self.reference_temperature_degC}")
+
+    # -- names ------------------------------------------------------------------------------------
+    @property
+    def heat_columns(self) -> tuple[str, ...]:
+        return tuple(power_column(q) for q in self.heat_inputs)
+
+    @property
+    def zone_columns(self) -> tuple[str, ...]:
+        return tuple(temperature_column(z) for z in self.zones)
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """Loads columns in model input order: ``<input>_W`` …, ``<zone>_degC`` …."""
+        return self.heat_columns + self.zone_columns
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.heat_inputs) + len(self.zones)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        """Model output names: sensors, then ``dx``, ``dy``, ``dz``."""
+        return self.sensors + DRIFT_OUTPUTS
+
+    @property
+    def sensor_columns(self) -> tuple[str, ...]:
+        return tuple(temperature_column(s) for s in self.sensors)
+
+    @property
+    def output_columns(self) -> tuple[str, ...]:
+        """Outputs-CSV columns after ``time_s``: ``<sensor>_degC`` …, ``dx_um``, ``dy_um``, ``dz_um``."""
+        return self.sensor_columns + DRIFT_COLUMNS
+
+    def source_columns(self, source: str) -> tuple[int, ...]:
+        """Input indices of a heat source's inputs (one for a fixed source, one per segment for a moving one)."""
+        for name, cols in self.source_inputs:
+            if name == source:
+                return cols
+        raise KeyError(f"unknown heat source {source!r} (sources: {', '.join(n for n, _ in self.source_inputs)})")
+
+    # -- columns -> inputs --------------------------------------------------------------------------
+    def air_sources(self, measured: Sequence[str]) -> dict[str, str]:
+        """Which measured column gives the air temperature of each zone.
+
+        A zone's own column ``<zone>_degC`` wins; otherwise a workspace zone takes ``Tws_degC``,
+        then ``Tamb_degC``; an ambient zone takes ``Tamb_degC``.  Zones without a measured
+        column are left out (they stay at the reference temperature).
+        """
+        present = set(measured)
+        out = {}
+        for z, air in zip(self.zones, self.zone_air):
+            order = [temperature_column(z), WORKSPACE_COLUMN, AMBIENT_COLUMN] if air == "workspace" else \
+                [temperature_column(z), AMBIENT_COLUMN]
+            for c in order:
+                if c in present:
+                    out[z] = c
+                    break
+        return out
+
+    def complete(self, names: Sequence[str], values: np.ndarray, source: str = "loads",
+                 air: Mapping[str, str] | None = None) -> np.ndarray:
+        """Every loads column in model order, in loads units (powers [W], air [°C]) (nt × nu).
+
+        Parameters
+        ----------
+        names : column names of ``values``
+        values : the columns (nt × len(names))
+        source : what the columns come from, for the error message (a file name)
+        air : zone → column to read its air temperature from when it is not ``<zone>_degC``
+            (see :meth:`air_sources`); columns it names are not inputs and not unknown
+
+        A missing heat input is zero power, a missing zone the reference temperature; a column
+        that is not an input is an error naming it.
+        """
+        names = list(names)
+        values = np.asarray(values, float)
+        if values.ndim != 2 or values.shape[1] != len(names):
+            raise LoadsColumnError(f"{source}: {len(names)} column names for values of shape {values.shape}")
+        expected = self.columns
+        aliases = set((air or {}).values())
+        unknown = [n for n in names if n not in expected and n not in aliases]
+        if unknown:
+            raise LoadsColumnError(f"{source}: column {unknown[0]!r} is not an input of {self.model} "
+                                   f"(inputs: {', '.join(expected)})")
+        index = {n: j for j, n in enumerate(names)}
+        U = np.zeros((values.shape[0], len(expected)))
+        nh = len(self.heat_inputs)
+        for j, col in enumerate(expected):
+            if col in index:
+                U[:, j] = values[:, index[col]]
+            elif j >= nh:
+                alias = (air or {}).get(self.zones[j - nh])
+                U[:, j] = values[:, index[alias]] if alias in index else self.reference_temperature_degC
+        return U
+
+    def inputs(self, names: Sequence[str], values: np.ndarray, source: str = "loads",
+               air: Mapping[str, str] | None = None) -> np.ndarray:
+        """Model inputs (nt × nu) from named columns: powers [W], air temperature rises [K].
+
+        As :meth:`complete`, with the reference temperature taken off the zone columns.
+        """
+        U = self.complete(names, values, source, air)
+        U[:, len(self.heat_inputs):] -= self.reference_temperature_degC
+        return U
+
+    def loads_values(self, inputs: np.ndarray) -> np.ndarray:
+        """Loads columns (powers [W], air [°C]) from model inputs (powers [W], air rises [K]): the inverse of :meth:`inputs`."""
+        V = np.array(inputs, float, copy=True)
+        V[..., len(self.heat_inputs):] += self.reference_temperature_degC
+        return V
+
+
+@dataclass(frozen=True)
+class Loads:
+    """A boundary-condition time series, its columns in model input order.
+
+    Attributes
+    ----------
+    time_s : times [s]
+    values : heat powers [W] and air temperatures [°C] (nt × nu), columns as ``names``
+    names : column names (``*_W``, ``*_degC``); :func:`in_model_order` makes them a layout's ``columns``
+    """
+
+    time_s: np.ndarray
+    values: np.ndarray
+    names: tuple[str, ...]
+
+    def as_inputs(self, reference_temperature_degC: float) -> np.ndarray:
+        """Model inputs: powers [W] and air temperature rises over the reference [K]."""
+        U = self.values.copy()
+        for j, n in enumerate(self.names):
+            if n.endswith(TEMPERATURE_SUFFIX):
+                U[:, j] -= reference_temperature_degC
+        return U
+
+
+def in_model_order(loads: Loads, layout: InputLayout | Machine, source: str = "loads") -> Loads:
+    """The same loads with every input column of ``layout`` (or of a machine's layout), in its order: a missing
+    heat input is zero power, a missing zone the reference temperature; an unknown column is an error."""
+    if not isinstance(layout, InputLayout):
+        layout = layout.layout()
+    return Loads(loads.time_s, layout.complete(loads.names, loads.values, source), layout.columns)
+
+
+def input_layout(machine: Machine) -> InputLayout:
+    """The input layout of a machine (its heat sources, zones and sensors in file order)."""
+    heat: list[str] = []
+    per_source = []
+    for s in machine.heat_sources:
+        if s.kind == "fixed":
+            names = [heat_input_name(s.name)]
+        else:
+            names = [heat_input_name(s.name, k + 1) for k in range(machine.axis(s.axis).n_segments)]
+        per_source.append((s.name, tuple(range(len(heat), len(heat) + len(names)))))
+        heat.extend(names)
+    return InputLayout(
+        heat_inputs=tuple(heat),
+        zones=tuple(z.name for z in machine.zones),
+        zone_air=tuple(z.air for z in machine.zones),
+        sensors=tuple(s.name for s in machine.sensors),
+        reference_temperature_degC=float(machine.reference_temperature_degC),
+        source_inputs=tuple(per_source),
+        model=f"machine {machine.name!r}",
+    )
+
+
+def layout_from_names(input_names: Sequence[str], output_names: Sequence[str],
+                      reference_temperature_degC: float, model: str = "the model") -> InputLayout:
+    """The layout of a model known by its input and output names (a saved reduced model).
+
+    ``input_names`` are loads columns (``*_W`` then ``*_degC``), ``output_names`` sensors then
+    ``dx``, ``dy``, ``dz`` (then any further rows, such as a diagnosis' per-body drift).  Zone air kinds
+    are unknown there and taken as ambient.
+    """
+    heat = [n.removesuffix(POWER_SUFFIX) for n in input_names if n.endswith(POWER_SUFFIX)]
+    zones = [n.removesuffix(TEMPERATURE_SUFFIX) for n in input_names if n.endswith(TEMPERATURE_SUFFIX)]
+    if len(heat) + len(zones) != len(input_names) or list(input_names) != [power_column(q) for q in heat] + \
+            [temperature_column(z) for z in zones]:
+        raise LoadsColumnError(f"input names {list(input_names)} are not heat inputs (*_W) followed by zones (*_degC)")
+    outputs = tuple(output_names)
+    ns = outputs.index(DRIFT_OUTPUTS[0]) if DRIFT_OUTPUTS[0] in outputs else -1
+    if ns < 0 or outputs[ns:ns + 3] != DRIFT_OUTPUTS:
+        raise LoadsColumnError(f"output names {list(outputs)} have no {', '.join(DRIFT_OUTPUTS)} after the sensors")
+    return InputLayout(tuple(heat), tuple(zones), ("ambient",) * len(zones), outputs[:ns],
+                       float(reference_temperature_degC), model=model)
