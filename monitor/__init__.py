@@ -9,3 +9,14 @@
 * :mod:`hybridcomp.monitor.regeneration` — the background CD generation job
 * :mod:`hybridcomp.monitor.scenario` — the hybrid scenario and drift metrics
 """
+
+from hybridcomp.monitor.config import ConfigError, MonitorConfig, example_config, load_config, parse_config
+from hybridcomp.monitor.daemon import Monitor, Regenerator, RunResult, run_monitor
+from hybridcomp.monitor.sinks import MemorySink, Offset, make_sink
+from hybridcomp.monitor.sources import ListSource, Reading, ReplaySource, SourceFileError
+
+__all__ = [
+    "ConfigError", "ListSource", "MemorySink", "Monitor", "MonitorConfig", "Offset", "Reading", "Regenerator",
+    "ReplaySource", "RunResult", "SourceFileError", "example_config", "load_config", "make_sink", "parse_config",
+    "run_monitor",
+]

@@ -23,8 +23,10 @@ from hybridcomp.rom.reduced import (
     save_rom,
     save_state,
 )
+from hybridcomp.rom.machine import CheckResult, inputs_from_columns, reduce_model, split_outputs
 
 __all__ = [
+    "CheckResult",
     "ExpansionPoint",
     "ReducedModel",
     "Reduction",
@@ -34,8 +36,11 @@ __all__ = [
     "RomInputError",
     "RomState",
     "ThermalSystem",
+    "inputs_from_columns",
     "load_rom",
     "load_state",
+    "reduce_model",
     "save_rom",
     "save_state",
+    "split_outputs",
 ]
