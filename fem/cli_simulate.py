@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
-from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.fem.timestep import DEFAULT_TOLERANCE, TimeTolerance
 from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models.machine import MachineFileError, load_machine
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,23 @@ def resample(loads: Loads, dt_s: float) -> Loads:
     return Loads(t, values, loads.names)
 
 
+def time_tolerance(args: argparse.Namespace) -> TimeTolerance | None:
+    """The tolerance of the default, error-controlled scheme, or None when ``--dt``/``--theta`` choose the θ-method."""
+    tols = {"--time-tol-K": args.time_tol_K, "--time-tol-um": args.time_tol_um}
+    for flag, v in tols.items():
+        if not v > 0:
+            raise ValueError(f"{flag} must be positive, got {v}")
+    if args.dt is None and args.theta is None:
+        return TimeTolerance(sensor_K=args.time_tol_K, drift_um=args.time_tol_um)
+    changed = [flag for flag, v, d in (("--time-tol-K", args.time_tol_K, DEFAULT_TOLERANCE.sensor_K),
+                                       ("--time-tol-um", args.time_tol_um, DEFAULT_TOLERANCE.drift_um)) if v != d]
+    if changed:
+        chosen = "--dt" if args.dt is not None else "--theta"
+        raise ValueError(f"{changed[0]} applies to the default error-controlled scheme, not with {chosen} (the θ-method "
+                         "at a chosen step has no error control)")
+    return None
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_machine_argument(p)
     p.add_argument("--loads", required=True, type=Path,
@@ -60,8 +78,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, type=Path, help="output directory (outputs.csv, run.json, fields, picture)")
     p.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     p.add_argument("--element-size-mm", type=float, help="largest element edge [mm] (default: from the machine file)")
-    p.add_argument("--dt", type=float, help="time step [s]; default: the loads CSV's own times")
-    p.add_argument("--theta", type=float, default=1.0, help="θ of the θ-method: 1 backward Euler (default), 0.5 Crank-Nicolson")
+    p.add_argument("--dt", type=float,
+                   help="time step [s] of the θ-method (loads resampled linearly); with --dt or --theta the run uses "
+                   "the θ-method and reports no time-error estimate. Default: TR-BDF2 (second order, L-stable: no "
+                   "ringing after steps in power) in equal sub-steps of the loads CSV's intervals, doubled until the "
+                   "estimated error bound of every output at the loads times (the difference between runs with 2m and m "
+                   "sub-steps, about 3x the error of the 2m run that is written) is within "
+                   "--time-tol-K and --time-tol-um; run.json reports the estimate, the steps and step sizes")
+    p.add_argument("--theta", type=float,
+                   help="θ of the θ-method, in [0.5, 1]: 1 backward Euler, 0.5 Crank-Nicolson; without --dt at the "
+                   "loads CSV's own times; --dt alone means θ = 1")
+    p.add_argument("--time-tol-K", type=float, default=DEFAULT_TOLERANCE.sensor_K,
+                   help=f"accepted time-discretisation error of the sensor temperatures [K] (default "
+                   f"{DEFAULT_TOLERANCE.sensor_K}; the default scheme only)")
+    p.add_argument("--time-tol-um", type=float, default=DEFAULT_TOLERANCE.drift_um,
+                   help=f"accepted time-discretisation error of the drift dx, dy, dz [µm] (default "
+                   f"{DEFAULT_TOLERANCE.drift_um}; the default scheme only)")
     p.add_argument("--initial", choices=("steady", "reference"), default="steady",
                    help="initial state: steady state of the first loads row (default) or the reference temperature")
     p.add_argument("--fields", type=int, default=0, metavar="N",
@@ -87,8 +119,9 @@ def run(args: argparse.Namespace) -> int:
             raise LoadsFileError(f"{args.loads}: needs at least two rows (a start and an end time)")
         if args.element_size_mm is not None and not args.element_size_mm > 0:
             raise ValueError(f"--element-size-mm must be positive, got {args.element_size_mm}")
-        if not 0.5 <= args.theta <= 1.0:
+        if args.theta is not None and not 0.5 <= args.theta <= 1.0:
             raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
+        tolerance = time_tolerance(args)
     except (MachineFileError, LoadsFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -115,8 +148,26 @@ def run(args: argparse.Namespace) -> int:
         store = tuple(sorted(set(np.linspace(0, nt - 1, args.fields).round().astype(int).tolist())))
     if args.png:
         store = tuple(sorted(set(store) | {nt - 1}))
-    res = simulate(model, loads.time_s, loads.as_inputs(machine.reference_temperature_degC), theta=args.theta,
-                   initial=args.initial, store_steps=store, progress=progress)
+    U = loads.as_inputs(machine.reference_temperature_degC)
+    if tolerance is not None:
+        from hybridcomp.fem.timestep import simulate_controlled
+
+        res, estimate = simulate_controlled(model, loads.time_s, U, tolerance, initial=args.initial, store_steps=store,
+                                            progress=progress)
+        time_info = estimate.as_dict()
+        if not estimate.met:
+            print(f"warning: estimated time error {estimate.sensor_K:.3g} K, {estimate.drift_um:.3g} um exceeds the "
+                  f"tolerance ({tolerance.sensor_K} K, {tolerance.drift_um} um) at {estimate.substeps} sub-steps per "
+                  "loads interval", file=sys.stderr)
+    else:
+        theta = 1.0 if args.theta is None else args.theta
+        res = simulate(model, loads.time_s, U, theta=theta, initial=args.initial, store_steps=store, progress=progress)
+        time_info = {
+            "scheme": "theta-method", "theta": theta,
+            "steps": nt - 1, "step_sizes_s": sorted(set(np.round(np.diff(loads.time_s), 9).tolist())),
+            "estimate_sensor_K": None, "estimate_drift_um": None,
+            "estimate": "none: the θ-method at a chosen --dt/--theta is not error-controlled",
+        }
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     write_outputs(out / "outputs.csv", res.time_s, model.sensor_names, res.sensors_degC, res.drift_um)
@@ -143,8 +194,8 @@ def run(args: argparse.Namespace) -> int:
         "pose_mm": pose,
         "nodes": model.n,
         "elements": int(model.mesh.mesh.t.shape[1]),
-        "steps": nt - 1,
-        "theta": args.theta,
+        "steps": time_info["steps"],
+        "time": time_info,
         "timings_s": {**model.timings_s, **res.timings_s, "total": time.perf_counter() - t0},
         "files": files,
     }

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from hybridcomp.fem.loads import Loads, write_outputs
+from hybridcomp.fem.timestep import DEFAULT_TOLERANCE
 from hybridcomp.models.machine import Machine
 from hybridcomp.rom.machine import inputs_from_columns, split_outputs
 from hybridcomp.rom.reduced import RomFileError, RomInputError, load_rom
@@ -22,7 +23,9 @@ def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], 
             ("--element-size-mm", args.element_size_mm is not None),
             ("--fields", args.fields > 0),
             ("--png", args.png),
-            ("--theta", args.theta != 1.0),
+            ("--theta", args.theta not in (None, 1.0)),
+            ("--time-tol-K", args.time_tol_K != DEFAULT_TOLERANCE.sensor_K),
+            ("--time-tol-um", args.time_tol_um != DEFAULT_TOLERANCE.drift_um),
         ) if bad]
         if unsupported:
             raise RomInputError(f"{unsupported[0][0]} applies to the FE path only, not with --rom "

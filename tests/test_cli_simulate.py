@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 
 import meshio
 import numpy as np
@@ -77,6 +78,9 @@ def test_simulate_cli_resamples_with_dt(machine, tmp_path, write_csv):
     assert main(["simulate", "--loads", str(tmp_path / "l.csv"), "--out", str(out), "--dt", "600", *COARSE]) == 0
     t = np.loadtxt(out / "outputs.csv", delimiter=",", skiprows=1)[:, 0]
     np.testing.assert_allclose(t, np.arange(0, 3601, 600))
+    info = json.loads((out / "run.json").read_text())["time"]  # a chosen --dt: backward Euler, no error estimate
+    assert info["scheme"] == "theta-method" and info["theta"] == 1.0 and info["step_sizes_s"] == [600.0]
+    assert info["estimate_sensor_K"] is None and info["estimate"].startswith("none")
 
 
 @pytest.mark.parametrize(
@@ -86,6 +90,9 @@ def test_simulate_cli_resamples_with_dt(machine, tmp_path, write_csv):
         (["--loads", "{good}", "--pose", "X=900"], "pose X = 900.0 mm is outside the travel"),
         (["--loads", "{good}", "--pose", "Q=1"], "pose names axis 'Q'"),
         (["--loads", "{good}", "--dt", "-5"], "--dt must be positive"),
+        (["--loads", "{good}", "--time-tol-um", "0"], "--time-tol-um must be positive, got 0.0"),
+        (["--loads", "{good}", "--theta", "0.5", "--time-tol-K", "0.1"],
+         "--time-tol-K applies to the default error-controlled scheme, not with --theta"),
         (["--loads", "{good}", "--machine", "{typo}"], "'machine.nmae' is not a known field"),
         (["--loads", "{good}", "--machine", "nosuchmachine"], "neither a file nor a bundled machine"),
     ],
@@ -109,6 +116,7 @@ def test_help_explains_the_contract(capsys):
     assert e.value.code == 0
     text = capsys.readouterr().out
     assert "<source>[<segment>]_W" in text and "unknown column is an error" in text
+    assert "TR-BDF2" in text and "--time-tol-K" in text and "no time-error estimate" in text
 
 
 def test_machine_and_example_loads_commands(tmp_path, capsys):

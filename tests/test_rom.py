@@ -302,6 +302,7 @@ def test_reduce_and_simulate_cli_against_fe(machine, loads, tmp_path, capsys):
     [
         (["--machine", "{changed}"], "field 'machine.sha256'"),
         (["--fields", "2"], "--fields applies to the FE path only"),
+        (["--time-tol-K", "0.1"], "--time-tol-K applies to the FE path only"),
         (["--pose", "X=100"], "field 'pose_mm' is"),
         (["--dt", "0"], "--dt must be positive"),
     ],
