@@ -111,7 +111,7 @@ class ThermoElasticModel:
         return layout_from_names(self.input_names, self.sensor_names + DRIFT_OUTPUTS, self.reference_temperature_degC,
                                  f"machine {self.machine.name!r}")
 
-    def simulate(self, loads: Loads, initial: str | np.ndarray = "steady", theta: float = 1.0,
+    def simulate(self, loads: Loads, initial: str | np.ndarray = "steady", theta: float | None = None,
                  store_steps: tuple[int, ...] | None = None, progress: bool = False) -> SimulationResult:
         """Run the model on a loads time series: sensor temperatures [°C] and drift [µm] at the loads' times.
 
@@ -120,12 +120,21 @@ class ThermoElasticModel:
         loads : heat powers [W] and air temperatures [°C] by loads column; a missing column is zero power or
             the reference temperature, an unknown one an error
         initial : ``"steady"`` (steady state of the first loads row), ``"reference"`` (zero rise) or a state [K]
-        theta, store_steps, progress : see :func:`hybridcomp.fem.transient.simulate`
+        theta : None (default): TR-BDF2 sub-steps refined until the time error meets
+            :data:`hybridcomp.fem.timestep.DEFAULT_TOLERANCE` (the estimate is ``result.time_error``); a number:
+            the θ-method on the loads' own times (:func:`hybridcomp.fem.transient.simulate`)
+        store_steps, progress : see :func:`hybridcomp.fem.transient.simulate`
         """
-        from hybridcomp.fem.transient import simulate  # transient builds on this module
+        from hybridcomp.fem.timestep import simulate_controlled  # both build on this module
+        from hybridcomp.fem.transient import simulate
 
         U = self.layout().inputs(loads.names, loads.values, "loads")
-        return simulate(self, loads.time_s, U, theta=theta, initial=initial, store_steps=store_steps, progress=progress)
+        if theta is not None:
+            return simulate(self, loads.time_s, U, theta=theta, initial=initial, store_steps=store_steps,
+                            progress=progress)
+        result, estimate = simulate_controlled(self, loads.time_s, U, initial=initial, store_steps=store_steps,
+                                               progress=progress)
+        return dataclasses.replace(result, time_error=estimate.as_dict())
 
     def with_htc(self, **h_W_m2K: float) -> ThermoElasticModel:
         """A copy with changed zone heat-transfer coefficients (no re-assembly)."""

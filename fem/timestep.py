@@ -35,9 +35,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from hybridcomp.models.simulation import SimulationResult, initial_state
+
 if TYPE_CHECKING:  # the FE modules are imported where used: the CLI reads the default tolerance from here
     from hybridcomp.fem.model import ThermoElasticModel
-    from hybridcomp.fem.transient import SimulationResult
 
 log = logging.getLogger(__name__)
 
@@ -276,14 +277,14 @@ def simulate_controlled(
     store_steps : indices of loads times whose full field is kept
     max_substeps : largest number of sub-steps per loads interval
     """
-    from hybridcomp.fem.transient import SimulationResult, initial_state
+    from hybridcomp.fem.transient import steady_state
 
     U = np.asarray(inputs, float)
     if U.ndim != 2 or U.shape[1] != len(model.input_names):
         raise ValueError(f"inputs must have {len(model.input_names)} columns ({model.input_names}), got shape {U.shape}")
     if not (isinstance(max_substeps, (int, np.integer)) and max_substeps >= 2):
         raise ValueError(f"max_substeps must be an integer of at least 2, got {max_substeps!r}")
-    x0 = initial_state(model, initial, U[0])
+    x0 = initial_state(initial, model.n, lambda: steady_state(model, U[0]))
     t = np.asarray(time_s, float)
     G_um = np.asarray(model.G) * 1e6
 
@@ -320,7 +321,7 @@ def simulate_controlled(
                     "estimated error %.3g K, %.3g um", tolerance.sensor_K, tolerance.drift_um, m, est_K, est_um)
     sens, drift, fields, _ = fine
     result = SimulationResult(time_s=t, sensors_degC=sens + model.reference_temperature_degC, drift_um=drift,
-                              fields_K=fields, timings_s=timings_all)
+                              fields_K=fields, timings_s=timings_all, sensor_names=model.sensor_names)
     estimate = TimeErrorEstimate(scheme=SCHEME, tolerance=tolerance, sensor_K=est_K, drift_um=est_um, met=met,
                                  substeps=m, steps=(t.size - 1) * m, step_sizes_s=step_sizes_s(t, m), runs=runs)
     return result, estimate

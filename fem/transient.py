@@ -38,18 +38,6 @@ def steady_state(model: ThermoElasticModel, u: np.ndarray) -> np.ndarray:
     return f(model.input_matrix() @ np.asarray(u, float))
 
 
-def initial_state(model: ThermoElasticModel, initial: str | np.ndarray, u0: np.ndarray) -> np.ndarray:
-    """Initial temperature rise [K]: ``"steady"`` (steady state of the first inputs ``u0``), ``"reference"``
-    (x = 0) or the given state."""
-    if isinstance(initial, str):
-        if initial == "steady":
-            return steady_state(model, u0)
-        if initial == "reference":
-            return np.zeros(model.n)
-        raise ValueError(f"initial must be 'steady', 'reference' or a state vector, got {initial!r}")
-    return np.asarray(initial, float)
-
-
 def integrate(
     M,
     A,

@@ -32,6 +32,7 @@ class SimulationResult:
     sensor_names : the sensors, in column order of ``sensors_degC``
     final_state : the model's state at the last time (FE: temperature rise per node [K]; reduced model:
         reduced coordinates), to continue from with ``initial=``; None where the model does not keep it
+    time_error : the estimated time-discretisation error of an FE run and its tolerance, None if not estimated
     """
 
     time_s: np.ndarray
@@ -41,6 +42,7 @@ class SimulationResult:
     timings_s: dict = field(default_factory=dict)
     sensor_names: tuple[str, ...] = ()
     final_state: np.ndarray | None = None
+    time_error: dict | None = None
 
     def columns(self) -> dict[str, np.ndarray]:
         """The outputs-CSV columns: ``time_s``, ``<sensor>_degC`` …, ``dx_um``, ``dy_um``, ``dz_um``."""
