@@ -23,7 +23,6 @@ import json
 import logging
 import sys
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,9 +58,9 @@ class DemoOptions:
 
 def planted_machine_file(machine, source: str, factor: float, path: Path) -> Path:
     """Write the real machine: the machine file with one source's power scaled by ``factor``."""
-    from hybridcomp.diagnose.machine_file import dumps_toml
+    from hybridcomp.models.toml import dumps_toml, read_toml
 
-    data = tomllib.loads(Path(machine.source).read_text())
+    data, _ = read_toml(machine.source)
     sources = {s["name"]: s for s in data.get("heat_sources", [])}
     if source not in sources:
         raise ValueError(f"--plant-source: machine {machine.name!r} has no heat source {source!r} "
