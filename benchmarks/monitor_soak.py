@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.models import jsonio
+
 POSE = {"X": 0.0, "Y": 0.0, "Z": 0.0}
 
 
@@ -163,7 +165,7 @@ def child(args) -> None:
     actions = {}
     for e in decisions:
         actions[e.payload["action"]] = actions.get(e.payload["action"], 0) + 1
-    print(json.dumps({
+    print(jsonio.dumps({
         "wall_s": wall, "machine_s": res.status["last_time_s"], "factor": res.status["last_time_s"] / wall,
         "readings": res.status["readings"], "compensations": res.status["compensations"],
         "decisions": len(times), "decision_max_s": max(times), "decision_median_s": float(np.median(times)),
@@ -225,7 +227,7 @@ def main() -> int:
     for a, b, c in rows:
         print(f"{a:<{w}}  {b:<44} {c}")
     ok = med["factor"] >= 1000 and worst_growth <= 10 and worst_decision <= 1.0
-    print(json.dumps({"benchmark": "monitor_soak", "days": args.days, "rate_hz": args.rate_hz, "repeats": args.repeats,
+    print(jsonio.dumps({"benchmark": "monitor_soak", "days": args.days, "rate_hz": args.rate_hz, "repeats": args.repeats,
                       "rows": info["rows"], "rom_order": info["rom_order"], "median": med,
                       "worst_decision_s": worst_decision, "worst_growth_MB": worst_growth, "runs": runs, "targets_met": ok}))
     if tmp is not None:

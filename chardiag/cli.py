@@ -10,13 +10,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument
 
 log = logging.getLogger(__name__)
@@ -231,7 +231,7 @@ def _fit(args) -> int:
             if args.activate:
                 db.activate(machine.name, cds["X"].pose_key, ids, reason=f"cd fit {args.data.name}")
         print(f"stored in {args.db}: {ids}" + (" (active)" if args.activate else ""), file=sys.stderr)
-    (args.out / "fit.json").write_text(json.dumps(info, indent=2, default=str))
+    (args.out / "fit.json").write_text(jsonio.dumps(info, indent=2, default=str))
     if not args.no_plot:
         _plot_fit(args.out / "fit.png", cds, data)
     print(f"wrote {args.out}/cd_X.xml, cd_Y.xml, cd_Z.xml, fit.json", file=sys.stderr)

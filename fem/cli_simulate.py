@@ -7,7 +7,6 @@ written, so a bad input leaves no half-written output directory.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
+from hybridcomp.models import jsonio
 from hybridcomp.models.machine import MachineFileError, load_machine
 from hybridcomp.models.cli import add_machine_argument
 
@@ -148,6 +148,6 @@ def run(args: argparse.Namespace) -> int:
         "timings_s": {**model.timings_s, **res.timings_s, "total": time.perf_counter() - t0},
         "files": files,
     }
-    (out / "run.json").write_text(json.dumps(info, indent=2))
+    (out / "run.json").write_text(jsonio.dumps(info, indent=2))
     print(f"wrote {out / 'outputs.csv'} ({nt} rows, {model.n} nodes, {info['timings_s']['total']:.1f} s)", file=sys.stderr)
     return 0

@@ -19,12 +19,13 @@ Everything lives in DIR (the CD databases are SQLite files there); nothing needs
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from hybridcomp.models import jsonio
 
 
 log = logging.getLogger(__name__)
@@ -134,7 +135,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     stages.next()
     day_plots = _day_plots(machine, nominal.files["controller"], out / "day")
     summary = _summary(options, nominal, after, diag_summary, time.perf_counter() - t_all, stages.times)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
+    (out / "summary.json").write_text(jsonio.dumps(summary, indent=1, default=str))
     _report(out, options, summary, nominal, after, pictures, day_plots)
     stages.next()
     return summary

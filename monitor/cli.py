@@ -11,6 +11,8 @@ import sys
 import time
 from pathlib import Path
 
+from hybridcomp.models import jsonio
+
 log = logging.getLogger(__name__)
 
 
@@ -69,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
             res = run_scenario(args.out, element_size_mm=args.element_size, disturbance_K=args.disturbance_K,
                                rom_order=args.rom_order, basic_hours=args.basic_hours)
             print(res.table)
-            print(json.dumps(res.summary))
+            print(jsonio.dumps(res.summary))
             return 0
     except (ConfigError, ValueError, OSError) as exc:
         print(f"hybridcomp monitor: {exc}", file=sys.stderr)
@@ -205,7 +207,7 @@ def _status(args) -> int:
     finally:
         db.close()
     if args.json:
-        print(json.dumps(st))
+        print(jsonio.dumps(st))
         return 0
     a = st["active"]
     print(f"machine {st['machine']}, pose {st['pose']}")

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import asyncio
 import csv
-import json
 import logging
 import math
 import time
@@ -33,6 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from hybridcomp.models import jsonio
 
 log = logging.getLogger(__name__)
 
@@ -323,7 +324,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
         w.writerow(["time_s", *DIRS, *(f"{s.replace(' ', '_')}_{d}" for s in preds for d in DIRS)])
         for i in range(t.size):
             w.writerow([f"{t[i]:g}", *(f"{v:.4f}" for v in truth[i]), *(f"{v:.4f}" for p in preds.values() for v in p[i])])
-    (out / "events.json").write_text(json.dumps(events, indent=1))
+    (out / "events.json").write_text(jsonio.dumps(events, indent=1))
     what = ([f"machine file {Path(real_machine.source).name}"] if real_machine is not machine else []) + \
         ([f"workspace air {disturbance_K:+g} K"] if disturbance_K else [])
     plot_path = _plot(out / "scenario.png", t, truth, preds, events, ", ".join(what) or "the nominal model") if plot else None
@@ -340,7 +341,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
         "generations": sum(1 for e in events if e["kind"] == "generation" and e.get("status") == "finished"),
         "timings_s": {**timings, "total": time.perf_counter() - t_all},
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    (out / "summary.json").write_text(jsonio.dumps(summary, indent=1))
     return ScenarioResult(metrics, table, events, {"table": out / "table.md", "plot": plot_path,
                                                     "events": out / "events.json", "residuals": out / "residuals.csv",
                                                     "recorded": recorded, "rom": rom_path, "controller": controller},

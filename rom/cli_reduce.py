@@ -7,11 +7,11 @@ input fails at once and writes nothing.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
+from hybridcomp.models import jsonio
 from hybridcomp.models.machine import MachineFileError, load_machine
 from hybridcomp.models.cli import add_machine_argument
 
@@ -101,5 +101,5 @@ def run(args: argparse.Namespace) -> int:
                        passed=c["passed"])
     else:
         summary["estimate"] = rom.meta.get("estimate")
-    print(json.dumps(summary))
+    print(jsonio.dumps(summary))
     return 0
