@@ -119,6 +119,7 @@ def child(args) -> None:
     """One soak run in this (fresh) process; prints one JSON line."""
     from hybridcomp.chardiag.cd import pose_key
     from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.store import MonitorStore
     from hybridcomp.models import load_machine
     from hybridcomp.monitor.config import parse_config
     from hybridcomp.monitor.daemon import Monitor, run_monitor
@@ -161,7 +162,7 @@ def child(args) -> None:
     wall = time.perf_counter() - t0
     mt = np.array(machine_t)
     after_day = int(np.searchsorted(mt, 86400.0))
-    decisions = db.events("decision")
+    decisions = MonitorStore(db).events("decision")
     actions = {}
     for e in decisions:
         actions[e.payload["action"]] = actions.get(e.payload["action"], 0) + 1

@@ -235,9 +235,10 @@ def _ep95_plot(path: Path, rows: dict) -> Path | None:
 def _cd_table(db_path: Path) -> list[str]:
     """The default CD set (the first activation): inputs, fit and reference temperatures."""
     from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.store import MonitorStore
 
     with CDDatabase(db_path) as db:
-        first = next((e for e in db.events("activation")), None)
+        first = next((e for e in MonitorStore(db).events("activation")), None)
         if first is None:
             return []
         cds = {d: db.get(i) for d, i in first.payload["ids"].items()}

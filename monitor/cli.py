@@ -147,13 +147,15 @@ def _run(args) -> int:
 def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dict:
     """What ``monitor status`` shows, as a dict."""
     from hybridcomp.monitor.daemon import state_key
+    from hybridcomp.monitor.store import MonitorStore
 
+    store = MonitorStore(db)
     key = state_key(machine_name, pkey)
-    state = json.loads(db.get_state(key) or "null")
-    beat = json.loads(db.get_state(key + ":heartbeat") or "null")
+    state = json.loads(store.get_state(key) or "null")
+    beat = json.loads(store.get_state(key + ":heartbeat") or "null")
     active = db.active_set(machine_name, pkey)
     now = time.time()
-    ev = [e for e in db.events() if e.kind in ("decision", "activation", "generation", "warning", "model_drift", "sensor")]
+    ev = [e for e in store.events() if e.kind in ("decision", "activation", "generation", "warning", "model_drift", "sensor")]
     out = {
         "machine": machine_name, "pose": pkey,
         "active": None if active is None else {"ids": dict(active.ids), "load_case": active.cds["X"].load_case,

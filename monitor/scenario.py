@@ -200,6 +200,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     """
     from hybridcomp.chardiag.cd import pose_key
     from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.store import MonitorStore
     from hybridcomp.chardiag.fit import fit_cd_set
     from hybridcomp.chardiag.training import simulate_load_cases, standard_load_cases
     from hybridcomp.fem.model import build_model
@@ -313,7 +314,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
              "ROM direct": rom_drift, "MLR on sensors": mlr}
     metrics = {k_: drift_metrics(t, truth - p) for k_, p in preds.items()}
     table = metrics_table(metrics)
-    events = [{"kind": e.kind, "machine_time_s": e.machine_time_s, **_event_brief(e)} for e in db.events()
+    events = [{"kind": e.kind, "machine_time_s": e.machine_time_s, **_event_brief(e)} for e in MonitorStore(db).events()
               if e.kind in ("activation", "generation") or (e.kind == "decision" and e.payload["action"] != "keep")]
     db.close()
 
