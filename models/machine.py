@@ -12,7 +12,6 @@ import dataclasses
 import hashlib
 import itertools
 import logging
-import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
