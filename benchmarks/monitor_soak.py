@@ -3,7 +3,7 @@
 The week is generated here: every day the bundled 16 h job-shop day (its
 programme sampled at ``--rate-hz``) followed by 8 h standing still, the
 workshop air swinging ±1.5 K over 24 h, and sensor temperatures T1…T8 from a
-structure model (a ROM of the demonstrator at ``--element-size``) driven by the
+structure model (a ROM of the demonstrator at ``--element-size-mm``) driven by the
 trace's own BCs. The CD database holds two CD sets fitted on the first day
 (referenced at the cold start and at the hottest moment), so the monitor
 switches between them every day.
@@ -182,7 +182,7 @@ def main() -> int:
     p.add_argument("--rate-hz", type=float, default=1.0)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--speed", type=float, default=0.0, help="replay speed (0: as fast as possible)")
-    p.add_argument("--element-size", type=float, default=150.0, help="FE element size of the ROM [mm]")
+    p.add_argument("--element-size-mm", type=float, default=150.0, help="FE element size of the ROM [mm]")
     p.add_argument("--work", type=Path, default=None, help="directory for the generated data (default: temporary)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -195,7 +195,7 @@ def main() -> int:
         args.work = Path(tmp.name)
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    info = generate(args.work, args.days, args.rate_hz, args.element_size)
+    info = generate(args.work, args.days, args.rate_hz, args.element_size_mm)
     print(f"generated {info['rows']:,} rows ({info['trace_MB']:.0f} MB), ROM order {info['rom_order']} "
           f"in {time.perf_counter() - t0:.0f} s", flush=True)
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}

@@ -41,8 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        "no compensation, static default CDs, the hybrid monitor, the ROM used directly and a multiple "
                        "linear regression on the sensors (RMS, peak-to-peak, 95th-percentile range over sliding windows).")
     c.add_argument("--out", required=True, type=Path, help="output directory (table, plot, database, traces)")
-    c.add_argument("--element-size", type=float, default=80.0, help="FE element size of the 'real machine' and the "
-                   "training runs [mm] (default 80)")
+    c.add_argument("--element-size-mm", type=float, default=80.0, help="FE element size of the 'real machine' and "
+                   "the training runs [mm] (default 80)")
     c.add_argument("--disturbance-K", type=float, default=2.0, help="planted workspace air offset against the "
                    "measured workshop air [K] (default 2)")
     c.add_argument("--rom-order", type=int, default=None, help="order of the structure model (default: to tolerance)")
@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         if args.monitor_command == "scenario":
             from hybridcomp.monitor.scenario import run_scenario
 
-            res = run_scenario(args.out, element_size_mm=args.element_size, disturbance_K=args.disturbance_K,
+            res = run_scenario(args.out, element_size_mm=args.element_size_mm, disturbance_K=args.disturbance_K,
                                rom_order=args.rom_order, basic_hours=args.basic_hours)
             print(res.table)
             print(jsonio.dumps(res.summary))
