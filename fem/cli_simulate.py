@@ -17,7 +17,7 @@ import numpy as np
 from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
 from hybridcomp.models import jsonio
 from hybridcomp.models.machine import MachineFileError, load_machine
-from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models.cli import add_machine_argument, refuse_unused
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +75,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    bad = refuse_unused(args, [("field_format", args.fields <= 0, "applies with --fields N only")])
+    if bad:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     try:
         machine = load_machine(args.machine)
         pose = machine.check_pose(parse_pose(args.pose))

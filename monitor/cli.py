@@ -100,12 +100,15 @@ def open_everything(cfg):
 def _run(args) -> int:
     import dataclasses
 
-    from hybridcomp.monitor.config import load_config
+    from hybridcomp.monitor.config import ConfigError, load_config
     from hybridcomp.monitor.daemon import Monitor, install_signal_handlers, run_monitor
     from hybridcomp.monitor.sinks import make_sink
     from hybridcomp.monitor.sources import OpcUaSource, ReplaySource, WallClock
 
     cfg = load_config(args.config)
+    if args.speed is not None and cfg.source.kind != "replay":
+        raise ConfigError(f"--speed applies to a replay source only; {args.config} reads source.kind = "
+                          f"{cfg.source.kind!r}")
     if args.speed is not None:
         cfg = dataclasses.replace(cfg, source=dataclasses.replace(cfg.source, speed=args.speed))
     machine, rom, _pose, pkey, db = open_everything(cfg)
