@@ -23,13 +23,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import logging
 import os
 import statistics
 import time
 
 from _table import table  # benchmarks/_table.py, beside this script
+
+from hybridcomp.models import jsonio
 
 
 @contextlib.contextmanager
@@ -141,7 +142,7 @@ def main() -> None:
                           "task compute [ms]": f"{med['compute_ms']:.2f}"})
     print(f"\nper-task overhead: {a.tiny} two-row load cases on one warm worker; median of {a.repeats}")
     print(table(over_rows, list(over_rows[0])))
-    print(json.dumps({"benchmark": "batch", "machine": "vmc800", "element_size_mm": a.element_size_mm,
+    print(jsonio.dumps({"benchmark": "batch", "machine": "vmc800", "element_size_mm": a.element_size_mm,
                       "cases": a.cases, "hours": a.hours, "dt_s": a.dt, "cores": os.cpu_count(),
                       "load_average": os.getloadavg()[0], "throughput": results, "overhead": over}))
 

@@ -20,7 +20,6 @@ Prints tables and a final JSON line.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -29,6 +28,8 @@ import time
 import numpy as np
 
 from _table import table  # benchmarks/_table.py, beside this script
+
+from hybridcomp.models import jsonio
 
 
 def synthetic(n: int, d: int, seed: int = 0):
@@ -147,7 +148,7 @@ def main() -> None:
         print(table(rows, ["case", "direction", "active inputs", "rms drift µm", "rms residual µm", "ratio %",
                            "outside %"]))
         result.update(acc)
-    print(json.dumps(result))
+    print(jsonio.dumps(result))
 
 
 if __name__ == "__main__":

@@ -13,13 +13,13 @@ with every library effect.  Target: ≤ 2 minutes.  Prints a table and ends with
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import time
 
 import numpy as np
 
+from hybridcomp.models import jsonio
 from hybridcomp.models.layout import DRIFT_COLUMNS
 
 
@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|---|---|")
     print(f"| {ds.time_s.size} | {rom.order} | {d.timings_s['candidates']} | {t_prepare:.1f} | {med:.1f} | "
           f"{d.verdict} | {'; '.join(causes)} |")
-    print(json.dumps({"benchmark": "diagnose", "rows": int(ds.time_s.size), "days": args.days, "dt_s": args.dt,
+    print(jsonio.dumps({"benchmark": "diagnose", "rows": int(ds.time_s.size), "days": args.days, "dt_s": args.dt,
                       "nodes": int(model.n), "order": int(rom.order), "candidates": d.timings_s["candidates"],
                       "prepare_s": round(t_prepare, 2), "diagnosis_s": [round(t, 2) for t in times],
                       "median_s": round(med, 2), "target_s": 120.0, "case": args.case, "verdict": d.verdict, "causes": causes,

@@ -24,6 +24,8 @@ import subprocess
 import sys
 import time
 
+from hybridcomp.models import jsonio
+
 TARGET_WALL_S = 60.0
 
 
@@ -82,7 +84,7 @@ def main(argv=None) -> int:
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
-        print(json.dumps(one_run(a.target_nodes, a.hours, a.dt)))
+        print(jsonio.dumps(one_run(a.target_nodes, a.hours, a.dt)))
         return 0
     results = {}
     for backend in a.backends.split(","):
@@ -106,7 +108,7 @@ def main(argv=None) -> int:
     for b, r in results.items():
         print(" | ".join([b] + [f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c]) for c in cols]))
     ok = {b: r["wall_s"] <= TARGET_WALL_S and r["stepping_over_bare"] <= 1.5 for b, r in results.items()}
-    print(json.dumps({"benchmark": "fem_transient", "target_wall_s": TARGET_WALL_S, "results": results, "meets_target": ok}))
+    print(jsonio.dumps({"benchmark": "fem_transient", "target_wall_s": TARGET_WALL_S, "results": results, "meets_target": ok}))
     return 0
 
 

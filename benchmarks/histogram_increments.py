@@ -13,7 +13,6 @@ Prints a table and a final JSON line.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 import numpy as np
@@ -23,7 +22,7 @@ from hybridcomp.fem.model import build_model
 from hybridcomp.fem.transient import simulate
 from hybridcomp.histogram import boundary_conditions, increments_from_motion, parse_gcode
 from hybridcomp.histogram.scenarios import jobshop_ambient, jobshop_program
-from hybridcomp.models import load_machine
+from hybridcomp.models import jsonio, load_machine
 
 INCREMENTS_S = (60, 300, 900, 3600)
 
@@ -68,7 +67,7 @@ def main(argv=None) -> int:
         print(f"{inc_s / 60:g} | {dh:.2f} | {d[0]:.2f} | {d[1]:.2f} | {d[2]:.2f} | {drift_at_hours[inc_s][-1, 2]:.2f}")
         out[str(inc_s)] = {"heat_vs_1min_pct": dh, "max_abs_drift_diff_um": d.round(3).tolist(),
                            "end_drift_um": drift_at_hours[inc_s][-1].round(3).tolist()}
-    print(json.dumps({"benchmark": "histogram_increments", "nodes": model.n, "power": a.power,
+    print(jsonio.dumps({"benchmark": "histogram_increments", "nodes": model.n, "power": a.power,
                       "max_abs_drift_um": np.abs(ref).max(axis=0).round(3).tolist(), "increments": out}))
     return 0
 

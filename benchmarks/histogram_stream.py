@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.models import jsonio
+
 
 def generate(path: Path, machine_name: str, days: int, rate_hz: float, sensors: int) -> int:
     """Write the trace; returns the number of rows."""
@@ -123,7 +125,7 @@ def main(argv=None) -> int:
     p.add_argument("--_process", type=Path, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args._process is not None:
-        print(json.dumps(process(args._process, args.machine, args.increment, args.chunk_rows)))
+        print(jsonio.dumps(process(args._process, args.machine, args.increment, args.chunk_rows)))
         return 0
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -175,7 +177,7 @@ def main(argv=None) -> int:
             "numpy": np.__version__,
             "cpus": os.cpu_count(),
         }
-        print(json.dumps(summary))
+        print(jsonio.dumps(summary))
     return 0 if ok else 1
 
 

@@ -3,7 +3,7 @@
 The week is generated here: every day the bundled 16 h job-shop day (its
 programme sampled at ``--rate-hz``) followed by 8 h standing still, the
 workshop air swinging ±1.5 K over 24 h, and sensor temperatures T1…T8 from a
-structure model (a ROM of the demonstrator at ``--element-size``) driven by the
+structure model (a ROM of the demonstrator at ``--element-size-mm``) driven by the
 trace's own BCs. The CD database holds two CD sets fitted on the first day
 (referenced at the cold start and at the hottest moment), so the monitor
 switches between them every day.
@@ -36,6 +36,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from hybridcomp.models import jsonio
 
 POSE = {"X": 0.0, "Y": 0.0, "Z": 0.0}
 
@@ -117,6 +119,7 @@ def child(args) -> None:
     """One soak run in this (fresh) process; prints one JSON line."""
     from hybridcomp.chardiag.cd import pose_key
     from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.store import MonitorStore
     from hybridcomp.models import load_machine
     from hybridcomp.monitor.config import parse_config
     from hybridcomp.monitor.daemon import Monitor, run_monitor
@@ -159,11 +162,11 @@ def child(args) -> None:
     wall = time.perf_counter() - t0
     mt = np.array(machine_t)
     after_day = int(np.searchsorted(mt, 86400.0))
-    decisions = db.events("decision")
+    decisions = MonitorStore(db).events("decision")
     actions = {}
     for e in decisions:
         actions[e.payload["action"]] = actions.get(e.payload["action"], 0) + 1
-    print(json.dumps({
+    print(jsonio.dumps({
         "wall_s": wall, "machine_s": res.status["last_time_s"], "factor": res.status["last_time_s"] / wall,
         "readings": res.status["readings"], "compensations": res.status["compensations"],
         "decisions": len(times), "decision_max_s": max(times), "decision_median_s": float(np.median(times)),
@@ -179,7 +182,7 @@ def main() -> int:
     p.add_argument("--rate-hz", type=float, default=1.0)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--speed", type=float, default=0.0, help="replay speed (0: as fast as possible)")
-    p.add_argument("--element-size", type=float, default=150.0, help="FE element size of the ROM [mm]")
+    p.add_argument("--element-size-mm", type=float, default=150.0, help="FE element size of the ROM [mm]")
     p.add_argument("--work", type=Path, default=None, help="directory for the generated data (default: temporary)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -192,7 +195,7 @@ def main() -> int:
         args.work = Path(tmp.name)
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    info = generate(args.work, args.days, args.rate_hz, args.element_size)
+    info = generate(args.work, args.days, args.rate_hz, args.element_size_mm)
     print(f"generated {info['rows']:,} rows ({info['trace_MB']:.0f} MB), ROM order {info['rom_order']} "
           f"in {time.perf_counter() - t0:.0f} s", flush=True)
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
@@ -225,7 +228,7 @@ def main() -> int:
     for a, b, c in rows:
         print(f"{a:<{w}}  {b:<44} {c}")
     ok = med["factor"] >= 1000 and worst_growth <= 10 and worst_decision <= 1.0
-    print(json.dumps({"benchmark": "monitor_soak", "days": args.days, "rate_hz": args.rate_hz, "repeats": args.repeats,
+    print(jsonio.dumps({"benchmark": "monitor_soak", "days": args.days, "rate_hz": args.rate_hz, "repeats": args.repeats,
                       "rows": info["rows"], "rom_order": info["rom_order"], "median": med,
                       "worst_decision_s": worst_decision, "worst_growth_MB": worst_growth, "runs": runs, "targets_met": ok}))
     if tmp is not None:

@@ -8,7 +8,6 @@ Prints a table of the final sensor temperatures and drift and a final JSON line.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -16,7 +15,7 @@ from hybridcomp.fem.export import render_png
 from hybridcomp.fem.loads import example_loads
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.transient import simulate
-from hybridcomp.models import load_machine
+from hybridcomp.models import jsonio, load_machine
 
 
 def main(argv=None) -> int:
@@ -35,7 +34,7 @@ def main(argv=None) -> int:
     for s, v in zip(model.sensor_names, res.sensors_degC[-1]):
         print(f"{s} | {v:.2f}")
     print("drift_um | " + " ".join(f"{v:.2f}" for v in res.drift_um[-1]))
-    print(json.dumps({"benchmark": "render_demonstrator", "nodes": model.n, "png": str(a.out),
+    print(jsonio.dumps({"benchmark": "render_demonstrator", "nodes": model.n, "png": str(a.out),
                       "sensors_end_degC": dict(zip(model.sensor_names, res.sensors_degC[-1].round(3).tolist())),
                       "drift_end_um": res.drift_um[-1].round(3).tolist()}))
     return 0

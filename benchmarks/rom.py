@@ -41,6 +41,8 @@ import numpy as np
 
 from _table import table  # benchmarks/_table.py, beside this script
 
+from hybridcomp.models import jsonio
+
 
 def max_err(a, b) -> float:
     return float(np.abs(np.asarray(a) - np.asarray(b)).max())
@@ -129,7 +131,7 @@ def pymor_check(model, orders: list[int], irka_maxit: int = 50, input_scaling: s
         row["h2opt_over_bt"] = row["h2opt_exact"] / ref if np.isfinite(row["h2opt_exact"]) else row["h2opt_rel_H2"] / ref
         row["fom_h2_s"] = t_fom
         rows.append(row)
-        print(json.dumps(rows[-1], default=str), flush=True)
+        print(jsonio.dumps(rows[-1], default=str), flush=True)
     return rows
 
 
@@ -237,13 +239,13 @@ def main(argv=None) -> int:
     p.add_argument("--speed-child", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.speed_child:
-        print(json.dumps(speed_child(args.speed_child, args.hours, args.repeats)))
+        print(jsonio.dumps(speed_child(args.speed_child, args.hours, args.repeats)))
         return 0
     if args.plot_from:
         print(plot_h2(json.loads(args.plot_from.read_text().strip().splitlines()[-1])["pymor"], args.figure))
         return 0
     if args.pymor_only:
-        print(json.dumps({"pymor": run_pymor(args)}, default=str))
+        print(jsonio.dumps({"pymor": run_pymor(args)}, default=str))
         return 0
 
     from hybridcomp.fem.loads import example_loads
@@ -277,7 +279,7 @@ def main(argv=None) -> int:
     result["reduce_s"] = time.perf_counter() - t0
     result["order"] = rom.order
     result["check"] = rom.meta["check"]
-    print(f"{model.n} nodes: reduced to order {rom.order} in {result['reduce_s']:.1f} s; check {json.dumps(rom.meta['check'])}")
+    print(f"{model.n} nodes: reduced to order {rom.order} in {result['reduce_s']:.1f} s; check {jsonio.dumps(rom.meta['check'])}")
 
     # -- FE references -------------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -370,7 +372,7 @@ def main(argv=None) -> int:
         print()
         result["pymor"] = run_pymor(args)
     print()
-    print(json.dumps(result, default=float))
+    print(jsonio.dumps(result, default=float))
     return 0
 
 

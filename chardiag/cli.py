@@ -10,14 +10,14 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models import jsonio
+from hybridcomp.models.cli import add_machine_argument, refuse_unused
 
 log = logging.getLogger(__name__)
 
@@ -145,11 +145,30 @@ def run(args: argparse.Namespace) -> int:
 
     handlers = {"train-data": _train_data, "fit": _fit, "eval": _eval, "db": _db}
     try:
+        bad = refuse_unused(args, _unused_rules(args))
+        if bad:
+            raise ValueError(bad)
         return handlers[args.cd_command](args)
     except (CDError, CDFitError, CDXmlError, CDDatabaseError, TrainingDataError, MachineFileError, LoadsFileError,
             ValueError, KeyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+
+
+def _unused_rules(args) -> list:
+    """(option, has no effect, why) of each subcommand's options that work only together with another."""
+    c = args.cd_command
+    if c == "train-data":
+        local = args.scheduler in ("process", "local")
+        return [("workers", not local, "applies with --scheduler process or local only (one after another here "
+                 "without --scheduler; a running Dask scheduler has its own workers)")]
+    if c == "fit":
+        return [("activate", args.db is None, "needs --db (the database to activate the CDs in)")]
+    if c == "eval":
+        return [("cases", args.point is not None, "applies with --data only, not with --point"),
+                ("cnc", args.point is None, "applies with --point only"),
+                ("axis_names", args.cnc != "840d", "applies with --cnc 840d only")]
+    return []
 
 
 def _train_data(args) -> int:
@@ -231,7 +250,7 @@ def _fit(args) -> int:
             if args.activate:
                 db.activate(machine.name, cds["X"].pose_key, ids, reason=f"cd fit {args.data.name}")
         print(f"stored in {args.db}: {ids}" + (" (active)" if args.activate else ""), file=sys.stderr)
-    (args.out / "fit.json").write_text(json.dumps(info, indent=2, default=str))
+    (args.out / "fit.json").write_text(jsonio.dumps(info, indent=2, default=str))
     if not args.no_plot:
         _plot_fit(args.out / "fit.png", cds, data)
     print(f"wrote {args.out}/cd_X.xml, cd_Y.xml, cd_Z.xml, fit.json", file=sys.stderr)

@@ -6,9 +6,13 @@ Tables (schema version :data:`SCHEMA_VERSION`, kept in ``meta``):
   reference temperatures;
 * ``cds``: every CD ever stored, its XML (the exchange format is the record) and searchable metadata;
 * ``active``: the active CD per machine, pose and direction (three rows per pose, replaced atomically);
-* ``events``: activations, switches, generations, decisions, warnings, with their numbers as JSON; an event
-  may carry a unique ``key`` so a daemon that is killed and restarted never writes one twice;
+* ``events``: activations (written here, in the transaction that changes ``active``) and the monitor's
+  switches, generations, decisions and warnings, with their numbers as JSON; an event may carry a unique
+  ``key`` so a daemon that is killed and restarted never writes one twice;
 * ``state``: a small key–value store (JSON text) for a daemon's state.
+
+This module stores CDs, load cases and active sets; the monitor's events and state are read and written by
+``hybridcomp.monitor.store`` through the same engine (one database, one schema, created and migrated here).
 
 Writers serialise per database: SQLite opens every write transaction with ``BEGIN IMMEDIATE`` (WAL mode, so
 readers never wait); PostgreSQL takes transaction-scoped advisory locks: one per machine and pose for an
@@ -34,6 +38,7 @@ import numpy as np
 from hybridcomp.errors import HybridcompError
 from hybridcomp.chardiag.cd import DIRECTIONS, CDSet, CharDiagram, pose_key
 from hybridcomp.chardiag.xmlio import cd_from_bytes, cd_to_bytes
+from hybridcomp.models import jsonio
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +61,8 @@ def _sqlalchemy():
     return sqlalchemy
 
 
-def _now() -> str:
+def utc_now() -> str:
+    """The current UTC time as ISO 8601 text with microseconds (the `created` columns)."""
     return datetime.now(timezone.utc).isoformat(timespec="microseconds")
 
 
@@ -96,18 +102,6 @@ class Match:
     load_case_id: int
     delta_T_K: float
     distance: float
-
-
-@dataclass(frozen=True)
-class Event:
-    """A logged event: ``payload`` holds its numbers."""
-
-    id: int
-    kind: str
-    machine_time_s: float | None
-    created: str
-    payload: dict
-    key: str | None = None
 
 
 def _tables(sa):
@@ -178,7 +172,7 @@ class CDDatabase:
 
     def __init__(self, url_or_path: str | Path):
         sa = _sqlalchemy()
-        self._sa = sa
+        self.sa = self._sa = sa
         self.url = _url(url_or_path)
         kwargs = {}
         self.dialect = self.url.split(":", 1)[0].split("+", 1)[0]
@@ -210,8 +204,9 @@ class CDDatabase:
 
     # ------------------------------------------------------------------ plumbing
 
-    def _retry(self, fn, what: str):
-        """Run ``fn()`` in a write transaction, retrying a few times on lock or serialisation conflicts."""
+    def write(self, fn, what: str):
+        """Run ``fn(conn)`` in a write transaction, retrying a few times on lock or serialisation conflicts
+        (every writer of this database goes through here, the monitor's store too)."""
         sa = self._sa
         delay = 0.05
         for attempt in range(8):
@@ -225,7 +220,7 @@ class CDDatabase:
                 time.sleep(delay)
                 delay *= 2
 
-    def _lock(self, conn, name: str) -> None:
+    def lock(self, conn, name: str) -> None:
         """On PostgreSQL, a transaction-scoped advisory lock (SQLite's BEGIN IMMEDIATE already serialises writers)."""
         if self.dialect == "postgresql":
             key = zlib.crc32(name.encode()) - 2**31
@@ -239,7 +234,7 @@ class CDDatabase:
         meta = self.t["meta"]
 
         def init(conn):
-            self._lock(conn, "hybridcomp schema")
+            self.lock(conn, "hybridcomp schema")
             self.md.create_all(conn, checkfirst=True)
             row = conn.execute(sa.select(meta.c.value).where(meta.c.key == "schema_version")).first()
             if row is None:
@@ -254,7 +249,7 @@ class CDDatabase:
             return version
 
         try:
-            version = self._retry(init, "creating or migrating the schema")
+            version = self.write(init, "creating or migrating the schema")
         except sa.exc.IntegrityError:  # another process created it at the same moment
             version = self.schema_version()
         except sa.exc.SQLAlchemyError as exc:
@@ -286,7 +281,7 @@ class CDDatabase:
         lc, cds = self.t["load_cases"], self.t["cds"]
         xml = cd_to_bytes(cd)
         name = load_case if load_case is not None else cd.load_case
-        tref = json.dumps(dict(cd.t_reference_degC), sort_keys=True)
+        tref = jsonio.dumps(dict(cd.t_reference_degC), sort_keys=True)
         stats = cd.fit_stats()
 
         def add(conn):
@@ -296,14 +291,14 @@ class CDDatabase:
             if lc_id is None:
                 lc_id = conn.execute(lc.insert().values(
                     machine=cd.machine, pose_key=cd.pose_key, name=name, t_reference=tref,
-                    signature=json.dumps([float(v) for v in cd.signature]), created=_now())).inserted_primary_key[0]
+                    signature=jsonio.dumps([float(v) for v in cd.signature]), created=utc_now())).inserted_primary_key[0]
             return conn.execute(cds.insert().values(
                 machine=cd.machine, machine_sha256=cd.machine_sha256, pose_key=cd.pose_key, direction=cd.direction,
                 load_case_id=lc_id, n_active_inputs=len(cd.active_inputs),
-                rms_residual_um=stats.get("rms_residual_um"), created=cd.created or _now(),
+                rms_residual_um=stats.get("rms_residual_um"), created=cd.created or utc_now(),
                 software_version=cd.software_version, xml=xml)).inserted_primary_key[0]
 
-        return int(self._retry(add, "storing a CD"))
+        return int(self.write(add, "storing a CD"))
 
     def add_set(self, cds: Mapping[str, CharDiagram], load_case: str | None = None) -> dict[str, int]:
         """Store the three CDs of one pose; returns their ids by direction."""
@@ -414,8 +409,8 @@ class CDDatabase:
             raise ValueError(f"activate: needs one CD id per direction {DIRECTIONS}, got {sorted(ids)}")
 
         def run(conn):
-            self._lock(conn, f"active {machine}\0{pose}")
-            self._lock(conn, EVENTS_LOCK)
+            self.lock(conn, f"active {machine}\0{pose}")
+            self.lock(conn, EVENTS_LOCK)
             if event_key is not None and conn.execute(sa.select(ev.c.id).where(ev.c.key == event_key)).first():
                 return None
             for d, cd_id in ids.items():
@@ -429,15 +424,15 @@ class CDDatabase:
             previous = {r.direction: r.cd_id for r in conn.execute(
                 sa.select(act.c.direction, act.c.cd_id).where(act.c.machine == machine, act.c.pose_key == pose))}
             conn.execute(act.delete().where(act.c.machine == machine, act.c.pose_key == pose))
-            now = _now()
+            now = utc_now()
             conn.execute(act.insert(), [{"machine": machine, "pose_key": pose, "direction": d, "cd_id": int(ids[d]),
                                          "activated": now} for d in DIRECTIONS])
             payload = {"machine": machine, "pose": pose, "ids": {d: int(ids[d]) for d in DIRECTIONS},
                        "previous": previous, "reason": reason}
             return conn.execute(ev.insert().values(kind="activation", machine_time_s=machine_time_s, created=now,
-                                                   payload=json.dumps(payload), key=event_key)).inserted_primary_key[0]
+                                                   payload=jsonio.dumps(payload), key=event_key)).inserted_primary_key[0]
 
-        return self._retry(run, "activating a CD set")
+        return self.write(run, "activating a CD set")
 
     def active_ids(self, machine: str, pose: str) -> dict[str, int]:
         sa = self._sa
@@ -453,67 +448,5 @@ class CDDatabase:
             return None
         return CDSet({d: self.get(i) for d, i in ids.items()}, ids)
 
-    # ------------------------------------------------------------------ events and state
 
-    def log_event(self, kind: str, machine_time_s: float | None, payload: Mapping, key: str | None = None) -> int | None:
-        """Append an event; with a ``key`` that is already logged nothing is written and None is returned."""
-        sa = self._sa
-        ev = self.t["events"]
-        text = json.dumps(dict(payload), default=_json_default)
-
-        def run(conn):
-            self._lock(conn, EVENTS_LOCK)
-            if key is not None and conn.execute(sa.select(ev.c.id).where(ev.c.key == key)).first():
-                return None
-            return conn.execute(ev.insert().values(kind=kind, machine_time_s=machine_time_s, created=_now(),
-                                                   payload=text, key=key)).inserted_primary_key[0]
-
-        try:
-            return self._retry(run, f"logging a {kind} event")
-        except sa.exc.IntegrityError:  # the same key from another writer in the same instant
-            return None
-
-    def events(self, kind: str | None = None, since_id: int = 0, limit: int | None = None) -> list[Event]:
-        """Events after ``since_id``, oldest first."""
-        sa = self._sa
-        ev = self.t["events"]
-        q = sa.select(ev).where(ev.c.id > since_id).order_by(ev.c.id)
-        if kind is not None:
-            q = q.where(ev.c.kind == kind)
-        if limit is not None:
-            q = q.limit(limit)
-        with self.engine.connect() as conn:
-            return [Event(r.id, r.kind, r.machine_time_s, r.created, json.loads(r.payload), r.key)
-                    for r in conn.execute(q)]
-
-    def put_state(self, key: str, value: str) -> None:
-        """Set a state value (JSON text)."""
-        sa = self._sa
-        st = self.t["state"]
-
-        def run(conn):
-            n = conn.execute(st.update().where(st.c.key == key).values(value=value, updated=_now())).rowcount
-            if n == 0:
-                conn.execute(st.insert().values(key=key, value=value, updated=_now()))
-
-        try:
-            self._retry(run, f"saving state {key!r}")
-        except sa.exc.IntegrityError:  # another writer inserted the key first: now it is an update
-            self._retry(run, f"saving state {key!r}")
-
-    def get_state(self, key: str) -> str | None:
-        sa = self._sa
-        st = self.t["state"]
-        with self.engine.connect() as conn:
-            return conn.execute(sa.select(st.c.value).where(st.c.key == key)).scalar()
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    raise TypeError(f"cannot store {type(o).__name__} in an event payload")
-
-
-__all__ = ["CDDatabase", "CDDatabaseError", "Event", "Match", "SCHEMA_VERSION", "pose_key"]
+__all__ = ["CDDatabase", "CDDatabaseError", "Match", "SCHEMA_VERSION", "pose_key"]

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models.cli import add_machine_argument, refuse_unused
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +55,16 @@ def run(args: argparse.Namespace) -> int:
     from hybridcomp.models.machine import MachineFileError
 
     t0 = time.perf_counter()
+    model_only = "applies to the diagnosis on the machine's model only, not with --data-only"
+    data_only = "applies with --data-only only"
+    bad = refuse_unused(args, [
+        *((opt, args.data_only, model_only) for opt in ("machine", "increment", "rom", "element_size_mm", "effects",
+                                                         "max_effects")),
+        *((opt, not args.data_only, data_only) for opt in ("max_terms", "beam", "no_selection_check")),
+    ])
+    if bad:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     try:
         if args.data_only:
             ds = read_dataset(args.data, args.map)

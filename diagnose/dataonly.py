@@ -27,7 +27,6 @@ part only and scores the result on the second half, which took no part in it.
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -38,6 +37,7 @@ import numpy as np
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, check_channels
 from hybridcomp.diagnose.metrics import channel_metrics
 from hybridcomp.diagnose.problem import first_order_lag
+from hybridcomp.models import jsonio
 
 log = logging.getLogger(__name__)
 
@@ -427,7 +427,7 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
     out.mkdir(parents=True, exist_ok=True)
     s = summary(d)
     s["dataset"] = dataset_name
-    (out / "summary.json").write_text(json.dumps(s, indent=2, default=float))
+    (out / "summary.json").write_text(jsonio.dumps(s, indent=2, default=float))
     stride = d.timings_s["row_stride"]
     thinned = "" if stride == 1 else f" (every {stride}. row of the dataset)"
     L = [f"# Data-only diagnosis{' of ' + dataset_name if dataset_name else ''}", "",

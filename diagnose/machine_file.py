@@ -10,11 +10,10 @@ and one for standstill.
 
 from __future__ import annotations
 
-import json
-import math
 import re
-import tomllib
 from pathlib import Path
+
+from hybridcomp.models.toml import dumps_toml, read_toml
 
 NOT_EXPRESSIBLE = {
     "ambient_lag": "air temperatures are loads, not machine data: feed the lagged workshop air to the ambient zones' "
@@ -26,58 +25,6 @@ NOT_EXPRESSIBLE = {
     "sensor_lag": "a property of the measurement, not of the structure: correct the sensor reading or its mounting",
     "sensor_offset": "a property of the measurement, not of the structure: recalibrate the channel",
 }
-
-_BARE = re.compile(r"^[A-Za-z0-9_-]+$")
-
-
-def _key(k: str) -> str:
-    return k if _BARE.match(k) else json.dumps(k)
-
-
-def _value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if not math.isfinite(v):
-            raise ValueError(f"cannot write a non-finite number {v} to a machine file")
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=False)
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{_key(k)} = {_value(x)}" for k, x in v.items()) + " }"
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def dumps_toml(data: dict) -> str:
-    """TOML text of a machine-file dictionary (tables, arrays of tables, inline tables in lists)."""
-    lines: list[str] = []
-
-    def table(d: dict, path: list[str]):
-        scalars = {k: v for k, v in d.items() if not isinstance(v, dict) and not _is_aot(v)}
-        subs = {k: v for k, v in d.items() if isinstance(v, dict)}
-        aots = {k: v for k, v in d.items() if _is_aot(v)}
-        for k, v in scalars.items():
-            lines.append(f"{_key(k)} = {_value(v)}")
-        for k, v in subs.items():
-            lines.append("")
-            lines.append(f"[{'.'.join(_key(p) for p in path + [k])}]")
-            table(v, path + [k])
-        for k, items in aots.items():
-            for item in items:
-                lines.append("")
-                lines.append(f"[[{'.'.join(_key(p) for p in path + [k])}]]")
-                table(item, path + [k])
-
-    table(data, [])
-    return "\n".join(lines).lstrip("\n") + "\n"
-
-
-def _is_aot(v) -> bool:
-    return isinstance(v, list) and len(v) > 0 and all(isinstance(x, dict) for x in v)
 
 
 def _clean_name(text: str) -> str:
@@ -92,7 +39,7 @@ def not_expressible(causes) -> list[tuple[str, str]]:
 def extended_machine(machine, causes) -> dict:
     """The machine file's dictionary with every expressible cause applied."""
     src = Path(machine.source)
-    data = tomllib.loads(src.read_text())
+    data, _ = read_toml(src)
     mesh = data.get("mesh", {})
     if "file" in mesh and not Path(mesh["file"]).is_absolute():
         mesh["file"] = str((src.parent / mesh["file"]).resolve())

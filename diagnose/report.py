@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -10,6 +9,7 @@ import numpy as np
 
 from hybridcomp.diagnose.metrics import cross_correlation, ep95_curve, lag_grid, strongest_correlations
 from hybridcomp.diagnose.selection import Diagnosis
+from hybridcomp.models import jsonio
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
     mpath, applied, missing = write_extended_machine(p.machine, d.causes, out / "machine_extended.toml")
     summary["machine_extended"] = {"file": mpath.name, "applied": applied,
                                    "not_expressible": [{"cause": a, "reason": b} for a, b in missing]}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    (out / "summary.json").write_text(jsonio.dumps(summary, indent=2, default=float))
     files = _plots(d, out, ep, corr_before) if plots else []
 
     L = [f"# Diagnosis of {p.machine.name}" + (f" on {dataset_name}" if dataset_name else ""), ""]

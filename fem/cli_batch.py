@@ -16,7 +16,7 @@ from pathlib import Path
 
 from hybridcomp.fem.cli_simulate import parse_pose
 from hybridcomp.fem.loads import LoadsFileError
-from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
 
 
@@ -57,6 +57,12 @@ def run(args: argparse.Namespace) -> int:
         print("error: --serial and --scheduler exclude each other", file=sys.stderr)
         return 2
     executor = "serial" if args.serial else args.scheduler or "process"
+    bad = refuse_unused(args, [("workers", executor not in ("process", "local"),
+                                "applies to the local process pool or --scheduler local only (a running Dask "
+                                "scheduler has its own workers; --serial runs here)")])
+    if bad:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     try:
         if executor not in ("serial", "process", "local") and "://" not in executor:
             raise ValueError(f"--scheduler {executor!r}: use 'local' or an address such as tcp://HOST:8786")

@@ -7,7 +7,6 @@ written, so a bad input leaves no half-written output directory.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -17,7 +16,8 @@ import numpy as np
 
 from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
 from hybridcomp.fem.timestep import DEFAULT_TOLERANCE, TimeTolerance
-from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models import jsonio
+from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
 
 log = logging.getLogger(__name__)
@@ -107,6 +107,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    bad = refuse_unused(args, [("field_format", args.fields <= 0, "applies with --fields N only")])
+    if bad:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     try:
         machine = load_machine(args.machine)
         pose = machine.check_pose(parse_pose(args.pose))
@@ -199,6 +203,6 @@ def run(args: argparse.Namespace) -> int:
         "timings_s": {**model.timings_s, **res.timings_s, "total": time.perf_counter() - t0},
         "files": files,
     }
-    (out / "run.json").write_text(json.dumps(info, indent=2))
+    (out / "run.json").write_text(jsonio.dumps(info, indent=2))
     print(f"wrote {out / 'outputs.csv'} ({nt} rows, {model.n} nodes, {info['timings_s']['total']:.1f} s)", file=sys.stderr)
     return 0

@@ -29,7 +29,7 @@ from hybridcomp.histogram.increments import (
 from hybridcomp.histogram.signature import SignatureLayout, write_signatures
 from hybridcomp.histogram.trace import TraceFileError, TraceWarning
 from hybridcomp.models.machine import MachineFileError, load_machine
-from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models.cli import add_machine_argument, refuse_unused
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +84,14 @@ def run(args: argparse.Namespace) -> int:
             fmt = "trace" if args.input.suffix.lower() == ".csv" else "gcode" if args.input.suffix.lower() in GCODE_SUFFIXES else None
             if fmt is None:
                 raise ValueError(f"{args.input}: cannot tell a trace from G-code by the suffix {args.input.suffix!r}; give --format")
+        bad = refuse_unused(args, [
+            ("max_gap", fmt == "gcode", "applies to a trace only, not to G-code"),
+            ("feed_tolerance", fmt == "gcode", "applies to a trace only, not to G-code"),
+            ("signature_period", args.signature is None, "applies with --signature only"),
+            ("plot_increment", args.plot is None, "applies with --plot only"),
+        ])
+        if bad:
+            raise ValueError(bad)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TraceWarning)
             if fmt == "trace":

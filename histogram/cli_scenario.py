@@ -10,7 +10,7 @@ from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S
 from hybridcomp.histogram.scenarios import SCENARIOS, write_scenario
 from hybridcomp.histogram.trace import TraceFileError
 from hybridcomp.models.machine import MachineFileError, load_machine
-from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models.cli import add_machine_argument, refuse_unused
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,6 +29,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        bad = refuse_unused(args, [("hours", args.name != "basic", "applies to the basic scenario only "
+                                    "(the job-shop day is always 16 h)")])
+        if bad:
+            raise ValueError(bad)
         machine = load_machine(args.machine)
         for opt in ("increment", "rate_hz", "hours"):
             if not getattr(args, opt) > 0:

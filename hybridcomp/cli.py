@@ -38,9 +38,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _given_options(argv: list[str] | None) -> set[str]:
+    """The destinations of the options typed on the command line (not filled in from a default).
+
+    The command line is parsed a second time by a parser whose defaults are all suppressed, so only
+    what was given lands in the namespace; a subcommand refuses an option that has no effect on its
+    path with it (:func:`hybridcomp.models.cli.refuse_unused`).
+    """
+    parser = build_parser()
+    stack = [parser]
+    while stack:
+        p = stack.pop()
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                stack.extend(action.choices.values())
+            elif action.option_strings:
+                action.default = argparse.SUPPRESS
+    return set(vars(parser.parse_args(argv)))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args._given = _given_options(argv)
     if not args.command:
         parser.print_help()
         return 2

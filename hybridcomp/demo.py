@@ -19,13 +19,13 @@ Everything lives in DIR (the CD databases are SQLite files there); nothing needs
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+
+from hybridcomp.models import jsonio
 
 
 log = logging.getLogger(__name__)
@@ -59,9 +59,9 @@ class DemoOptions:
 
 def planted_machine_file(machine, source: str, factor: float, path: Path) -> Path:
     """Write the real machine: the machine file with one source's power scaled by ``factor``."""
-    from hybridcomp.diagnose.machine_file import dumps_toml
+    from hybridcomp.models.toml import dumps_toml, read_toml
 
-    data = tomllib.loads(Path(machine.source).read_text())
+    data, _ = read_toml(machine.source)
     sources = {s["name"]: s for s in data.get("heat_sources", [])}
     if source not in sources:
         raise ValueError(f"--plant-source: machine {machine.name!r} has no heat source {source!r} "
@@ -135,7 +135,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     stages.next()
     day_plots = _day_plots(machine, nominal.files["controller"], out / "day")
     summary = _summary(options, nominal, after, diag_summary, time.perf_counter() - t_all, stages.times)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
+    (out / "summary.json").write_text(jsonio.dumps(summary, indent=1, default=str))
     _report(out, options, summary, nominal, after, pictures, day_plots)
     stages.next()
     return summary
@@ -235,9 +235,10 @@ def _ep95_plot(path: Path, rows: dict) -> Path | None:
 def _cd_table(db_path: Path) -> list[str]:
     """The default CD set (the first activation): inputs, fit and reference temperatures."""
     from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.store import MonitorStore
 
     with CDDatabase(db_path) as db:
-        first = next((e for e in db.events("activation")), None)
+        first = next((e for e in MonitorStore(db).events("activation")), None)
         if first is None:
             return []
         cds = {d: db.get(i) for d, i in first.payload["ids"].items()}

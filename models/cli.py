@@ -13,6 +13,24 @@ def add_machine_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--machine", default="vmc800", help="bundled machine name or path to a machine TOML (default: vmc800)")
 
 
+def given(args: argparse.Namespace, dest: str) -> bool:
+    """Whether the option with destination ``dest`` was typed on the command line (not a default)."""
+    return dest in getattr(args, "_given", ())
+
+
+def refuse_unused(args: argparse.Namespace, rules) -> str | None:
+    """The message for the first option given on a path where it has no effect, or None.
+
+    ``rules`` are ``(dest, unused, why)``: the option with destination ``dest`` has no effect when
+    ``unused`` is true, and ``why`` says so, e.g. ``("basis", args.matrices is not None, "applies to
+    a machine's FE model only, not to --matrices")``.  Options are named as typed (``--basis``).
+    """
+    for dest, unused, why in rules:
+        if unused and given(args, dest):
+            return f"--{dest.replace('_', '-')} {why}"
+    return None
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("machine", nargs="?", help="bundled machine name or path to a machine TOML; none: list bundled machines")
     p.add_argument("--mesh", action="store_true", help="also mesh it at mid travel and report nodes and elements")
@@ -20,6 +38,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    bad = refuse_unused(args, [("element_size_mm", not args.mesh, "applies with --mesh only")])
+    if bad:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     if not args.machine:
         print("\n".join(bundled_machines()))
         return 0

@@ -9,12 +9,9 @@ checked for unknown keys so that a typo is an error, not a silent default.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import hashlib
 import itertools
 import logging
-import math
-import tomllib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -24,6 +21,7 @@ import numpy as np
 
 from hybridcomp.errors import HybridcompError
 from hybridcomp.models.layout import COORDINATES, InputLayout, input_layout
+from hybridcomp.models.toml import StrictTable, read_toml
 
 log = logging.getLogger(__name__)
 
@@ -304,11 +302,7 @@ def load_machine(name_or_path: str | Path) -> Machine:
         naming the file, the field and the offending value.
     """
     path = resolve_machine_path(name_or_path)
-    raw = path.read_bytes()
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise MachineFileError(f"{path}: not valid TOML: {exc}") from None
+    data, raw = read_toml(path, MachineFileError)
     return parse_machine(data, source=str(path), sha256=hashlib.sha256(raw).hexdigest(), base_dir=path.parent)
 
 
@@ -333,50 +327,14 @@ KEYS = {
 }
 
 
-class _Reader:
-    """Reads one TOML table of a known kind; an unknown key is an error before anything else."""
+class _Reader(StrictTable):
+    """Reads one machine-file table of a known kind (:data:`KEYS`); an unknown key is an error before anything else."""
 
     def __init__(self, src: str, where: str, table: Any, kind: str):
-        if not isinstance(table, dict):
-            raise MachineFileError(f"{src}: field {where!r} must be a table, got {table!r}")
-        self.src, self.where, self.t = src, where, dict(table)
-        self.keys = KEYS[kind]
-        for k in self.t:
-            if k not in self.keys:
-                hint = difflib.get_close_matches(k, self.keys, n=1)
-                more = f" (did you mean {hint[0]!r}?)" if hint else f" (known: {', '.join(self.keys)})"
-                raise MachineFileError(f"{src}: field {self._name(k)!r} is not a known field{more}")
+        super().__init__(src, where, table, KEYS[kind], MachineFileError)
 
     def _name(self, key: str) -> str:
-        return f"{self.where}.{key}" if self.where else key
-
-    def err(self, key: str, msg: str) -> MachineFileError:
-        return MachineFileError(f"{self.src}: field {self._name(key)!r} {msg}")
-
-    def get(self, key: str, default: Any = ..., kind: type | tuple = object) -> Any:
-        assert key in self.keys, key
-        if key not in self.t:
-            if default is ...:
-                raise self.err(key, "is required")
-            return default
-        v = self.t[key]
-        wants_bool = kind is bool or (isinstance(kind, tuple) and bool in kind)
-        if (kind is not object and not isinstance(v, kind)) or (isinstance(v, bool) and not wants_bool):
-            raise self.err(key, f"has the wrong type: {v!r}")
-        return v
-
-    def number(self, key: str, default: Any = ..., positive: bool = False, nonneg: bool = False) -> float:
-        v = self.get(key, default, (int, float))
-        if v is None:
-            return v
-        v = float(v)
-        if not math.isfinite(v):
-            raise self.err(key, f"must be finite, got {v!r}")
-        if positive and v <= 0:
-            raise self.err(key, f"must be positive, got {v!r}")
-        if nonneg and v < 0:
-            raise self.err(key, f"must not be negative, got {v!r}")
-        return v
+        return self.name(key)
 
     def vec3(self, key: str, default: Any = ..., positive: bool = False) -> Vec3:
         v = self.get(key, default, (list, tuple))
@@ -399,13 +357,6 @@ class _Reader:
         if any(h < l or (h == l and not flat_ok) for l, h in zip(lo, hi)):
             raise self.err(key, f"must have its second corner above the first in x, y and z, got {v!r}")
         return lo, hi
-
-    def tables(self, key: str, required: bool = True) -> list[tuple[str, dict]]:
-        v = self.get(key, ... if required else [], list)
-        out = []
-        for i, t in enumerate(v):
-            out.append((f"{self._name(key)}[{i}]", t))
-        return out
 
 
 def _is_number(x: Any) -> bool:

@@ -11,6 +11,8 @@ import sys
 import time
 from pathlib import Path
 
+from hybridcomp.models import jsonio
+
 log = logging.getLogger(__name__)
 
 
@@ -39,8 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        "no compensation, static default CDs, the hybrid monitor, the ROM used directly and a multiple "
                        "linear regression on the sensors (RMS, peak-to-peak, 95th-percentile range over sliding windows).")
     c.add_argument("--out", required=True, type=Path, help="output directory (table, plot, database, traces)")
-    c.add_argument("--element-size", type=float, default=80.0, help="FE element size of the 'real machine' and the "
-                   "training runs [mm] (default 80)")
+    c.add_argument("--element-size-mm", type=float, default=80.0, help="FE element size of the 'real machine' and "
+                   "the training runs [mm] (default 80)")
     c.add_argument("--disturbance-K", type=float, default=2.0, help="planted workspace air offset against the "
                    "measured workshop air [K] (default 2)")
     c.add_argument("--rom-order", type=int, default=None, help="order of the structure model (default: to tolerance)")
@@ -66,10 +68,10 @@ def run(args: argparse.Namespace) -> int:
         if args.monitor_command == "scenario":
             from hybridcomp.monitor.scenario import run_scenario
 
-            res = run_scenario(args.out, element_size_mm=args.element_size, disturbance_K=args.disturbance_K,
+            res = run_scenario(args.out, element_size_mm=args.element_size_mm, disturbance_K=args.disturbance_K,
                                rom_order=args.rom_order, basic_hours=args.basic_hours)
             print(res.table)
-            print(json.dumps(res.summary))
+            print(jsonio.dumps(res.summary))
             return 0
     except (ConfigError, ValueError, OSError) as exc:
         print(f"hybridcomp monitor: {exc}", file=sys.stderr)
@@ -98,12 +100,15 @@ def open_everything(cfg):
 def _run(args) -> int:
     import dataclasses
 
-    from hybridcomp.monitor.config import load_config
+    from hybridcomp.monitor.config import ConfigError, load_config
     from hybridcomp.monitor.daemon import Monitor, install_signal_handlers, run_monitor
     from hybridcomp.monitor.sinks import make_sink
     from hybridcomp.monitor.sources import OpcUaSource, ReplaySource, WallClock
 
     cfg = load_config(args.config)
+    if args.speed is not None and cfg.source.kind != "replay":
+        raise ConfigError(f"--speed applies to a replay source only; {args.config} reads source.kind = "
+                          f"{cfg.source.kind!r}")
     if args.speed is not None:
         cfg = dataclasses.replace(cfg, source=dataclasses.replace(cfg.source, speed=args.speed))
     machine, rom, _pose, pkey, db = open_everything(cfg)
@@ -145,13 +150,15 @@ def _run(args) -> int:
 def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dict:
     """What ``monitor status`` shows, as a dict."""
     from hybridcomp.monitor.daemon import state_key
+    from hybridcomp.monitor.store import MonitorStore
 
+    store = MonitorStore(db)
     key = state_key(machine_name, pkey)
-    state = json.loads(db.get_state(key) or "null")
-    beat = json.loads(db.get_state(key + ":heartbeat") or "null")
+    state = json.loads(store.get_state(key) or "null")
+    beat = json.loads(store.get_state(key + ":heartbeat") or "null")
     active = db.active_set(machine_name, pkey)
     now = time.time()
-    ev = [e for e in db.events() if e.kind in ("decision", "activation", "generation", "warning", "model_drift", "sensor")]
+    ev = [e for e in store.events() if e.kind in ("decision", "activation", "generation", "warning", "model_drift", "sensor")]
     out = {
         "machine": machine_name, "pose": pkey,
         "active": None if active is None else {"ids": dict(active.ids), "load_case": active.cds["X"].load_case,
@@ -205,7 +212,7 @@ def _status(args) -> int:
     finally:
         db.close()
     if args.json:
-        print(json.dumps(st))
+        print(jsonio.dumps(st))
         return 0
     a = st["active"]
     print(f"machine {st['machine']}, pose {st['pose']}")

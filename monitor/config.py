@@ -7,9 +7,7 @@ for an annotated example; :func:`example_config` writes one.
 
 from __future__ import annotations
 
-import difflib
 import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +15,7 @@ from pathlib import Path
 from hybridcomp.errors import HybridcompError
 from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.histogram.increments import DEFAULT_MAX_GAP_S
+from hybridcomp.models.toml import StrictTable, did_you_mean, read_toml
 from hybridcomp.monitor.decisions import Backoff, SensorRules
 
 
@@ -157,73 +156,19 @@ SOURCE_KINDS = ("replay", "opcua")
 SINK_KINDS = ("jsonl", "csv", "opcua", "none")
 
 
-def _hint(key: str, allowed) -> str:
-    close = difflib.get_close_matches(key, sorted(allowed), n=1)
-    return f" (did you mean {close[0]!r}?)" if close else f" (allowed: {', '.join(sorted(allowed))})"
+class _Reader(StrictTable):
+    """One section of the configuration (its keys in :data:`_SECTIONS`)."""
 
-
-class _Reader:
     def __init__(self, src: str, section: str, table: Mapping):
-        self.src, self.section, self.t = src, section, table
-        if not isinstance(table, Mapping):
-            raise ConfigError(f"{src}: [{section}] must be a table, got {table!r}")
-        for k in table:
-            if k not in _SECTIONS[section]:
-                raise ConfigError(f"{src}: unknown key {section}.{k}{_hint(k, _SECTIONS[section])}")
-
-    def err(self, key, msg) -> ConfigError:
-        return ConfigError(f"{self.src}: {self.section}.{key} {msg}")
-
-    def number(self, key, default, *, positive=False, nonneg=False, integer=False):
-        if key not in self.t:
-            return default
-        v = self.t[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or (isinstance(v, float) and math.isnan(v)):
-            raise self.err(key, f"must be a number, got {v!r}")
-        if integer and int(v) != v:
-            raise self.err(key, f"must be a whole number, got {v!r}")
-        if positive and not v > 0:
-            raise self.err(key, f"must be positive, got {v!r}")
-        if nonneg and not v >= 0:
-            raise self.err(key, f"must not be negative, got {v!r}")
-        return int(v) if integer else float(v)
-
-    def string(self, key, default, choices=None):
-        if key not in self.t:
-            return default
-        v = self.t[key]
-        if not isinstance(v, str) or not v:
-            raise self.err(key, f"must be a non-empty string, got {v!r}")
-        if choices and v not in choices:
-            raise self.err(key, f"is {v!r}, must be one of {', '.join(choices)}")
-        return v
-
-    def boolean(self, key, default):
-        if key not in self.t:
-            return default
-        v = self.t[key]
-        if not isinstance(v, bool):
-            raise self.err(key, f"must be true or false, got {v!r}")
-        return v
+        super().__init__(src, section, table, sorted(_SECTIONS[section]), ConfigError)
 
     def path(self, key, base: Path, default=None):
+        """A path; a relative one is taken relative to ``base`` (the configuration file's folder)."""
         v = self.string(key, None)
         if v is None:
             return default
         p = Path(v)
         return p if p.is_absolute() else base / p
-
-    def mapping(self, key, value_kind=str):
-        if key not in self.t:
-            return {}
-        v = self.t[key]
-        if not isinstance(v, Mapping):
-            raise self.err(key, f"must be a table, got {v!r}")
-        for k, x in v.items():
-            ok = isinstance(x, str) if value_kind is str else (isinstance(x, (int, float)) and not isinstance(x, bool))
-            if not ok:
-                raise self.err(f"{key}.{k}", f"must be a {'string' if value_kind is str else 'number'}, got {x!r}")
-        return {k: (x if value_kind is str else float(x)) for k, x in v.items()}
 
 
 def _database_url(text: str, base: Path) -> str:
@@ -240,7 +185,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
     base = (Path(base_dir) if base_dir is not None else Path.cwd()).resolve()
     for sec in data:
         if sec not in _SECTIONS:
-            raise ConfigError(f"{source}: unknown section [{sec}]{_hint(sec, _SECTIONS)}")
+            raise ConfigError(f"{source}: unknown section [{sec}]{did_you_mean(sec, sorted(_SECTIONS))}")
     if "monitor" not in data:
         raise ConfigError(f"{source}: section [monitor] is missing (it needs machine, database and rom)")
     m = _Reader(source, "monitor", data["monitor"])
@@ -357,12 +302,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
 def load_config(path: str | Path) -> MonitorConfig:
     """Read and check a monitor TOML file."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the configuration: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    data, _ = read_toml(path, ConfigError)
     return parse_config(data, str(path), path.parent)
 
 

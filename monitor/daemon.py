@@ -13,7 +13,7 @@ monitoring every ``monitoring_interval_s`` of machine time), so a replay at
 1000× makes the same decisions as the machine in real time.
 
 Persistence and restarts: at every monitoring boundary the whole state is
-written as one JSON value (``CDDatabase.put_state``), and every event carries a
+written as one JSON value (``MonitorStore.put_state``), and every event carries a
 key made of its kind, the pose and its machine time, so a daemon killed at
 any moment and restarted re-processes the samples after the last boundary,
 makes the same decisions again and writes no event twice.
@@ -41,6 +41,7 @@ from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.increments import increments_from_samples
 from hybridcomp.histogram.signature import SignatureLayout, signatures
 from hybridcomp.histogram.trace import Samples, TraceFileError
+from hybridcomp.models import jsonio
 from hybridcomp.monitor.config import MonitorConfig
 from hybridcomp.monitor.decisions import (
     Candidate,
@@ -61,6 +62,7 @@ from hybridcomp.monitor.sinks import Offset
 from hybridcomp.models.layout import DIRECTIONS
 from hybridcomp.rom.machine import inputs_from_columns
 from hybridcomp.monitor.sources import Reading, SourceDisconnected, WallClock
+from hybridcomp.monitor.store import MonitorStore
 
 log = logging.getLogger(__name__)
 
@@ -79,17 +81,6 @@ def _t(x: float) -> str:
 
 def _finite(x) -> float | None:
     return float(x) if x is not None and math.isfinite(x) else None
-
-
-def _jsonable(obj):
-    """Non-finite floats → None, recursively (the state and the events are strict JSON)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    return obj
 
 
 @dataclass
@@ -127,6 +118,7 @@ class Monitor:
         self.machine = machine
         self.rom = rom
         self.db = db
+        self.store = MonitorStore(db)
         self.pose_key = pose_key
         self.clock = clock or WallClock()
         self.key = state_key(machine.name, pose_key)
@@ -225,10 +217,10 @@ class Monitor:
                     "offsets_um": {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}}
         snap = {**snap, "pending": self.pending, "regen_blocked_until_s": _finite(self.regen_blocked_until_s),
                 "updated_unix": self.clock.unix()}
-        self.db.put_state(self.key, json.dumps(_jsonable(snap), allow_nan=False))
+        self.store.put_state(self.key, jsonio.dumps(snap))
 
     def restore(self) -> None:
-        text = self.db.get_state(self.key)
+        text = self.store.get_state(self.key)
         if not text:
             return
         s = json.loads(text)
@@ -277,7 +269,7 @@ class Monitor:
         self._eval_failed_logged = False
 
     def event(self, kind: str, t: float | None, payload: dict, key: str) -> None:
-        self.db.log_event(kind, t, _jsonable(payload), key=f"{kind}@{self.pose_key}@{key}")
+        self.store.log_event(kind, t, payload, key=f"{kind}@{self.pose_key}@{key}")
 
     # ------------------------------------------------------------------ one reading
     def process(self, r: Reading) -> list[Offset]:
@@ -733,7 +725,7 @@ async def run_monitor(
         now = clock.monotonic()
         if force or now - last_beat >= heartbeat_s:
             last_beat = now
-            monitor.db.put_state(monitor.key + ":heartbeat", json.dumps(
+            monitor.store.put_state(monitor.key + ":heartbeat", jsonio.dumps(
                 {"unix": clock.unix(), "last_time_s": monitor.last_time_s, "offsets_um": monitor.offsets_um,
                  "active": monitor.active_ids, "degraded": monitor.status()["degraded"],
                  "regeneration_running": monitor.regeneration_running}))
@@ -748,7 +740,7 @@ async def run_monitor(
                         connected = True
                         if attempt:
                             monitor.counters.reconnects += 1
-                            monitor.db.log_event("source", r.time_s, {"status": "reconnected", "attempts": attempt})
+                            monitor.store.log_event("source", r.time_s, {"status": "reconnected", "attempts": attempt})
                         attempt = 0
                     for off in monitor.process(r):
                         await sink.write(off)
@@ -763,7 +755,7 @@ async def run_monitor(
                 delay = backoff_delay(attempt, cfg.reconnect, rng.random())
                 log.warning("data source: %s; reconnecting in %.2f s (attempt %d)", exc, delay, attempt + 1)
                 if attempt == 0:
-                    monitor.db.log_event("source", monitor.last_time_s, {"status": "disconnected", "error": str(exc)})
+                    monitor.store.log_event("source", monitor.last_time_s, {"status": "disconnected", "error": str(exc)})
                 attempt += 1
                 await clock.sleep(delay)
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import asyncio
 import csv
-import json
 import logging
 import math
 import time
@@ -34,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.models import jsonio
 from hybridcomp.models.layout import DRIFT_COLUMNS
 
 log = logging.getLogger(__name__)
@@ -194,6 +194,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
     """
     from hybridcomp.chardiag.cd import pose_key
     from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.store import MonitorStore
     from hybridcomp.chardiag.fit import fit_cd_set
     from hybridcomp.chardiag.training import simulate_load_cases, standard_load_cases
     from hybridcomp.fem.model import build_model
@@ -305,7 +306,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
              "ROM direct": rom_drift, "MLR on sensors": mlr}
     metrics = {k_: drift_metrics(t, truth - p) for k_, p in preds.items()}
     table = metrics_table(metrics)
-    events = [{"kind": e.kind, "machine_time_s": e.machine_time_s, **_event_brief(e)} for e in db.events()
+    events = [{"kind": e.kind, "machine_time_s": e.machine_time_s, **_event_brief(e)} for e in MonitorStore(db).events()
               if e.kind in ("activation", "generation") or (e.kind == "decision" and e.payload["action"] != "keep")]
     db.close()
 
@@ -316,7 +317,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
         w.writerow(["time_s", *DIRS, *(f"{s.replace(' ', '_')}_{d}" for s in preds for d in DIRS)])
         for i in range(t.size):
             w.writerow([f"{t[i]:g}", *(f"{v:.4f}" for v in truth[i]), *(f"{v:.4f}" for p in preds.values() for v in p[i])])
-    (out / "events.json").write_text(json.dumps(events, indent=1))
+    (out / "events.json").write_text(jsonio.dumps(events, indent=1))
     what = ([f"machine file {Path(real_machine.source).name}"] if real_machine is not machine else []) + \
         ([f"workspace air {disturbance_K:+g} K"] if disturbance_K else [])
     plot_path = _plot(out / "scenario.png", t, truth, preds, events, ", ".join(what) or "the nominal model") if plot else None
@@ -333,7 +334,7 @@ def run_scenario(out_dir, element_size_mm: float = 80.0, disturbance_K: float = 
         "generations": sum(1 for e in events if e["kind"] == "generation" and e.get("status") == "finished"),
         "timings_s": {**timings, "total": time.perf_counter() - t_all},
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    (out / "summary.json").write_text(jsonio.dumps(summary, indent=1))
     return ScenarioResult(metrics, table, events, {"table": out / "table.md", "plot": plot_path,
                                                     "events": out / "events.json", "residuals": out / "residuals.csv",
                                                     "recorded": recorded, "rom": rom_path, "controller": controller},

@@ -7,13 +7,13 @@ input fails at once and writes nothing.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
+from hybridcomp.models import jsonio
 from hybridcomp.models.machine import MachineFileError, load_machine
-from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models.cli import add_machine_argument, refuse_unused
 
 
 def _h_range(text: str) -> tuple[float, float]:
@@ -57,6 +57,22 @@ def run(args: argparse.Namespace) -> int:
     from hybridcomp.rom.reduced import save_rom
 
     t0 = time.perf_counter()
+    matrices = args.matrices is not None
+    fe_only = "applies to a machine's FE model only, not to --matrices"
+    bad = refuse_unused(args, [
+        ("machine", matrices, fe_only),
+        ("pose", matrices, fe_only),
+        ("element_size_mm", matrices, fe_only),
+        ("tol_um", matrices, fe_only + " (exported matrices have no TCP-drift output)"),
+        ("h_range", matrices, fe_only + " (exported matrices have no convection coefficients)"),
+        ("check_loads", matrices, fe_only + " (the FE check runs on the machine's model)"),
+        ("basis", matrices and args.basis == "h2", "h2 is not available with --matrices yet (use the default krylov)"),
+        ("h2_maxiter", args.basis != "h2" or matrices, "applies with --basis h2 only"),
+        ("tol_K", matrices and args.order is not None, "has no effect with --matrices and --order (the order decides)"),
+    ])
+    if bad:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     try:
         if args.order is not None and args.order < 1:
             raise ValueError(f"--order must be a positive integer, got {args.order}")
@@ -101,5 +117,5 @@ def run(args: argparse.Namespace) -> int:
                        passed=c["passed"])
     else:
         summary["estimate"] = rom.meta.get("estimate")
-    print(json.dumps(summary))
+    print(jsonio.dumps(summary))
     return 0

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 from hybridcomp.fem.loads import Loads, write_outputs
 from hybridcomp.fem.timestep import DEFAULT_TOLERANCE
+from hybridcomp.models import jsonio
 from hybridcomp.models.machine import Machine
 from hybridcomp.rom.machine import inputs_from_columns, split_outputs
 from hybridcomp.rom.reduced import RomFileError, RomInputError, load_rom
@@ -60,7 +60,7 @@ def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], 
         "timings_s": {"stepping": t_sim, "total": time.perf_counter() - t0},
         "files": ["outputs.csv"],
     }
-    (out / "run.json").write_text(json.dumps(info, indent=2))
+    (out / "run.json").write_text(jsonio.dumps(info, indent=2))
     print(f"wrote {out / 'outputs.csv'} ({len(loads.time_s)} rows, ROM order {rom.order}, {t_sim * 1e3:.1f} ms stepping)",
           file=sys.stderr)
     return 0

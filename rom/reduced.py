@@ -32,6 +32,7 @@ import scipy.linalg as la
 from scipy.signal import lfilter
 
 from hybridcomp.errors import HybridcompError
+from hybridcomp.models import jsonio
 from hybridcomp.models.layout import InputLayout, Loads, LoadsColumnError, layout_from_names
 from hybridcomp.models.simulation import SimulationResult, initial_state
 
@@ -88,7 +89,7 @@ class RomState:
     rom_id: str
 
     def to_json(self) -> str:
-        return json.dumps({"time_s": self.time_s, "x": self.x.tolist(), "rom_id": self.rom_id})
+        return jsonio.dumps({"time_s": self.time_s, "x": self.x.tolist(), "rom_id": self.rom_id})
 
     @staticmethod
     def from_json(text: str) -> RomState:
@@ -386,7 +387,7 @@ def save_rom(path: str | Path, rom: ReducedModel) -> Path:
     meta = {**rom.meta, "format": FORMAT, "format_version": FORMAT_VERSION, "input_names": list(rom.input_names),
             "output_names": list(rom.output_names), "order": rom.order, "rom_id": rom.rom_id}
     arrays = {"M": rom.M, "K": rom.K, "H": rom.H, "h_W_m2K": rom.h_W_m2K, "B": rom.B, "Hb": rom.Hb, "C": rom.C,
-              "meta_json": np.array(json.dumps(meta))}
+              "meta_json": np.array(jsonio.dumps(meta))}
     if rom.V is not None:
         arrays["V"] = rom.V
     with path.open("wb") as fh:

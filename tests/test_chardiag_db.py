@@ -14,6 +14,7 @@ from hybridcomp.chardiag.cd import CDSet  # noqa: E402
 from hybridcomp.chardiag.db import SCHEMA_VERSION, CDDatabase, CDDatabaseError  # noqa: E402
 from hybridcomp.chardiag.fit import FitOptions, fit_cd_set  # noqa: E402
 from hybridcomp.histogram.signature import SignatureLayout  # noqa: E402
+from hybridcomp.monitor.store import MonitorStore  # noqa: E402
 
 POSE = {"X": 0.0, "Y": 0.0, "Z": 0.0}
 LAYOUT = SignatureLayout(("X", "Y", "Z"), (1, 1, 1))  # 3 factors + 3 single-segment fractions + spindle
@@ -79,7 +80,7 @@ def test_activation_is_atomic_and_logged(db):
     db.activate("vmc800", "X=0,Y=0,Z=0", b, reason="switch", machine_time_s=900.0)
     s = db.active_set("vmc800", "X=0,Y=0,Z=0")
     assert isinstance(s, CDSet) and dict(s.ids) == b
-    ev = db.events("activation")
+    ev = MonitorStore(db).events("activation")
     assert [e.payload["ids"] for e in ev] == [a, b]
     assert ev[1].payload["previous"] == a and ev[1].machine_time_s == 900.0
     with pytest.raises(CDDatabaseError, match="direction X, not for .* direction Y"):
@@ -88,15 +89,16 @@ def test_activation_is_atomic_and_logged(db):
 
 
 def test_events_with_a_key_are_written_once_and_state_persists(db, tmp_path):
-    assert db.log_event("decision", 900.0, {"dT_K": 0.31, "action": "keep"}, key="decision@900") is not None
-    assert db.log_event("decision", 900.0, {"dT_K": 0.31, "action": "keep"}, key="decision@900") is None
-    db.log_event("warning", None, {"text": "no CD set within 0.5 K", "dT": np.float64(0.7)})
-    ev = db.events()
+    assert MonitorStore(db).log_event("decision", 900.0, {"dT_K": 0.31, "action": "keep"}, key="decision@900") is not None
+    assert MonitorStore(db).log_event("decision", 900.0, {"dT_K": 0.31, "action": "keep"}, key="decision@900") is None
+    MonitorStore(db).log_event("warning", None, {"text": "no CD set within 0.5 K", "dT": np.float64(0.7), "rms": np.nan})
+    ev = MonitorStore(db).events()
     assert [e.kind for e in ev] == ["decision", "warning"] and ev[1].payload["dT"] == 0.7
-    db.put_state("monitor", '{"time_s": 1}')
-    db.put_state("monitor", '{"time_s": 2}')
-    assert db.get_state("monitor") == '{"time_s": 2}' and db.get_state("nothing") is None
-    assert CDDatabase(tmp_path / "cds.sqlite").get_state("monitor") == '{"time_s": 2}'  # another connection
+    assert ev[1].payload["rms"] is None  # strict JSON: NaN is stored as null
+    MonitorStore(db).put_state("monitor", '{"time_s": 1}')
+    MonitorStore(db).put_state("monitor", '{"time_s": 2}')
+    assert MonitorStore(db).get_state("monitor") == '{"time_s": 2}' and MonitorStore(db).get_state("nothing") is None
+    assert MonitorStore(CDDatabase(tmp_path / "cds.sqlite")).get_state("monitor") == '{"time_s": 2}'  # another connection
 
 
 def test_a_newer_schema_is_refused(tmp_path):
@@ -113,7 +115,7 @@ def _activate_many(url, sets, n, tag, barrier):
     barrier.wait()
     for k in range(n):
         db.activate("vmc800", "X=0,Y=0,Z=0", sets[k % len(sets)], reason=f"{tag}{k}")
-        db.log_event("decision", float(k), {"by": tag, "k": k}, key=f"{tag}-{k}")
+        MonitorStore(db).log_event("decision", float(k), {"by": tag, "k": k}, key=f"{tag}-{k}")
     db.close()
 
 
@@ -133,14 +135,14 @@ def test_two_processes_activating_at_once_leave_a_consistent_set(tmp_path):
     assert [p.exitcode for p in procs] == [0, 0]
     active = db.active_ids("vmc800", "X=0,Y=0,Z=0")
     assert active in sets  # one complete set, never a mixture
-    acts = db.events("activation")
+    acts = MonitorStore(db).events("activation")
     assert len(acts) == 2 * n
     assert all(e.payload["ids"] in sets and (not e.payload["previous"] or e.payload["previous"] in sets) for e in acts)
     # every activation saw the set the one before it left: the history is a chain
     for prev, cur in zip(acts, acts[1:]):
         assert cur.payload["previous"] == prev.payload["ids"]
     assert acts[-1].payload["ids"] == active
-    assert len(db.events("decision")) == 2 * n
+    assert len(MonitorStore(db).events("decision")) == 2 * n
     db.close()
 
 
@@ -148,17 +150,17 @@ def test_readers_do_not_wait_for_a_writer(db):
     import threading
     import time
 
-    db.log_event("decision", 0.0, {"action": "keep"})
+    MonitorStore(db).log_event("decision", 0.0, {"action": "keep"})
     started = threading.Event()
 
     def slow_write(conn):
         started.set()
         time.sleep(1.5)
 
-    writer = threading.Thread(target=lambda: db._retry(slow_write, "a long write"))
+    writer = threading.Thread(target=lambda: db.write(slow_write, "a long write"))
     writer.start()
     started.wait(5)
     t0 = time.perf_counter()
-    assert len(db.events()) == 1 and db.get_state("x") is None
+    assert len(MonitorStore(db).events()) == 1 and MonitorStore(db).get_state("x") is None
     assert time.perf_counter() - t0 < 0.5  # WAL snapshot read, not queued behind BEGIN IMMEDIATE
     writer.join()

@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hybridcomp.monitor.store import MonitorStore
+
 pytest_plugins = ["pg_server"]
 
 POSE = {"X": 0.0, "Y": 0.0, "Z": 0.0}
@@ -121,6 +123,7 @@ HEADER = textwrap.dedent("""
     import json, sys, time
     from pathlib import Path
     from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.store import MonitorStore
     url, go, who = sys.argv[1], Path(sys.argv[2]), sys.argv[3]
     store = CDDatabase(url)
     (go.parent / f"ready-{who}").touch()
@@ -164,17 +167,17 @@ def test_two_monitors_write_events_at_once_none_lost_none_duplicated(chardiag, f
         ids = []
         for i in range({n}):
             # its own decision events, each written twice as a restarted daemon would: the key keeps one
-            ids.append(store.log_event("decision", float(i), {{"who": who, "i": i}}, key=f"{{who}}-{{i}}"))
-            assert store.log_event("decision", float(i), {{"who": who, "i": i}}, key=f"{{who}}-{{i}}") is None
+            ids.append(MonitorStore(store).log_event("decision", float(i), {{"who": who, "i": i}}, key=f"{{who}}-{{i}}"))
+            assert MonitorStore(store).log_event("decision", float(i), {{"who": who, "i": i}}, key=f"{{who}}-{{i}}") is None
             # warnings without a key: every one is kept
-            store.log_event("warning", float(i), {{"who": who, "i": i}})
+            MonitorStore(store).log_event("warning", float(i), {{"who": who, "i": i}})
             # events both monitors report (one shop-floor event seen twice): exactly one is kept
-            store.log_event("switch", float(i), {{"who": who, "i": i}}, key=f"shared-{{i}}")
+            MonitorStore(store).log_event("switch", float(i), {{"who": who, "i": i}}, key=f"shared-{{i}}")
         print(json.dumps(ids))
     """
     outs = _run_at_once(tmp_path, fresh_postgres_url, body)
     with db.CDDatabase(fresh_postgres_url) as store:
-        events = store.events()
+        events = MonitorStore(store).events()
     returned = [json.loads(o) for o in outs]
     for who, ids in zip(("p0", "p1"), returned):
         assert None not in ids and ids == sorted(ids)  # each monitor's own events in its order
@@ -235,7 +238,7 @@ def test_activation_is_atomic_under_concurrent_writers(chardiag, sets, fresh_pos
         assert final in (warm, cold)
         active = store.active_set("vmc800", pose)
         assert active is not None and dict(active.ids) == final
-        acts = store.events("activation")
+        acts = MonitorStore(store).events("activation")
     assert len(acts) == 2 * rounds
     assert len({e.id for e in acts}) == 2 * rounds
     # the log is a consistent history: each activation's "previous" is what the one before it activated
@@ -253,12 +256,13 @@ def test_two_monitors_open_a_new_database_at_once(chardiag, fresh_postgres_url, 
         from pathlib import Path
         go = Path(sys.argv[2])
         from hybridcomp.chardiag.db import CDDatabase
+        from hybridcomp.monitor.store import MonitorStore
         (go.parent / f"ready-{sys.argv[3]}").touch()
         while not go.exists():
             time.sleep(0.002)
         store = CDDatabase(sys.argv[1])
         print(store.schema_version())
-        store.log_event("sensor", 0.0, {"who": sys.argv[3]})
+        MonitorStore(store).log_event("sensor", 0.0, {"who": sys.argv[3]})
     """))
     procs = [subprocess.Popen([sys.executable, str(script), fresh_postgres_url, str(go), f"p{k}"],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for k in range(2)]
@@ -273,7 +277,7 @@ def test_two_monitors_open_a_new_database_at_once(chardiag, fresh_postgres_url, 
         assert p.returncode == 0, err[-3000:]
         assert out.strip() == str(db.SCHEMA_VERSION)
     with db.CDDatabase(fresh_postgres_url) as store:
-        assert sorted(e.payload["who"] for e in store.events("sensor")) == ["p0", "p1"]
+        assert sorted(e.payload["who"] for e in MonitorStore(store).events("sensor")) == ["p0", "p1"]
 
 
 def test_sqlite_stays_the_default(chardiag, tmp_path):
@@ -299,18 +303,18 @@ def _tail_while_an_earlier_writer_is_still_committing(db, url: str) -> tuple[lis
         go.wait(3)  # on SQLite writer B waits for this commit (writes run BEGIN IMMEDIATE; reads do not wait)
 
     try:
-        ta = threading.Thread(target=a.log_event, args=("sensor", 1.0, {"who": "a"}))
+        ta = threading.Thread(target=MonitorStore(a).log_event, args=("sensor", 1.0, {"who": "a"}))
         ta.start()
         assert at_commit.wait(10)
-        tb = threading.Thread(target=b.log_event, args=("sensor", 2.0, {"who": "b"}))
+        tb = threading.Thread(target=MonitorStore(b).log_event, args=("sensor", 2.0, {"who": "b"}))
         tb.start()
         tb.join(0.5)  # B commits now, unless writers are serialised (then it waits for A)
-        seen = [e.id for e in reader.events()]
+        seen = [e.id for e in MonitorStore(reader).events()]
         go.set()
         ta.join(10)
         tb.join(10)
-        seen += [e.id for e in reader.events(since_id=max(seen, default=0))]
-        return seen, [e.id for e in reader.events()]
+        seen += [e.id for e in MonitorStore(reader).events(since_id=max(seen, default=0))]
+        return seen, [e.id for e in MonitorStore(reader).events()]
     finally:
         go.set()
         for store in (a, b, reader):
@@ -336,7 +340,7 @@ def _two_monitors_upgrade_at_once(db, url: str, monkeypatch) -> list:
 
     sa = pytest.importorskip("sqlalchemy")
     with db.CDDatabase(url) as store:
-        store.log_event("sensor", 0.0, {"before": "upgrade"})
+        MonitorStore(store).log_event("sensor", 0.0, {"before": "upgrade"})
     both_read_version_1 = threading.Barrier(2)
 
     def add_column(conn):
@@ -364,7 +368,7 @@ def _two_monitors_upgrade_at_once(db, url: str, monkeypatch) -> list:
     if errors == [None, None]:
         with db.CDDatabase(url) as store:
             assert store.schema_version() == db.SCHEMA_VERSION
-            assert [e.payload for e in store.events()] == [{"before": "upgrade"}]
+            assert [e.payload for e in MonitorStore(store).events()] == [{"before": "upgrade"}]
     return errors
 
 

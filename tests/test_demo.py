@@ -12,6 +12,10 @@ pytest.importorskip("sqlalchemy", reason="the demo's CD database needs SQLAlchem
 from hybridcomp.cli import main  # noqa: E402
 
 
+def _refuse(word):
+    raise ValueError(f"summary.json is not strict JSON: {word}")
+
+
 def test_short_demo_names_the_planted_cause_and_hybrid_beats_static(tmp_path, monkeypatch, caplog):
     # a relative --out, as README types it: the generation worker must write into the same database
     monkeypatch.chdir(tmp_path)
@@ -20,7 +24,7 @@ def test_short_demo_names_the_planted_cause_and_hybrid_beats_static(tmp_path, mo
                  "--no-pictures", "--no-progress"]) == 0
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR], "the demo logged errors"
     assert not (out / "hybrid_nominal" / "demo").exists(), "a relative path was joined twice"
-    s = json.loads((out / "summary.json").read_text())
+    s = json.loads((out / "summary.json").read_text(), parse_constant=_refuse)  # strict JSON: NaN is written as null
     generated = [e["ids"] for e in s["events"] if e["kind"] == "generation" and e["status"] == "finished"]
     activated = [e["ids"] for e in s["events"] if e["kind"] == "activation"]
     assert generated, "the short demo should generate at least one CD set"

@@ -483,3 +483,29 @@ def test_power_table_replaces_power_law(tmp_path):
     assert float(m.source_power_W(src, 0.0)) == pytest.approx(0.1 * src.power_W)
     assert float(m.source_power_W(src, 0.75)) == pytest.approx(0.7 * src.power_W)
     assert math.isclose(float(m.source_power_W(src, 1.0)), src.power_W)
+
+
+# --------------------------------------------------------------------------- the TOML writer and the strict reader
+
+
+def test_toml_writer_round_trips_the_bundled_machine_and_refuses_non_finite_numbers():
+    from hybridcomp.models.toml import dumps_toml
+
+    data = tomllib.loads(VMC800)
+    assert tomllib.loads(dumps_toml(data)) == data
+    with pytest.raises(ValueError, match="non-finite number nan"):
+        dumps_toml({"machine": {"reference_temperature_degC": math.nan}})
+
+
+def test_one_strict_reader_for_machine_files_and_monitor_configurations(tmp_path):
+    from hybridcomp.models.toml import StrictTable
+    from hybridcomp.monitor.config import ConfigError, parse_config
+
+    t = StrictTable("f.toml", "zone", {"h_W_m2K": 0, "air": "ambient"}, ("h_W_m2K", "air"), ArithmeticError)
+    with pytest.raises(ArithmeticError, match="f.toml: field 'zone.h_W_m2K' must be positive, got 0.0"):
+        t.number("h_W_m2K", positive=True)
+    machine_msg = load_error(tmp_path, edit("[machine]\n", "[machine]\nnmae = 'x'\n"))
+    with pytest.raises(ConfigError) as info:
+        parse_config({"monitor": {"machine": "vmc800", "database": "d", "rom": "r", "databse": 1}}, "m.toml")
+    assert machine_msg.endswith("field 'machine.nmae' is not a known field (did you mean 'name'?)"), machine_msg
+    assert str(info.value) == "m.toml: field 'monitor.databse' is not a known field (did you mean 'database'?)"

@@ -48,20 +48,20 @@ def test_example_config_parses_with_the_documented_defaults(tmp_path):
     ("source", "sped", "speed"),
 ])
 def test_a_misspelt_key_is_an_error_with_a_hint(section, key, hint):
-    with pytest.raises(ConfigError, match=rf"m\.toml: unknown key {section}\.{key} \(did you mean '{hint}'\?\)"):
+    with pytest.raises(ConfigError, match=rf"m\.toml: field '{section}\.{key}' is not a known field \(did you mean '{hint}'\?\)"):
         cfg(**{section: {key: 1.0}})
 
 
 def test_unknown_section_and_bad_values():
     with pytest.raises(ConfigError, match=r"unknown section \[sensor\] \(did you mean 'sensors'\?\)"):
         parse_config({**BASE, "sensor": {}}, "m.toml")
-    with pytest.raises(ConfigError, match="monitor.threshold_K must be positive, got -1"):
+    with pytest.raises(ConfigError, match="field 'monitor.threshold_K' must be positive, got -1"):
         cfg(monitor={"threshold_K": -1})
     with pytest.raises(ConfigError, match="must be a number, got True"):
         cfg(monitor={"threshold_K": True})
     with pytest.raises(ConfigError, match="whole multiple of monitor.increment_s"):
         cfg(monitor={"monitoring_interval_s": 1000})
-    with pytest.raises(ConfigError, match="source.kind is 'mqtt', must be one of replay, opcua"):
+    with pytest.raises(ConfigError, match="field 'source.kind' is 'mqtt', must be one of replay, opcua"):
         cfg(source={"kind": "mqtt"})
     with pytest.raises(ConfigError, match="source.nodes.time_s is missing"):
         cfg(source={"kind": "opcua", "url": "opc.tcp://127.0.0.1:4840", "nodes": {"x_mm": "ns=2;s=x"}})

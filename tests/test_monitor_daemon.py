@@ -24,6 +24,7 @@ from hybridcomp.monitor.daemon import Monitor, run_monitor
 from hybridcomp.monitor.scenario import rom_sensor_temperatures
 from hybridcomp.monitor.sinks import MemorySink
 from hybridcomp.monitor.sources import ListSource, ReplaySource, read_replay
+from hybridcomp.monitor.store import MonitorStore
 from hybridcomp.rom import save_rom
 
 HOURS = 6.0
@@ -112,7 +113,7 @@ def make_db(path, machine, T, gains=((0.5, -1.0, -3.0), (0.4, -0.8, -2.5)), warm
 
 
 def events(db, kind):
-    return [(e.kind, e.machine_time_s, e.payload, e.key) for e in db.events(kind)]
+    return [(e.kind, e.machine_time_s, e.payload, e.key) for e in MonitorStore(db).events(kind)]
 
 
 def config(rom_file, trace_path, tmp_path, **over):
@@ -352,7 +353,7 @@ def test_kill_9_at_random_moments_and_restart_loses_and_duplicates_no_event(mach
     # reference: one uninterrupted run
     ref_db, ids = make_db(tmp_path / "ref.db", machine, T)
     run(config(rom_file, path, tmp_path), machine, rom, ref_db, ReplaySource(path, machine, speed=0))
-    ref = {e.key: (e.kind, e.machine_time_s, e.payload) for e in ref_db.events() if e.key is not None}
+    ref = {e.key: (e.kind, e.machine_time_s, e.payload) for e in MonitorStore(ref_db).events() if e.key is not None}
     assert len([k for k in ref if k.startswith("decision@")]) == int(s.time_s[-1] // 900)
 
     db, ids2 = make_db(tmp_path / "cd.db", machine, T)
@@ -382,7 +383,7 @@ def test_kill_9_at_random_moments_and_restart_loses_and_duplicates_no_event(mach
             assert proc.returncode == 0, (tmp_path / f"err{k}.txt").read_text()[-2000:]
     assert kills == 10
 
-    got = [e for e in db.events() if e.key is not None]
+    got = [e for e in MonitorStore(db).events() if e.key is not None]
     keys = [e.key for e in got]
     assert len(keys) == len(set(keys))  # nothing written twice
     assert set(keys) == set(ref)  # nothing lost
@@ -393,7 +394,8 @@ def test_kill_9_at_random_moments_and_restart_loses_and_duplicates_no_event(mach
             assert payload["action"] == e.payload["action"]
             assert payload["T_actual_degC"] == pytest.approx(e.payload["T_actual_degC"], abs=1e-9)
     # one activation per switch, as in the uninterrupted run
-    assert [e.payload["ids"] for e in db.events("activation")] == [e.payload["ids"] for e in ref_db.events("activation")]
+    assert ([e.payload["ids"] for e in MonitorStore(db).events("activation")]
+            == [e.payload["ids"] for e in MonitorStore(ref_db).events("activation")])
     # every restart compensated with the set that was active when it was killed
     checked = 0
     for k, active in enumerate(active_after_kill):

@@ -1,0 +1,56 @@
+"""Strict JSON for every file, line and database payload the project writes.
+
+JSON has no NaN or infinity; Python's ``json`` writes them as the bare words
+``NaN`` and ``Infinity`` that strict parsers (browsers, ``jq``, PostgreSQL's
+``json``) reject.  :func:`jsonable` turns every non-finite number into
+``null`` (and NumPy scalars and arrays into plain numbers and lists), and
+:func:`dumps` writes with ``allow_nan=False``, so a non-finite number that got
+past it is an error, never a file no one else can read.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def jsonable(obj: Any) -> Any:
+    """``obj`` with every non-finite float as None, NumPy scalars and arrays as Python numbers and lists,
+    tuples as lists, recursively; anything else unchanged."""
+    if isinstance(obj, bool) or obj is None or isinstance(obj, (str, int)):
+        return obj
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, Mapping):
+        return {k: jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    return obj
+
+
+def dumps(obj: Any, **kwargs) -> str:
+    """Strict JSON text of ``obj`` (non-finite numbers as null); ``kwargs`` as for :func:`json.dumps`
+    (``default`` handles types JSON does not know, e.g. ``default=str`` for paths)."""
+    return json.dumps(jsonable(obj), allow_nan=False, **kwargs)
+
+
+def write_json(path: str | Path, obj: Any, **kwargs) -> Path:
+    """Write ``obj`` as strict JSON to ``path``; returns the path."""
+    path = Path(path)
+    path.write_text(dumps(obj, **kwargs) + "\n")
+    return path
+
+
+__all__ = ["dumps", "jsonable", "write_json"]

@@ -1,0 +1,93 @@
+"""Options given on a path where they have no effect are refused, never silently ignored.
+
+Every case runs ``hybridcomp`` in-process: exit code 2, one line on stderr that names the option, nothing
+written. The refusals come before any file is read, so the inputs need not exist.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from hybridcomp.cli import main
+
+MONITOR_OPCUA = """\
+[monitor]
+machine = "vmc800"
+database = "cd.db"
+rom = "rom.npz"
+
+[source]
+kind = "opcua"
+url = "opc.tcp://127.0.0.1:4840"
+nodes = { time_s = "ns=2;s=time" }
+
+[sink]
+kind = "none"
+"""
+
+CASES = {
+    "reduce --matrices --basis h2": (["reduce", "--matrices", "{d}/sys.mat", "--basis", "h2", "--out", "{out}"], "--basis"),
+    "reduce --matrices --machine": (["reduce", "--matrices", "{d}/sys.mat", "--machine", "vmc800", "--out", "{out}"],
+                                    "--machine"),
+    "reduce --matrices --pose": (["reduce", "--matrices", "{d}/sys.mat", "--pose", "X=0", "--out", "{out}"], "--pose"),
+    "reduce --matrices --element-size-mm": (["reduce", "--matrices", "{d}/sys.mat", "--element-size-mm", "100",
+                                             "--out", "{out}"], "--element-size-mm"),
+    "reduce --matrices --tol-um": (["reduce", "--matrices", "{d}/sys.mat", "--tol-um", "0.1", "--out", "{out}"],
+                                   "--tol-um"),
+    "reduce --matrices --h-range": (["reduce", "--matrices", "{d}/sys.mat", "--h-range", "0.5,2", "--out", "{out}"],
+                                    "--h-range"),
+    "reduce --matrices --check-loads": (["reduce", "--matrices", "{d}/sys.mat", "--check-loads", "{d}/l.csv",
+                                         "--out", "{out}"], "--check-loads"),
+    "reduce --matrices --order --tol-K": (["reduce", "--matrices", "{d}/sys.mat", "--order", "10", "--tol-K", "0.1",
+                                           "--out", "{out}"], "--tol-K"),
+    "reduce --h2-maxiter without h2": (["reduce", "--h2-maxiter", "5", "--out", "{out}"], "--h2-maxiter"),
+    "simulate --field-format without --fields": (["simulate", "--loads", "{d}/l.csv", "--field-format", "xdmf",
+                                                  "--out", "{out}"], "--field-format"),
+    "batch --serial --workers": (["batch", "run", "{d}", "--serial", "--workers", "2", "--out", "{out}"], "--workers"),
+    "batch on a Dask scheduler --workers": (["batch", "run", "{d}", "--scheduler", "tcp://127.0.0.1:1", "--workers",
+                                             "2", "--out", "{out}"], "--workers"),
+    "machine --element-size-mm without --mesh": (["machine", "vmc800", "--element-size-mm", "200"],
+                                                 "--element-size-mm"),
+    "histogram G-code --max-gap": (["histogram", "{d}/p.nc", "--max-gap", "10", "--out", "{out}"], "--max-gap"),
+    "histogram G-code --feed-tolerance": (["histogram", "{d}/p.nc", "--feed-tolerance", "0.1", "--out", "{out}"],
+                                          "--feed-tolerance"),
+    "histogram --signature-period without --signature": (["histogram", "{d}/t.csv", "--signature-period", "600",
+                                                          "--out", "{out}"], "--signature-period"),
+    "histogram --plot-increment without --plot": (["histogram", "{d}/t.csv", "--plot-increment", "3",
+                                                   "--out", "{out}"], "--plot-increment"),
+    "scenario jobshop --hours": (["scenario", "jobshop", "--hours", "2", "--out", "{out}"], "--hours"),
+    "cd train-data --workers without a pool": (["cd", "train-data", "--workers", "2", "--out", "{out}"], "--workers"),
+    "cd fit --activate without --db": (["cd", "fit", "{d}/data.csv", "--activate", "--out", "{out}"], "--activate"),
+    "cd eval --point --cases": (["cd", "eval", "{d}", "--point", "T1=20", "--cases", "a", "--out", "{out}"],
+                                "--cases"),
+    "cd eval --cnc without --point": (["cd", "eval", "{d}", "--data", "{d}/data.csv", "--cnc", "generic",
+                                       "--out", "{out}"], "--cnc"),
+    "cd eval --axis-names without 840d": (["cd", "eval", "{d}", "--point", "T1=20", "--cnc", "generic",
+                                           "--axis-names", "X=X1", "--out", "{out}"], "--axis-names"),
+    "diagnose --data-only --rom": (["diagnose", "--data-only", "--data", "{d}/m.csv", "--rom", "{d}/r.npz",
+                                    "--out", "{out}"], "--rom"),
+    "diagnose --data-only --machine": (["diagnose", "--data-only", "--data", "{d}/m.csv", "--machine", "vmc800",
+                                        "--out", "{out}"], "--machine"),
+    "diagnose --data-only --effects": (["diagnose", "--data-only", "--data", "{d}/m.csv", "--effects", "htc",
+                                        "--out", "{out}"], "--effects"),
+    "diagnose model --beam": (["diagnose", "--data", "{d}/m.csv", "--beam", "4", "--out", "{out}"], "--beam"),
+    "monitor run --speed on OPC UA": (["monitor", "run", "--config", "{d}/monitor.toml", "--speed", "0"], "--speed"),
+}
+
+
+@pytest.mark.parametrize("argv,option", CASES.values(), ids=CASES.keys())
+def test_an_option_without_effect_is_refused_in_one_line(tmp_path, capsys, argv, option):
+    (tmp_path / "monitor.toml").write_text(MONITOR_OPCUA)
+    out = tmp_path / "out"
+    rc = main([a.format(d=tmp_path, out=out) for a in argv])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert "\n" not in err and option in err, err
+    assert not out.exists()
+
+
+def test_an_option_typed_with_its_default_value_on_its_own_path_is_not_refused(tmp_path, capsys):
+    # --basis krylov with --matrices is exactly what runs: no refusal; the missing file is the error
+    rc = main(["reduce", "--matrices", str(tmp_path / "sys.mat"), "--basis", "krylov", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--basis" not in err and "sys.mat" in err, err
