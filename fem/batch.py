@@ -65,6 +65,7 @@ from hybridcomp.errors import HybridcompError
 from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.loads import Loads, LoadsFileError, in_model_order, input_columns, read_loads, write_outputs
 from hybridcomp.models.machine import Machine
+from hybridcomp.models.layout import LoadsColumnError
 
 log = logging.getLogger(__name__)
 
@@ -272,7 +273,7 @@ def prepare_cases(cases: Mapping[str, Loads], machine: Machine) -> dict[str, Loa
         if tuple(loads.names) != expected:
             try:
                 loads = in_model_order(loads, machine)
-            except LoadsFileError as exc:
+            except LoadsColumnError as exc:
                 raise LoadsFileError(f"load case {name!r}: {exc}") from None
         if loads.values.shape != (len(loads.time_s), len(expected)) or len(loads.time_s) < 2:
             raise LoadsFileError(f"load case {name!r}: needs at least two rows of {len(expected)} inputs, "

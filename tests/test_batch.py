@@ -1,7 +1,11 @@
 """FE load-case batches: every executor gives the serial results; killed workers lose and duplicate nothing.
 
-The reference is a serial run in a fresh process with one BLAS thread, the
-setting every worker process runs with, so the comparison is bitwise.
+The reference is a serial run in a fresh process with one BLAS thread, the setting every worker process
+runs with.  The results are compared to round-off, not bitwise: with the same thread count on both sides
+the drift rows still differed by 2.5e-12 relative between processes on one host (an AMD EPYC; OpenBLAS
+picks kernels by CPU and memory alignment, and the AMG-CG adjoint solve sums in the order its products
+give).  What must be exact stays exact: which cases came back, once each, the time axes, and one file per
+case with nothing left over.
 """
 
 from __future__ import annotations
@@ -64,29 +68,44 @@ def make_cases_names() -> list[str]:
     return [f"case{i:02d}" for i in range(N_CASES)]
 
 
+# round-off of a solve in another process: 2.5e-12 relative measured; a wrong case or step differs by >1e-3
+ROUND_OFF = {"rtol": 1e-9, "atol": 1e-9}
+
+
 def assert_identical(results, reference):
+    """Every case once, in order, with the reference's time axis exactly and its values to round-off."""
     assert list(results) == make_cases_names()
     for name, (sensors, drift, t) in reference.items():
         r = results[name]
         assert r.name == name
         np.testing.assert_array_equal(r.time_s, t)
-        np.testing.assert_array_equal(r.sensors_degC, sensors)
-        np.testing.assert_array_equal(r.drift_um, drift)
+        np.testing.assert_allclose(r.sensors_degC, sensors, **ROUND_OFF)
+        np.testing.assert_allclose(r.drift_um, drift, **ROUND_OFF)
 
 
 def assert_files_once(out: Path, reference, sensor_names, tmp_path: Path):
-    """Exactly one outputs CSV per case (no temporaries left), each byte-identical to the reference written alike."""
+    """Exactly one outputs CSV per case (no temporaries left), each as the reference would be written.
+
+    Header, row count and time column are compared exactly; the values (written to 6 decimals) to one unit of
+    the last written digit, since a round-off difference can flip the rounding of a value.
+    """
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted([f"{n}.csv" for n in reference] + ["batch.json"])
     for name, (sensors, drift, t) in reference.items():
         expected = tmp_path / f"expected_{name}.csv"
         write_outputs(expected, t, sensor_names, sensors, drift)
-        assert (out / f"{name}.csv").read_bytes() == expected.read_bytes(), name
+        got_lines = (out / f"{name}.csv").read_text().splitlines()
+        want_lines = expected.read_text().splitlines()
+        assert got_lines[0] == want_lines[0] and len(got_lines) == len(want_lines), name
+        got = np.array([[float(v) for v in line.split(",")] for line in got_lines[1:]])
+        want = np.array([[float(v) for v in line.split(",")] for line in want_lines[1:]])
+        np.testing.assert_array_equal(got[:, 0], want[:, 0])
+        np.testing.assert_allclose(got[:, 1:], want[:, 1:], rtol=0, atol=1.0001e-6)
     info = json.loads((out / "batch.json").read_text())
     assert sorted(info["cases"]) == sorted(reference) and info["complete"] is True
 
 
-def test_process_pool_matches_serial_bitwise_builds_once_per_worker(machine, cases, reference, tmp_path):
+def test_process_pool_matches_serial_builds_once_per_worker(machine, cases, reference, tmp_path):
     out = tmp_path / "out"
     res = run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor="process", workers=2, out_dir=out)
     assert_identical(res, reference)
@@ -140,7 +159,7 @@ def test_process_pool_without_restarts_reports_the_unfinished_cases(machine, cas
                   on_result=kill_busy_worker)
 
 
-def test_dask_local_cluster_matches_serial_bitwise(machine, cases, reference, tmp_path):
+def test_dask_local_cluster_matches_serial(machine, cases, reference, tmp_path):
     pytest.importorskip("distributed", reason="needs dask.distributed (extra 'dask')")
     out = tmp_path / "out"
     res = run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor="local", workers=2, out_dir=out)
