@@ -9,27 +9,11 @@ schema, the CD database and the CNC export.
 * :mod:`hybridcomp.chardiag.export` — compensation offsets for the CNC (generic table, Siemens 840D sl)
 """
 
-from hybridcomp.chardiag.cd import DIRECTIONS, TARGETS, CDError, CDInput, CDSet, CharDiagram, Term, pose_key
-from hybridcomp.chardiag.fit import CDFitError, FitOptions, fit_cd, fit_cd_set, select_inputs
-from hybridcomp.chardiag.xmlio import CDXmlError, cd_from_bytes, cd_to_bytes, read_cd, write_cd
+from hybridcomp._lazy import lazy_exports
 
-__all__ = [
-    "CDError",
-    "CDFitError",
-    "CDInput",
-    "CDSet",
-    "CDXmlError",
-    "CharDiagram",
-    "DIRECTIONS",
-    "FitOptions",
-    "TARGETS",
-    "Term",
-    "cd_from_bytes",
-    "cd_to_bytes",
-    "fit_cd",
-    "fit_cd_set",
-    "pose_key",
-    "read_cd",
-    "select_inputs",
-    "write_cd",
-]
+# module -> the public names it defines (imported on first use)
+__all__, __getattr__, __dir__ = lazy_exports(__name__, {
+    "cd": ("DIRECTIONS", "TARGETS", "CDError", "CDInput", "CDSet", "CharDiagram", "Term", "pose_key"),
+    "fit": ("CDFitError", "FitOptions", "fit_cd", "fit_cd_set", "select_inputs"),
+    "xmlio": ("CDXmlError", "cd_from_bytes", "cd_to_bytes", "read_cd", "write_cd"),
+})

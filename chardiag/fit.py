@@ -26,7 +26,6 @@ from datetime import datetime, timezone
 
 import numpy as np
 import scipy.sparse as sp
-from scipy import stats
 from scipy.sparse.linalg import splu
 
 from hybridcomp.errors import HybridcompError
@@ -149,6 +148,8 @@ def select_inputs(table: Mapping[str, np.ndarray], candidates: Sequence[tuple[st
             p = 0.0
         else:
             t = abs(r) * math.sqrt((n - 2) / (1.0 - r * r))
+            from scipy import stats  # here: scipy.stats takes 0.5 s to import, the monitor's start-up
+
             p = float(2 * stats.t.sf(t, n - 2))
         if p > options.alpha:
             rows.append([name, unit, False, lo, hi, f"correlation r = {r:.3f} with {target} not significant "

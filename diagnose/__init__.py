@@ -17,35 +17,13 @@ write_report(d, "out/")
 ```
 """
 
-from hybridcomp.diagnose.core import DEFAULT_SPLIT, dataset_from_trace, diagnose, prepare_model, read_measured
-from hybridcomp.diagnose.data import Dataset, DatasetError, Split, parse_split, read_column_map, read_dataset
-from hybridcomp.diagnose.effects import KINDS, Candidate, library, simulate
-from hybridcomp.diagnose.selection import Diagnosis, Fitted
+from hybridcomp._lazy import lazy_exports
 
-__all__ = [
-    "DEFAULT_SPLIT",
-    "KINDS",
-    "Candidate",
-    "Dataset",
-    "DatasetError",
-    "Diagnosis",
-    "Fitted",
-    "Split",
-    "dataset_from_trace",
-    "diagnose",
-    "library",
-    "parse_split",
-    "prepare_model",
-    "read_column_map",
-    "read_dataset",
-    "read_measured",
-    "simulate",
-    "write_report",
-]
-
-
-def write_report(diagnosis, out_dir, **kwargs):
-    """Write ``report.md``, plots, ``summary.json`` and ``machine_extended.toml`` (see :mod:`.report`)."""
-    from hybridcomp.diagnose.report import write_report as _write
-
-    return _write(diagnosis, out_dir, **kwargs)
+# module -> the public names it defines (imported on first use)
+__all__, __getattr__, __dir__ = lazy_exports(__name__, {
+    "core": ("DEFAULT_SPLIT", "dataset_from_trace", "diagnose", "prepare_model", "read_measured"),
+    "data": ("Dataset", "DatasetError", "Split", "parse_split", "read_column_map", "read_dataset"),
+    "effects": ("KINDS", "Candidate", "library", "simulate"),
+    "selection": ("Diagnosis", "Fitted"),
+    "report": ("write_report",),
+})

@@ -8,12 +8,12 @@
 * :mod:`hybridcomp.fem.batch` — load-case batches on a process pool or a Dask cluster
 """
 
-from hybridcomp.fem.loads import LoadsFileError, example_loads, full_power_inputs, read_loads, write_loads, write_outputs
-from hybridcomp.fem.mesh import MachineMesh, mesh_machine
-from hybridcomp.fem.model import ThermoElasticModel, build_model
-from hybridcomp.fem.transient import integrate, simulate, steady_state
+from hybridcomp._lazy import lazy_exports
 
-__all__ = [
-    "LoadsFileError", "MachineMesh", "ThermoElasticModel", "build_model", "example_loads", "full_power_inputs",
-    "integrate", "mesh_machine", "read_loads", "simulate", "steady_state", "write_loads", "write_outputs",
-]
+# module -> the public names it defines (imported on first use)
+__all__, __getattr__, __dir__ = lazy_exports(__name__, {
+    "loads": ("LoadsFileError", "example_loads", "full_power_inputs", "read_loads", "write_loads", "write_outputs"),
+    "mesh": ("MachineMesh", "mesh_machine"),
+    "model": ("ThermoElasticModel", "build_model"),
+    "transient": ("integrate", "simulate", "steady_state"),
+})

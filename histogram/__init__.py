@@ -8,64 +8,16 @@ rail segment, zone air) → ``fem.loads.write_loads`` → ``hybridcomp simulate`
 is searched by.
 """
 
-from hybridcomp.histogram.bcs import (
-    boundary_conditions,
-    heat_powers,
-    source_factors,
-    standstill_powers,
-    write_bcs,
-)
-from hybridcomp.histogram.gcode import (
-    GcodeError,
-    Motion,
-    increments_from_motion,
-    parse_gcode,
-    read_gcode,
-    sample_motion,
-)
-from hybridcomp.histogram.increments import (
-    Increments,
-    increments_from_samples,
-    increments_from_trace,
-)
-from hybridcomp.histogram.signature import (
-    SignatureLayout,
-    signature_distance,
-    signatures,
-)
-from hybridcomp.histogram.trace import (
-    Samples,
-    TraceFileError,
-    TraceWarning,
-    read_trace_chunks,
-    samples,
-    write_trace,
-    zone_air_sources,
-)
+from hybridcomp._lazy import lazy_exports
 
-__all__ = [
-    "GcodeError",
-    "Increments",
-    "Motion",
-    "Samples",
-    "SignatureLayout",
-    "TraceFileError",
-    "TraceWarning",
-    "boundary_conditions",
-    "heat_powers",
-    "increments_from_motion",
-    "increments_from_samples",
-    "increments_from_trace",
-    "parse_gcode",
-    "read_gcode",
-    "read_trace_chunks",
-    "sample_motion",
-    "samples",
-    "signature_distance",
-    "signatures",
-    "source_factors",
-    "standstill_powers",
-    "write_bcs",
-    "write_trace",
-    "zone_air_sources",
-]
+# module -> the public names it defines (imported on first use)
+__all__, __getattr__, __dir__ = lazy_exports(__name__, {
+    "bcs": ("boundary_conditions", "heat_powers", "source_factors", "standstill_powers", "write_bcs"),
+    "gcode": ("GcodeError", "Motion", "increments_from_motion", "parse_gcode", "read_gcode", "sample_motion"),
+    "increments": ("Increments", "increments_from_samples", "increments_from_trace"),
+    "signature": ("SignatureLayout", "signature_distance", "signatures"),
+    "trace": (
+        "Samples", "TraceFileError", "TraceWarning", "read_trace_chunks", "samples", "write_trace",
+        "zone_air_sources",
+    ),
+})

@@ -19,9 +19,9 @@ package (``hybridcomp.models``, ``.histogram``, ``.fem``, ``.rom``, ``.chardiag`
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
 
+from hybridcomp._lazy import lazy_exports
 from hybridcomp.errors import HybridcompError
 
 if TYPE_CHECKING:
@@ -32,33 +32,37 @@ if TYPE_CHECKING:
 
 __version__ = "0.1.0"
 
-# public name -> the module that defines it
-_EXPORTS = {
+# module -> the public names it defines (imported on first use)
+_names, __getattr__, __dir__ = lazy_exports(__name__, {
     # models: machine files and the input/output vocabulary
-    "load_machine": "models.machine", "Machine": "models.machine", "MachineFileError": "models.machine",
-    "InputLayout": "models.layout", "Loads": "models.layout", "input_layout": "models.layout",
-    "in_model_order": "models.layout", "DIRECTIONS": "models.layout", "DRIFT_COLUMNS": "models.layout",
-    "SimulationResult": "models.simulation",
+    "models.machine": ("load_machine", "Machine", "MachineFileError"),
+    "models.layout": ("InputLayout", "Loads", "input_layout", "in_model_order", "DIRECTIONS", "DRIFT_COLUMNS"),
+    "models.simulation": ("SimulationResult",),
     # histogram: traces and G-code to boundary conditions
-    "increments_from_trace": "histogram.increments", "boundary_conditions": "histogram.bcs",
-    "Increments": "histogram.increments",
+    "histogram.increments": ("increments_from_trace", "Increments"),
+    "histogram.bcs": ("boundary_conditions",),
     # fem: the FE model and its files
-    "build_model": "fem.model", "ThermoElasticModel": "fem.model", "read_loads": "fem.loads",
-    "write_loads": "fem.loads", "write_outputs": "fem.loads", "example_loads": "fem.loads",
+    "fem.model": ("build_model", "ThermoElasticModel"),
+    "fem.loads": ("read_loads", "write_loads", "write_outputs", "example_loads"),
     # rom: the structure model
-    "reduce_model": "rom.machine", "ReducedModel": "rom.reduced", "save_rom": "rom.reduced", "load_rom": "rom.reduced",
+    "rom.machine": ("reduce_model",),
+    "rom.reduced": ("ReducedModel", "save_rom", "load_rom"),
     # chardiag: characteristic diagrams and their database
-    "fit_cd_set": "chardiag.fit", "CharDiagram": "chardiag.cd", "CDSet": "chardiag.cd", "read_cd": "chardiag.xmlio",
-    "write_cd": "chardiag.xmlio", "simulate_load_cases": "chardiag.training",
-    "standard_load_cases": "chardiag.training", "CDDatabase": "chardiag.db",
+    "chardiag.fit": ("fit_cd_set",),
+    "chardiag.cd": ("CharDiagram", "CDSet"),
+    "chardiag.xmlio": ("read_cd", "write_cd"),
+    "chardiag.training": ("simulate_load_cases", "standard_load_cases"),
+    "chardiag.db": ("CDDatabase",),
     # monitor: the daemon
-    "load_config": "monitor.config", "Monitor": "monitor.daemon", "run_monitor": "monitor.daemon",
+    "monitor.config": ("load_config",),
+    "monitor.daemon": ("Monitor", "run_monitor"),
     # diagnose: what the model misses in measured data (the diagnosis itself is hybridcomp.diagnose.diagnose:
     # the name hybridcomp.diagnose is the package)
-    "prepare_model": "diagnose.core", "read_measured": "diagnose.core", "write_report": "diagnose.report",
-}
+    "diagnose.core": ("prepare_model", "read_measured"),
+    "diagnose.report": ("write_report",),
+})
 
-__all__ = ["HybridcompError", "__version__", "simulate", *sorted(_EXPORTS)]
+__all__ = ["HybridcompError", "__version__", "simulate", *_names]
 
 
 def simulate(model, loads: Loads, initial: str | np.ndarray = "steady", **options) -> SimulationResult:
@@ -77,16 +81,3 @@ def simulate(model, loads: Loads, initial: str | np.ndarray = "steady", **option
     SimulationResult with sensor temperatures [°C] and TCP drift [µm] at the loads' times
     """
     return model.simulate(loads, initial, **options)
-
-
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'hybridcomp' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"hybridcomp.{module}"), name)
-    globals()[name] = value  # once
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))

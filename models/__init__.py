@@ -1,37 +1,17 @@
 """Machine definitions: the TOML machine-file format and its validating loader, and the one vocabulary of a
 machine model's inputs and outputs (:mod:`hybridcomp.models.layout`) and results (:mod:`hybridcomp.models.simulation`)."""
 
-from hybridcomp.models.layout import (
-    COORDINATES,
-    DIRECTIONS,
-    DRIFT_COLUMNS,
-    DRIFT_OUTPUTS,
-    InputLayout,
-    Loads,
-    LoadsColumnError,
-    heat_input_name,
-    in_model_order,
-    input_layout,
-)
-from hybridcomp.models.machine import (
-    Axis,
-    Body,
-    HeatSource,
-    Machine,
-    MachineFileError,
-    Material,
-    Point,
-    Support,
-    Zone,
-    bundled_machines,
-    load_machine,
-    parse_machine,
-)
-from hybridcomp.models.simulation import SimulationResult, initial_state
+from hybridcomp._lazy import lazy_exports
 
-__all__ = [
-    "COORDINATES", "DIRECTIONS", "DRIFT_COLUMNS", "DRIFT_OUTPUTS", "InputLayout", "Loads", "LoadsColumnError",
-    "SimulationResult", "heat_input_name", "in_model_order", "initial_state", "input_layout",
-    "Axis", "Body", "HeatSource", "Machine", "MachineFileError", "Material", "Point", "Support", "Zone",
-    "bundled_machines", "load_machine", "parse_machine",
-]
+# module -> the public names it defines (imported on first use)
+__all__, __getattr__, __dir__ = lazy_exports(__name__, {
+    "layout": (
+        "COORDINATES", "DIRECTIONS", "DRIFT_COLUMNS", "DRIFT_OUTPUTS", "InputLayout", "Loads", "LoadsColumnError",
+        "heat_input_name", "in_model_order", "input_layout",
+    ),
+    "machine": (
+        "Axis", "Body", "HeatSource", "Machine", "MachineFileError", "Material", "Point", "Support", "Zone",
+        "bundled_machines", "load_machine", "parse_machine",
+    ),
+    "simulation": ("SimulationResult", "initial_state"),
+})

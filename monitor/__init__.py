@@ -10,13 +10,12 @@
 * :mod:`hybridcomp.monitor.scenario` — the hybrid scenario and drift metrics
 """
 
-from hybridcomp.monitor.config import ConfigError, MonitorConfig, example_config, load_config, parse_config
-from hybridcomp.monitor.daemon import Monitor, Regenerator, RunResult, run_monitor
-from hybridcomp.monitor.sinks import MemorySink, Offset, make_sink
-from hybridcomp.monitor.sources import ListSource, Reading, ReplaySource, SourceFileError
+from hybridcomp._lazy import lazy_exports
 
-__all__ = [
-    "ConfigError", "ListSource", "MemorySink", "Monitor", "MonitorConfig", "Offset", "Reading", "Regenerator",
-    "ReplaySource", "RunResult", "SourceFileError", "example_config", "load_config", "make_sink", "parse_config",
-    "run_monitor",
-]
+# module -> the public names it defines (imported on first use)
+__all__, __getattr__, __dir__ = lazy_exports(__name__, {
+    "config": ("ConfigError", "MonitorConfig", "example_config", "load_config", "parse_config"),
+    "daemon": ("Monitor", "Regenerator", "RunResult", "run_monitor"),
+    "sinks": ("MemorySink", "Offset", "make_sink"),
+    "sources": ("ListSource", "Reading", "ReplaySource", "SourceFileError"),
+})

@@ -6,41 +6,14 @@
 * :mod:`hybridcomp.rom.external` — systems exported from other FE codes (.mat, Matrix Market)
 """
 
-from hybridcomp.rom.krylov import (
-    ExpansionPoint,
-    Reduction,
-    ReductionError,
-    Reductor,
-    ThermalSystem,
-)
-from hybridcomp.rom.reduced import (
-    ReducedModel,
-    RomFileError,
-    RomInputError,
-    RomState,
-    load_rom,
-    load_state,
-    save_rom,
-    save_state,
-)
-from hybridcomp.rom.machine import CheckResult, inputs_from_columns, reduce_model, split_outputs
+from hybridcomp._lazy import lazy_exports
 
-__all__ = [
-    "CheckResult",
-    "ExpansionPoint",
-    "ReducedModel",
-    "Reduction",
-    "ReductionError",
-    "Reductor",
-    "RomFileError",
-    "RomInputError",
-    "RomState",
-    "ThermalSystem",
-    "inputs_from_columns",
-    "load_rom",
-    "load_state",
-    "reduce_model",
-    "save_rom",
-    "save_state",
-    "split_outputs",
-]
+# module -> the public names it defines (imported on first use)
+__all__, __getattr__, __dir__ = lazy_exports(__name__, {
+    "krylov": ("ExpansionPoint", "Reduction", "ReductionError", "Reductor", "ThermalSystem"),
+    "reduced": (
+        "ReducedModel", "RomFileError", "RomInputError", "RomState", "load_rom", "load_state", "save_rom",
+        "save_state",
+    ),
+    "machine": ("CheckResult", "inputs_from_columns", "reduce_model", "split_outputs"),
+})

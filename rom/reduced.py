@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import scipy.linalg as la
-from scipy.signal import lfilter
 
 from hybridcomp.errors import HybridcompError
 from hybridcomp.models import jsonio
@@ -368,6 +367,8 @@ class ReducedModel:
                 z = d.a * z + d.P0 @ U0[k - 1] + d.P1 @ U[k]
                 Y[k] = Cz @ z
             return Y, Phi @ z
+        from scipy.signal import lfilter  # here: scipy.signal takes 0.9 s to import, a daemon's start-up
+
         d = self.discretize(dts[0])
         for k0 in range(0, t.size - 1, chunk):
             k1 = min(k0 + chunk, t.size - 1)
