@@ -68,9 +68,10 @@ class MemorySink:
 
 
 class JsonlSink:
-    """Appends one JSON object per cycle to a file (flushed every ``flush_every`` rows and on close)."""
+    """Appends one JSON object per cycle to a file, flushed every ``flush_every`` rows (default: each, as a control
+    reading the file expects) and on close."""
 
-    def __init__(self, path: str | Path, flush_every: int = 100):
+    def __init__(self, path: str | Path, flush_every: int = 1):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fh = self.path.open("a")
@@ -92,7 +93,7 @@ class CsvSink:
 
     FIELDS = ("time_s", *DIRECTIONS, "active", "clamped", "limited", "outside", "degraded")
 
-    def __init__(self, path: str | Path, flush_every: int = 100):
+    def __init__(self, path: str | Path, flush_every: int = 1):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         new = not self.path.exists() or self.path.stat().st_size == 0
