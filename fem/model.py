@@ -102,6 +102,21 @@ class ThermoElasticModel:
             self._cache[key] = np.hstack(cols)
         return self._cache[key]
 
+    def disturbance_columns(self) -> tuple[np.ndarray, tuple[str, ...]]:
+        """Heat the model does not know, as shapes for a state observer: per body, 1 W spread uniformly over it
+        and 1 W varying linearly along x, y and z across it (n × 4·bodies), and their names (``column``,
+        ``column:x`` ...).
+
+        A source the machine file lacks (a pump, a cabinet, a misplaced loss) heats some body; its first moments
+        over that body are these four shapes.  The uniform column sums to 1 W; a linear one to 0 W, its magnitudes
+        to 1 W (heat rising linearly from −½ W over the lower half of the body along the direction to +½ W over the
+        upper half).
+        """
+        key = ("disturbances",)
+        if key not in self._cache:
+            self._cache[key] = disturbance_heat_columns(self.machine, self.mesh)
+        return self._cache[key]
+
     def layout(self) -> InputLayout:
         """This model's inputs and outputs (its own heat inputs and zones: a model built from an extended or
         planted machine may have more than the machine it was given)."""
@@ -217,6 +232,29 @@ def heat_input_matrix(machine: Machine, mm: MachineMesh, basis) -> tuple[np.ndar
             names.append(name)
     B = np.column_stack(cols) if cols else np.zeros((basis.N, 0))
     return B, tuple(names)
+
+
+def disturbance_heat_columns(machine: Machine, mm: MachineMesh) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Per body: 1 W uniformly over its volume and 1 W varying linearly along x, y, z (see
+    :meth:`ThermoElasticModel.disturbance_columns`); sampled like a heat source's patch."""
+    basis = assembly.cell_basis(mm.mesh)
+    h_mm = machine.mesh.element_size_mm
+    cols, names = [], []
+    for b in machine.bodies:
+        off = machine.body_offset_mm(b.name, mm.pose_mm)
+        lo, hi = np.asarray(b.box_mm[0], float) + off, np.asarray(b.box_mm[1], float) + off
+        pts = _sample_box(lo, hi, 0.5 * min(h_mm, float(np.min(hi - lo)))) * MM
+        cells = mm.find_elements(pts, body=b.name)
+        ok = cells >= 0
+        P = assembly.probe_matrix(basis, pts[:, ok], cells[ok])
+        centre, half = 0.5 * (lo + hi) * MM, 0.5 * (hi - lo) * MM
+        cols.append(np.asarray(P.T @ np.full(ok.sum(), 1.0 / ok.sum())).ravel())
+        names.append(b.name)
+        for d, axis in enumerate("xyz"):
+            w = (pts[d, ok] - centre[d]) / half[d]
+            cols.append(np.asarray(P.T @ (w / np.abs(w).sum())).ravel())
+            names.append(f"{b.name}:{axis}")
+    return np.column_stack(cols), tuple(names)
 
 
 def _point_rows(machine: Machine, mm: MachineMesh, basis, points) -> sp.csr_matrix:

@@ -55,11 +55,16 @@ def h_samples(h_nominal: np.ndarray, h_range: tuple[float, float], n_random: int
     return np.array(rows)
 
 
-def to_reduced(system: ThermalSystem, red: Reduction, meta: dict, keep_basis: bool = True) -> ReducedModel:
+def to_reduced(system: ThermalSystem, red: Reduction, meta: dict, keep_basis: bool = True,
+               disturbances: tuple[np.ndarray, tuple[str, ...]] | None = None) -> ReducedModel:
+    """The reduced model of a projection basis; ``disturbances``: FE disturbance heat columns (n × d) and their
+    names, projected with the basis (:attr:`ReducedModel.D`)."""
     P = project(system, red.V)
+    D, names = (None, ()) if disturbances is None else (red.V.T @ disturbances[0], tuple(disturbances[1]))
     return ReducedModel(
         M=P["M"], K=P["K"], H=P["H"], h_W_m2K=np.asarray(system.h, float), B=P["B"], Hb=P["Hb"], C=P["C"],
-        input_names=system.input_names, output_names=system.output_names, V=red.V if keep_basis else None, meta=meta,
+        input_names=system.input_names, output_names=system.output_names, V=red.V if keep_basis else None,
+        D=D, disturbance_names=names, meta=meta,
     )
 
 
@@ -370,4 +375,4 @@ def reduce_model(
         },
         "reduction_time_s": time.perf_counter() - t0,
     }
-    return to_reduced(system, red, meta, keep_basis)
+    return to_reduced(system, red, meta, keep_basis, model.disturbance_columns())

@@ -125,6 +125,9 @@ class ReducedModel:
     input_names : loads column per input (``*_W`` powers, ``*_degC`` zone air)
     output_names : name per output
     V : basis (n × r) for reconstructing the full field, or None
+    D : reduced disturbance heat columns (r × d): heat the model does not know, as shapes for a state observer
+        (:meth:`hybridcomp.fem.model.ThermoElasticModel.disturbance_columns`), [-] per W; None: none
+    disturbance_names : name per column of ``D``
     meta : provenance (machine, hash, pose, expansion points, achieved errors)
     """
 
@@ -138,6 +141,8 @@ class ReducedModel:
     input_names: tuple[str, ...]
     output_names: tuple[str, ...]
     V: np.ndarray | None = None
+    D: np.ndarray | None = None
+    disturbance_names: tuple[str, ...] = ()
     meta: dict = field(default_factory=dict, compare=False)
     _cache: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -158,6 +163,10 @@ class ReducedModel:
                 raise RomInputError(f"reduced model field {name!r} has shape {got}, expected {want}")
         if self.V is not None and self.V.shape[1] != r:
             raise RomInputError(f"reduced model field 'V' has {self.V.shape[1]} columns, expected {r}")
+        d = 0 if self.D is None else self.D.shape[1]
+        if (self.D is not None and self.D.shape[0] != r) or len(self.disturbance_names) != d:
+            raise RomInputError(f"reduced model field 'D' has shape {None if self.D is None else self.D.shape} for "
+                                f"{len(self.disturbance_names)} disturbance names and order {r}")
 
     # -- sizes and variants ----------------------------------------------------------------------
     @property
@@ -387,10 +396,14 @@ def save_rom(path: str | Path, rom: ReducedModel) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {**rom.meta, "format": FORMAT, "format_version": FORMAT_VERSION, "input_names": list(rom.input_names),
             "output_names": list(rom.output_names), "order": rom.order, "rom_id": rom.rom_id}
+    if rom.D is not None:
+        meta["disturbance_names"] = list(rom.disturbance_names)
     arrays = {"M": rom.M, "K": rom.K, "H": rom.H, "h_W_m2K": rom.h_W_m2K, "B": rom.B, "Hb": rom.Hb, "C": rom.C,
               "meta_json": np.array(jsonio.dumps(meta))}
     if rom.V is not None:
         arrays["V"] = rom.V
+    if rom.D is not None:
+        arrays["D"] = rom.D
     with path.open("wb") as fh:
         np.savez_compressed(fh, **arrays)
     return path
@@ -430,7 +443,8 @@ def load_rom(path: str | Path, machine=None) -> ReducedModel:
             )
     rom = ReducedModel(
         M=data["M"], K=data["K"], H=data["H"], h_W_m2K=data["h_W_m2K"], B=data["B"], Hb=data["Hb"], C=data["C"],
-        input_names=tuple(meta["input_names"]), output_names=tuple(meta["output_names"]), V=data.get("V"), meta=meta,
+        input_names=tuple(meta["input_names"]), output_names=tuple(meta["output_names"]), V=data.get("V"),
+        D=data.get("D"), disturbance_names=tuple(meta.get("disturbance_names", ())) if "D" in data else (), meta=meta,
     )
     if rom.rom_id != meta.get("rom_id"):
         raise RomFileError(f"{path}: field 'rom_id' is {meta.get('rom_id')!r} but the arrays hash to {rom.rom_id!r}: file corrupted")
