@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import glob
 import logging
 import os
@@ -25,7 +26,8 @@ _GET = ("scipy_openblas_get_num_threads64_", "scipy_openblas_get_num_threads", "
         "openblas_get_num_threads")
 
 
-def _libraries() -> list:
+@functools.lru_cache(maxsize=1)
+def _libraries() -> tuple:
     libs = []
     for pkg in ("numpy", "scipy"):
         try:
@@ -38,7 +40,7 @@ def _libraries() -> list:
                 libs.append(ctypes.CDLL(path))
             except OSError:
                 continue
-    return libs
+    return tuple(libs)
 
 
 def _calls(lib):

@@ -1,0 +1,395 @@
+"""A state observer on the reduced structure model: a Kalman filter with disturbance states.
+
+The structure model knows the machine as its machine file describes it; the real machine differs (a loss
+estimate off by half, the enclosure air warmer than the workshop's, a pump nobody modelled). The observer
+keeps the model on the real machine with what the controller measures: the temperature sensors every step,
+and, when there is one, a measured drift (a probe cycle in a pause, as in post-process updating).
+
+Augmented state, in the reduced model's modal coordinates ``z`` (``x_r = Φ z``, ``Φᵀ M_r Φ = I``)::
+
+    z       the thermal state (r)
+    air     an offset of each zone's air against what the loads say [K]                  (random walk)
+    scale   a relative error of each heat source's power, power × (1 + scale) [-]         (random walk)
+    heat    heat the model does not know, per disturbance shape of the ROM (``D``) [W]     (random walk)
+    bias    a drift offset dx, dy, dz [µm] that only a probe sees                         (random walk)
+
+One step of ``dt`` with the inputs held over it (the daemon's histogram rows are mean powers over the step)::
+
+    z' = e^{-Λ dt} z + g0 Wᵀ(u + [0, air] + [power ⊙ S scale, 0]) + g0 W_Dᵀ heat,   g0 = (1 − e^{-λ dt}) / λ
+    sensors = C_s Φ z + T_ref,     drift = C_d Φ z + bias
+
+The filter is the textbook linear Kalman filter on this time-varying system (the scale columns depend on the
+known powers); measurements whose innovation is beyond ``gate_sigma`` standard deviations are rejected one by
+one and reported (a faulty sensor must not pull the state). The prior at the start is the steady state of the
+first inputs with the disturbances at their prior spread (a machine that stood long enough in its air), plus
+an uncertain load history (``initial_load``).
+
+Everything here is pure: :class:`Observer` holds the fixed matrices of one model, :class:`ObserverState`
+the estimate; every method returns a new state.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as la
+
+from hybridcomp.errors import HybridcompError
+from hybridcomp.fem.blas import single_blas_thread
+
+DRIFT_OUTPUTS = 3
+
+
+class ObserverError(HybridcompError, ValueError):
+    """The observer cannot be built or fed: the message names the setting, input or value."""
+
+
+@dataclass(frozen=True)
+class ObserverSettings:
+    """Noise levels of the observer: priors (standard deviations at the start) and rates (per √h).
+
+    Attributes
+    ----------
+    sensor_sigma_K : measurement noise of a temperature sensor, model error included [K] (the model's own
+        error at a sensor near a source, from loads known only as step means, is larger than a sensor's noise)
+    probe_sigma_um : noise of a probed drift [µm]
+    air_sigma_K, air_rate_K : prior and random-walk rate of a zone's air offset [K, K/√h]
+    scale_sigma, scale_rate : prior and rate of a heat source's relative power error [-, 1/√h]
+    heat_sigma_W, heat_rate_W : prior and rate of unknown heat per disturbance shape [W, W/√h]
+    bias_sigma_um, bias_rate_um : prior and rate of the drift offset only probes see [µm, µm/√h]
+    input_sigma : model error as a random input per step, a fraction of each input's rated value [-]
+    initial_load : spread of the load history before the start, a fraction of the rated powers [-]
+    gate_sigma : a measurement whose innovation exceeds this many standard deviations is rejected [-]
+    """
+
+    sensor_sigma_K: float = 0.15
+    probe_sigma_um: float = 0.5
+    air_sigma_K: float = 1.0
+    air_rate_K: float = 0.3
+    scale_sigma: float = 0.5
+    scale_rate: float = 0.1
+    heat_sigma_W: float = 30.0
+    heat_rate_W: float = 0.5
+    bias_sigma_um: float = 2.0
+    bias_rate_um: float = 0.1
+    input_sigma: float = 0.02
+    initial_load: float = 0.3
+    gate_sigma: float = 6.0
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ObserverError(f"observer setting {f.name!r} must be a finite number ≥ 0, got {v!r}")
+        for name in ("sensor_sigma_K", "probe_sigma_um", "gate_sigma"):
+            if not getattr(self, name) > 0:
+                raise ObserverError(f"observer setting {name!r} must be positive, got {getattr(self, name)!r}")
+
+
+def _b64(a: np.ndarray) -> str:
+    return base64.b64encode(np.ascontiguousarray(a, dtype="<f8").tobytes()).decode("ascii")
+
+
+def _unb64(text: str, shape: tuple[int, ...]) -> np.ndarray:
+    a = np.frombuffer(base64.b64decode(text.encode("ascii")), dtype="<f8")
+    if a.size != int(np.prod(shape)):
+        raise ObserverError(f"observer state: {a.size} numbers where {shape} were expected")
+    return a.reshape(shape).copy()
+
+
+@dataclass(frozen=True)
+class ObserverState:
+    """The estimate: augmented mean ``x`` and covariance ``P`` at ``time_s`` [s] (see the module docstring)."""
+
+    time_s: float
+    x: np.ndarray
+    P: np.ndarray
+
+    def to_dict(self) -> dict:
+        """JSON-able and bit-exact (base64 of little-endian float64)."""
+        return {"time_s": self.time_s, "n": int(self.x.size), "x": _b64(self.x), "P": _b64(self.P)}
+
+    @staticmethod
+    def from_dict(d: dict) -> ObserverState:
+        n = int(d["n"])
+        return ObserverState(float(d["time_s"]), _unb64(d["x"], (n,)), _unb64(d["P"], (n, n)))
+
+
+@dataclass(frozen=True)
+class Innovation:
+    """What one sensor update saw.
+
+    Attributes
+    ----------
+    residual_K : measured minus predicted per sensor, before the update [K] (NaN: not measured)
+    normalized : residual over its predicted standard deviation [-]
+    rejected : names of the sensors rejected by the gate
+    """
+
+    residual_K: np.ndarray
+    normalized: np.ndarray
+    rejected: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Observer:
+    """The fixed parts of the filter for one reduced model, machine layout and settings.
+
+    Build it with :func:`build_observer`. Attributes are the modal matrices (``lam`` decay rates [1/s],
+    ``W`` modal input columns, ``WD`` modal disturbance columns, ``Cs`` sensor rows [K], ``Cd`` drift rows
+    [µm]), the grouping of heat inputs into sources (``S``), the rated input values, and names.
+    """
+
+    settings: ObserverSettings
+    rom_id: str
+    reference_temperature_degC: float
+    sensor_names: tuple[str, ...]
+    zone_names: tuple[str, ...]
+    source_names: tuple[str, ...]
+    disturbance_names: tuple[str, ...]
+    lam: np.ndarray
+    Phi: np.ndarray
+    PhiTM: np.ndarray
+    W: np.ndarray
+    WD: np.ndarray
+    Cs: np.ndarray
+    Cd: np.ndarray
+    S: np.ndarray
+    rated: np.ndarray
+    n_heat: int
+
+    # -- sizes and slices -------------------------------------------------------------------------------
+    @property
+    def r(self) -> int:
+        return self.lam.size
+
+    @property
+    def sizes(self) -> dict[str, int]:
+        return {"z": self.r, "air": len(self.zone_names), "scale": len(self.source_names),
+                "heat": len(self.disturbance_names), "bias": DRIFT_OUTPUTS}
+
+    def slices(self) -> dict[str, slice]:
+        out, k = {}, 0
+        for name, n in self.sizes.items():
+            out[name] = slice(k, k + n)
+            k += n
+        return out
+
+    @property
+    def n(self) -> int:
+        return sum(self.sizes.values())
+
+    def _check_u(self, u) -> np.ndarray:
+        u = np.asarray(u, float)
+        if u.shape != (self.W.shape[1],) or not np.all(np.isfinite(u)):
+            raise ObserverError(f"observer inputs must be {self.W.shape[1]} finite values, got shape {u.shape}")
+        return u
+
+    # -- the model of one step ----------------------------------------------------------------------------
+    def _transition(self, u: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """F (n × n) and the known drive (r,) of one step of ``dt_s`` with inputs ``u`` held."""
+        sl = self.slices()
+        x = self.lam * dt_s
+        a = np.where(x > 50.0, 0.0, np.exp(-np.minimum(x, 50.0)))
+        g0 = np.where(x < 1e-8, dt_s, -np.expm1(-x) / np.where(x < 1e-8, 1.0, self.lam))
+        F = np.eye(self.n)
+        F[sl["z"], sl["z"]] = np.diag(a)
+        F[sl["z"], sl["air"]] = g0[:, None] * self.W[:, self.n_heat:]
+        F[sl["z"], sl["scale"]] = g0[:, None] * (self.W[:, :self.n_heat] @ (u[:self.n_heat, None] * self.S))
+        F[sl["z"], sl["heat"]] = g0[:, None] * self.WD
+        return F, g0 * (self.W @ u)
+
+    def _process_noise(self, dt_s: float) -> np.ndarray:
+        s, sl = self.settings, self.slices()
+        h = dt_s / 3600.0
+        x = self.lam * dt_s
+        g0 = np.where(x < 1e-8, dt_s, -np.expm1(-x) / np.where(x < 1e-8, 1.0, self.lam))
+        G = g0[:, None] * self.W * (s.input_sigma * self.rated)
+        Q = np.zeros((self.n, self.n))
+        Q[sl["z"], sl["z"]] = G @ G.T
+        for name, rate in (("air", s.air_rate_K), ("scale", s.scale_rate), ("heat", s.heat_rate_W),
+                           ("bias", s.bias_rate_um)):
+            k = sl[name]
+            Q[k, k] = np.eye(k.stop - k.start) * rate**2 * h
+        return Q
+
+    # -- the filter ---------------------------------------------------------------------------------------
+    def initial(self, u0, time_s: float = 0.0) -> ObserverState:
+        """The prior: steady state of inputs ``u0`` with the disturbances at their prior spread (and the
+        steady states they cause), plus an uncertain load history (``settings.initial_load``)."""
+        s, sl = self.settings, self.slices()
+        u0 = self._check_u(u0)
+        x = np.zeros(self.n)
+        x[sl["z"]] = (self.W @ u0) / self.lam
+        D = np.zeros((self.n, self.n))
+        for name, sigma in (("air", s.air_sigma_K), ("scale", s.scale_sigma), ("heat", s.heat_sigma_W),
+                            ("bias", s.bias_sigma_um)):
+            k = sl[name]
+            D[k, k] = np.eye(k.stop - k.start) * sigma**2
+        T = np.eye(self.n)  # disturbance states -> the steady state they cause
+        T[sl["z"], sl["z"]] = 0.0
+        T[sl["z"], sl["air"]] = self.W[:, self.n_heat:] / self.lam[:, None]
+        T[sl["z"], sl["scale"]] = (self.W[:, :self.n_heat] @ (u0[:self.n_heat, None] * self.S)) / self.lam[:, None]
+        T[sl["z"], sl["heat"]] = self.WD / self.lam[:, None]
+        L = (self.W[:, :self.n_heat] * (s.initial_load * self.rated[:self.n_heat])) / self.lam[:, None]
+        P = T @ D @ T.T
+        P[sl["z"], sl["z"]] += L @ L.T
+        return ObserverState(float(time_s), x, 0.5 * (P + P.T))
+
+    def predict(self, state: ObserverState, u, dt_s: float) -> ObserverState:
+        """Advance by ``dt_s`` [s] with inputs ``u`` (powers [W], air rises [K], in the ROM's order) held."""
+        if not (math.isfinite(dt_s) and dt_s > 0):
+            raise ObserverError(f"observer step must be positive, got {dt_s!r} s")
+        u = self._check_u(u)
+        F, drive = self._transition(u, dt_s)
+        x = F @ state.x
+        x[self.slices()["z"]] += drive
+        with single_blas_thread():  # small dense products: a second BLAS thread only waits (36x slower measured)
+            P = F @ state.P @ F.T + self._process_noise(dt_s)
+        return ObserverState(state.time_s + dt_s, x, 0.5 * (P + P.T))
+
+    def _update(self, state: ObserverState, H: np.ndarray, y: np.ndarray, R: np.ndarray) -> ObserverState:
+        with single_blas_thread():
+            S = H @ state.P @ H.T + R
+            K = la.solve(S, H @ state.P, assume_a="pos").T
+            x = state.x + K @ (y - H @ state.x)
+            IKH = np.eye(self.n) - K @ H
+            P = IKH @ state.P @ IKH.T + K @ R @ K.T  # Joseph form: stays symmetric positive semidefinite
+        return ObserverState(state.time_s, x, 0.5 * (P + P.T))
+
+    def update_sensors(self, state: ObserverState, measured_degC: Sequence[float]) -> tuple[ObserverState, Innovation]:
+        """Correct the estimate with the sensors (NaN: not measured this step) [°C]."""
+        y = np.asarray(measured_degC, float)
+        if y.shape != (len(self.sensor_names),):
+            raise ObserverError(f"observer expects {len(self.sensor_names)} sensor values "
+                                f"({', '.join(self.sensor_names)}), got shape {y.shape}")
+        sl = self.slices()
+        H = np.zeros((y.size, self.n))
+        H[:, sl["z"]] = self.Cs
+        pred = H @ state.x + self.reference_temperature_degC
+        var = np.einsum("ij,jk,ik->i", H, state.P, H) + self.settings.sensor_sigma_K**2
+        res = y - pred
+        norm = res / np.sqrt(var)
+        use = np.isfinite(y)
+        rejected = use & (np.abs(norm) > self.settings.gate_sigma)
+        # the gate rejects outliers, not a common shift: when most sensors disagree, the model is what moved
+        if rejected.sum() > use.sum() // 2:
+            rejected[:] = False
+        use &= ~rejected
+        names = tuple(n for n, r in zip(self.sensor_names, rejected) if r)
+        if not use.any():
+            return state, Innovation(res, norm, names)
+        R = np.eye(int(use.sum())) * self.settings.sensor_sigma_K**2
+        new = self._update(state, H[use], y[use] - self.reference_temperature_degC, R)
+        return new, Innovation(res, norm, names)
+
+    def update_probe(self, state: ObserverState, drift_um: Sequence[float], sigma_um: float | None = None) -> ObserverState:
+        """Correct the estimate with a measured drift dx, dy, dz [µm] (NaN: a direction not probed)."""
+        d = np.asarray(drift_um, float)
+        if d.shape != (DRIFT_OUTPUTS,):
+            raise ObserverError(f"a probed drift has {DRIFT_OUTPUTS} values (dx, dy, dz), got shape {d.shape}")
+        use = np.isfinite(d)
+        if not use.any():
+            return state
+        sl = self.slices()
+        H = np.zeros((DRIFT_OUTPUTS, self.n))
+        H[:, sl["z"]] = self.Cd
+        H[:, sl["bias"]] = np.eye(DRIFT_OUTPUTS)
+        sigma = self.settings.probe_sigma_um if sigma_um is None else float(sigma_um)
+        return self._update(state, H[use], d[use], np.eye(int(use.sum())) * sigma**2)
+
+    # -- reading the estimate -----------------------------------------------------------------------------
+    def sensors_degC(self, state: ObserverState) -> np.ndarray:
+        return self.Cs @ state.x[self.slices()["z"]] + self.reference_temperature_degC
+
+    def drift_um(self, state: ObserverState) -> np.ndarray:
+        sl = self.slices()
+        return self.Cd @ state.x[sl["z"]] + state.x[sl["bias"]]
+
+    def drift_sigma_um(self, state: ObserverState) -> np.ndarray:
+        """Standard deviation of the drift estimate [µm]."""
+        sl = self.slices()
+        H = np.zeros((DRIFT_OUTPUTS, self.n))
+        H[:, sl["z"]] = self.Cd
+        H[:, sl["bias"]] = np.eye(DRIFT_OUTPUTS)
+        return np.sqrt(np.einsum("ij,jk,ik->i", H, state.P, H))
+
+    def reduced_state(self, state: ObserverState) -> np.ndarray:
+        """The reduced model's coordinates ``x_r = Φ z`` [K]."""
+        return self.Phi @ state.x[self.slices()["z"]]
+
+    def disturbances(self, state: ObserverState) -> dict[str, dict[str, float]]:
+        """The estimated disturbances by kind and name (air [K], scale [-], heat [W], bias [µm])."""
+        sl = self.slices()
+        out = {"air_K": dict(zip(self.zone_names, state.x[sl["air"]])),
+               "scale": dict(zip(self.source_names, state.x[sl["scale"]])),
+               "heat_W": dict(zip(self.disturbance_names, state.x[sl["heat"]])),
+               "bias_um": dict(zip(("dx", "dy", "dz"), state.x[sl["bias"]]))}
+        return {k: {n: float(v) for n, v in d.items()} for k, d in out.items()}
+
+    def forecast(self, state: ObserverState, U: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The mean run on: inputs ``U`` (steps × inputs), each held over one step of ``dt_s`` [s], with the
+        disturbances held at their estimate. Returns sensors [°C] and drift [µm] at the end of each step."""
+        U = np.asarray(U, float)
+        if U.ndim != 2 or U.shape[1] != self.W.shape[1] or not np.all(np.isfinite(U)):
+            raise ObserverError(f"forecast inputs must be finite, of shape (steps, {self.W.shape[1]}), got {U.shape}")
+        sl = self.slices()
+        x = self.lam * dt_s
+        a = np.where(x > 50.0, 0.0, np.exp(-np.minimum(x, 50.0)))
+        g0 = -np.expm1(-x) / self.lam
+        air, scale = state.x[sl["air"]], state.x[sl["scale"]]
+        const = g0 * (self.W[:, self.n_heat:] @ air + self.WD @ state.x[sl["heat"]])
+        Wh = self.W[:, :self.n_heat] * (1.0 + self.S @ scale)[None, :]
+        z = state.x[sl["z"]].copy()
+        T = np.empty((len(U), len(self.sensor_names)))
+        D = np.empty((len(U), DRIFT_OUTPUTS))
+        bias = state.x[sl["bias"]]
+        for k, u in enumerate(U):
+            z = a * z + g0 * (Wh @ u[:self.n_heat] + self.W[:, self.n_heat:] @ u[self.n_heat:]) + const
+            T[k] = self.Cs @ z
+            D[k] = self.Cd @ z + bias
+        return T + self.reference_temperature_degC, D
+
+
+def build_observer(rom, machine, settings: ObserverSettings = ObserverSettings()) -> Observer:
+    """The observer of a machine's reduced model (:func:`hybridcomp.rom.machine.reduce_model`).
+
+    Parameters
+    ----------
+    rom : the reduced model; its disturbance shapes (``rom.D``) become the unknown-heat states (none for a model
+        reduced without them)
+    machine : the machine it was reduced from (heat sources for the scale states, rated powers)
+    settings : noise levels
+    """
+    from hybridcomp.fem.loads import full_power_inputs
+
+    layout = machine.layout()
+    if tuple(rom.input_names) != layout.columns:
+        raise ObserverError(f"the reduced model's inputs ({len(rom.input_names)}) are not machine "
+                            f"{machine.name!r}'s ({len(layout.columns)}): reduce its model again")
+    lam, Phi = rom._modes()
+    ns = len(layout.sensors)
+    Cz = rom.C @ Phi
+    if rom.C.shape[0] < ns + DRIFT_OUTPUTS:
+        raise ObserverError(f"the reduced model has {rom.C.shape[0]} outputs; the observer needs the {ns} sensors "
+                            f"and the {DRIFT_OUTPUTS} drift directions")
+    W = Phi.T @ rom.input_matrix()
+    WD = Phi.T @ rom.D if rom.D is not None else np.zeros((rom.order, 0))
+    n_heat = len(layout.heat_inputs)
+    sources = tuple(name for name, _ in layout.source_inputs)
+    S = np.zeros((n_heat, len(sources)))
+    for j, (_, cols) in enumerate(layout.source_inputs):
+        S[list(cols), j] = 1.0
+    rated = np.abs(full_power_inputs(machine))
+    rated[n_heat:] = 1.0  # 1 K of air
+    return Observer(
+        settings=settings, rom_id=rom.rom_id, reference_temperature_degC=float(layout.reference_temperature_degC),
+        sensor_names=tuple(layout.sensors), zone_names=tuple(layout.zones), source_names=sources,
+        disturbance_names=tuple(rom.disturbance_names), lam=lam, Phi=Phi, PhiTM=Phi.T @ rom.M, W=W, WD=WD,
+        Cs=Cz[:ns], Cd=Cz[ns:ns + DRIFT_OUTPUTS] * 1e6, S=S, rated=rated, n_heat=n_heat,
+    )
