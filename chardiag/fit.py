@@ -56,6 +56,9 @@ class FitOptions:
     max_inputs : at most this many active inputs (the strongest by |correlation| or BIC order); None: no limit
     max_full_dims : up to this many active inputs one full tensor-grid term; above, an additive CD (one
         1-D term per input)
+    min_target_range_um : a target whose range in the training data is below this gets a constant CD (its
+        weighted mean, or the anchor's value): no sensor can explain a drift that hardly moves, and a fit
+        would only amplify sensor noise [µm] (0: always fit)
     """
 
     n_support: int = 6
@@ -67,11 +70,12 @@ class FitOptions:
     select: str = "threshold"
     max_inputs: int | None = None
     max_full_dims: int = 3
+    min_target_range_um: float = 0.0
 
     def __post_init__(self):
         if int(self.n_support) != self.n_support or self.n_support < 2:
             raise CDFitError(f"n_support must be an integer ≥ 2, got {self.n_support!r}")
-        for name in ("smoothing", "ridge", "min_range_K", "min_range_mm"):
+        for name in ("smoothing", "ridge", "min_range_K", "min_range_mm", "min_target_range_um"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise CDFitError(f"{name} must be finite and ≥ 0, got {v!r}")
@@ -255,13 +259,21 @@ def roughness(cd: CharDiagram) -> float:
 
 
 def solve_values(inputs: Sequence[CDInput], terms: Sequence[tuple[int, ...]], X: np.ndarray, y: np.ndarray,
-                 smoothing: float, ridge: float) -> np.ndarray:
-    """Grid values of all terms, concatenated [µm] (see the module docstring)."""
+                 smoothing: float, ridge: float, weights: np.ndarray | None = None,
+                 anchor: tuple[np.ndarray, float] | None = None) -> np.ndarray:
+    """Grid values of all terms, concatenated [µm] (see the module docstring).
+
+    ``weights`` (n,) weigh the data rows (their sum takes the place of n); ``anchor`` = (a point (1 × inputs),
+    a value [µm]) is met exactly: the normal equations are bordered by its interpolation row (a Lagrange
+    multiplier), so the CD passes through it whatever the data say.
+    """
     A = design(inputs, terms, X)
     n, P = A.shape
+    w = np.ones(n) if weights is None else np.asarray(weights, float)
     D = smoothing_operator(inputs, terms)
-    N = (A.T @ A).tocsc()
+    N = (A.T @ sp.diags(w) @ A).tocsc()
     eps = ridge * max(float(N.diagonal().mean()), 1e-300)
+    n = float(w.sum())
     if smoothing > 0 and D.shape[0]:
         N = N + (smoothing * n / D.shape[0]) * (D.T @ D)
     sizes = [int(np.prod([inputs[j].n_support for j in t])) for t in terms]
@@ -273,7 +285,12 @@ def solve_values(inputs: Sequence[CDInput], terms: Sequence[tuple[int, ...]], X:
             shape=(len(sizes) - 1, P))
         N = N + n * (Z.T @ Z)
     N = (N + eps * sp.identity(P)).tocsc()
-    return splu(N).solve(A.T @ y)
+    rhs = A.T @ (w * y)
+    if anchor is None:
+        return splu(N).solve(rhs)
+    a = design(inputs, terms, np.atleast_2d(np.asarray(anchor[0], float)))
+    K = sp.bmat([[N, a.T], [a, None]], format="csc")
+    return splu(K).solve(np.append(rhs, float(anchor[1])))[:P]
 
 
 def fit_cd(
@@ -289,6 +306,8 @@ def fit_cd(
     signature: np.ndarray | None = None,
     t_reference_degC: Mapping[str, float] | None = None,
     source: str = "training data",
+    weights: np.ndarray | None = None,
+    anchor: tuple[Mapping[str, float], float] | None = None,
 ) -> CharDiagram:
     """Fit one CD to a training table.
 
@@ -303,6 +322,10 @@ def fit_cd(
     t_reference_degC : structure-model sensor temperatures of the training load case [°C];
         default the mean of the table's temperature columns
     source : name of the data for error messages (a file name)
+    weights : weight per table row (≥ 0, not all zero) [-]; default equal
+    anchor : (input values by column name, drift [µm]): the CD passes exactly through this point (a generated
+        set that continues the offsets being applied at the sensors' current values); the grid ranges are
+        widened to contain it
     """
     if direction not in DIRECTIONS:
         raise CDFitError(f"direction {direction!r} is not one of {DIRECTIONS}")
@@ -313,16 +336,52 @@ def fit_cd(
         raise CDFitError(f"{source}: no candidate input columns (*_degC temperatures)")
     cols = [_column(n, u) for n, u in candidates]
     n = check_table(table, [*cols, target], source)
-    inputs = select_inputs(table, candidates, target, options, source)
-    terms = term_structure(inputs, options.max_full_dims)
-    n_values = sum(int(np.prod([inputs[j].n_support for j in t])) for t in terms)
-    if n < n_values:
-        raise CDFitError(f"{source}: too few samples for the grid: {n} rows for {n_values} grid values of {target} "
-                         f"({sum(i.active for i in inputs)} active inputs × {options.n_support} support points); "
-                         "add data or lower n_support")
     X = np.column_stack([np.asarray(table[c], float) for c in cols])
     y = np.asarray(table[target], float)
-    v = solve_values(inputs, terms, X, y, options.smoothing, options.ridge)
+    w = None
+    if weights is not None:
+        w = np.asarray(weights, float)
+        if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.sum() > 0:
+            raise CDFitError(f"{source}: weights must be {n} finite values ≥ 0, not all zero")
+    point = None
+    if anchor is not None:
+        values, at = anchor
+        missing = [c for c in cols if c not in values]
+        if missing or not math.isfinite(float(at)):
+            raise CDFitError(f"{source}: anchor needs a finite value for {missing[0] if missing else target} "
+                             f"(got {dict(values)}, {at!r})")
+        point = np.array([float(values[c]) for c in cols])
+        if not np.all(np.isfinite(point)):
+            raise CDFitError(f"{source}: anchor point {dict(zip(cols, point))} is not finite")
+    if float(np.ptp(y)) < options.min_target_range_um:
+        # a drift that hardly moves: a constant CD over the input with the widest range
+        level = float(anchor[1]) if anchor is not None else float(np.average(y, weights=w))
+        k0 = int(np.argmax(np.ptp(X, axis=0)))
+        lo, hi = float(X[:, k0].min()), float(X[:, k0].max())
+        if point is not None:
+            lo, hi = min(lo, point[k0]), max(hi, point[k0])
+        if not hi > lo:
+            lo, hi = lo - 0.5, hi + 0.5
+        why = f"{target} spans {np.ptp(y):.3g} µm < {options.min_target_range_um:g} µm: constant CD"
+        inputs = tuple(CDInput(name=nm, unit=u, active=k == k0, min=lo if k == k0 else float(X[:, k].min()),
+                               max=hi if k == k0 else float(X[:, k].max()), n_support=2 if k == k0 else 0,
+                               reason=why if k == k0 else "unused by a constant CD")
+                       for k, (nm, u) in enumerate(candidates))
+        terms = ((k0,),)
+        v = np.full(2, level)
+    else:
+        inputs = select_inputs(table, candidates, target, options, source)
+        if point is not None:
+            inputs = tuple(replace(i, min=min(i.min, point[k]), max=max(i.max, point[k])) if i.active else i
+                           for k, i in enumerate(inputs))
+        terms = term_structure(inputs, options.max_full_dims)
+        n_values = sum(int(np.prod([inputs[j].n_support for j in t])) for t in terms)
+        if n < n_values:
+            raise CDFitError(f"{source}: too few samples for the grid: {n} rows for {n_values} grid values of "
+                             f"{target} ({sum(i.active for i in inputs)} active inputs × {options.n_support} support "
+                             "points); add data or lower n_support")
+        v = solve_values(inputs, terms, X, y, options.smoothing, options.ridge, w,
+                         None if point is None else (point, float(anchor[1])))
     tabs = []
     off = 0
     for t in terms:
@@ -350,11 +409,13 @@ def fit_cd(
     )
     pred, _ = cd.evaluate(X)
     res = y - pred
+    wn = np.ones(n) / n if w is None else w / w.sum()
+    spread = float(np.sum(wn * (y - np.sum(wn * y)) ** 2))
     stats_ = {
         "samples": float(n),
-        "rms_residual_um": float(np.sqrt(np.mean(res**2))),
-        "rms_target_um": float(np.sqrt(np.mean(y**2))),
-        "r2": float(1.0 - np.sum(res**2) / np.sum((y - y.mean()) ** 2)),
+        "rms_residual_um": float(np.sqrt(np.sum(wn * res**2))),
+        "rms_target_um": float(np.sqrt(np.sum(wn * y**2))),
+        "r2": float(1.0 - np.sum(wn * res**2) / spread) if spread > 0 else 0.0,
         "max_abs_residual_um": float(np.max(np.abs(res))),
         "memory_bytes": float(cd.memory_bytes),
     }
