@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.layout import AMBIENT_COLUMN, DRIFT_COLUMNS, WORKSPACE_COLUMN
+from hybridcomp.models.layout import AMBIENT_COLUMN, DRIFT_COLUMNS, PROBE_COLUMNS, WORKSPACE_COLUMN
 from hybridcomp.models.machine import SPINDLE, Machine
 
 log = logging.getLogger(__name__)
@@ -204,7 +204,7 @@ def _layout(path: Path, header: list[str], machine: Machine) -> _Layout:
     pos = {position_column(a.name): a for a in machine.axes}
     vel = {velocity_column(a.name): a for a in machine.axes}
     air = air_columns(machine)
-    known = [TIME, SPINDLE_RPM, *pos, *vel, *air, *DRIFT]
+    known = [TIME, SPINDLE_RPM, *pos, *vel, *air, *DRIFT, *PROBE_COLUMNS]
     for h in header:
         if h in known or h.endswith("_degC"):
             continue

@@ -40,6 +40,8 @@ COORDINATES = ("x", "y", "z")
 DIRECTIONS = ("X", "Y", "Z")
 DRIFT_OUTPUTS = ("dx", "dy", "dz")
 DRIFT_COLUMNS = ("dx_um", "dy_um", "dz_um")
+#: a drift measured now and then (a probe cycle in a pause) in a trace: NaN where nothing was probed [µm]
+PROBE_COLUMNS = tuple(f"probe_{c}" for c in DRIFT_COLUMNS)
 POWER_SUFFIX = "_W"
 TEMPERATURE_SUFFIX = "_degC"
 # measured air columns of a trace or dataset, by the kind of air a zone has

@@ -10,13 +10,15 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from dataclasses import fields as dataclass_fields
 from pathlib import Path
 
 from hybridcomp.errors import HybridcompError
 from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.histogram.increments import DEFAULT_MAX_GAP_S
 from hybridcomp.models.toml import StrictTable, did_you_mean, read_toml
-from hybridcomp.monitor.decisions import Backoff, SensorRules
+from hybridcomp.monitor.decisions import Backoff, SensorRules, Validity
+from hybridcomp.rom.observer import ObserverError, ObserverSettings
 
 
 class ConfigError(HybridcompError, ValueError):
@@ -75,9 +77,10 @@ class RegenerationConfig:
     ----------
     enabled : whether the monitor may generate CD sets
     job : ``"module:function"`` called in a worker process with a :class:`~hybridcomp.monitor.regeneration.RegenerationRequest`
+        (default: CDs trained on the corrected structure model; ``...:fe_job`` trains them on FE runs instead)
     timeout_s : wall-clock limit of one job [s]; a job over it is killed
-    element_size_mm : FE element size for the job [mm]
-    history_s : how much of the recent load history the job gets [s]
+    element_size_mm : FE element size for the FE job [mm]
+    history_s : how much of the history (estimated states and loads) the job gets [s]
     retry_after_s : after a failed or timed-out job, no new one for this long [s of machine time]
     """
 
@@ -85,7 +88,7 @@ class RegenerationConfig:
     job: str = "hybridcomp.monitor.regeneration:default_job"
     timeout_s: float = 3600.0
     element_size_mm: float = 80.0
-    history_s: float = 8 * 3600.0
+    history_s: float = 16 * 3600.0
     retry_after_s: float = 3600.0
 
 
@@ -101,15 +104,22 @@ class MonitorConfig:
     rom : reduced structure model file (``hybridcomp reduce``)
     compensation_interval_s : compensation cycle in machine time [s]
     monitoring_interval_s : monitoring cycle in machine time [s]
-    increment_s : histogram increment [s] (the monitoring interval is a whole multiple of it)
+    increment_s : histogram increment and step of the structure model and its observer [s] (the monitoring
+        interval is a whole multiple of it)
     max_gap_s : samples farther apart than this are a recording gap, counted as standstill [s] (raise it for a
         source that delivers samples more sparsely, e.g. OPC UA with a long publishing interval)
-    threshold_K : |T_actual − T_reference| above which the active CD set no longer fits [K]
-    model_drift_K : |ROM − measured| at a sensor above which a model-drift event is raised [K]
+    threshold_K : the seeds' test, reported with every decision: |T_actual − T_reference| of the active set [K]
+    model_drift_K : |observer − measured| at a sensor above which a model-drift event is raised [K]
+    strategy : ``"hybrid"`` (the active CD set on the measured sensors; the corrected structure model chooses
+        and generates sets) or ``"observer"`` (the corrected structure model's drift itself, the CDs standing in
+        while it is flagged)
+    sensor_filter_s : time constant of the low-pass on the sensors the CDs read [s] (0: none)
     max_offset_um : largest compensation offset magnitude [µm]
     max_step_um : largest change of an offset per compensation cycle [µm]
-    blend_s : after a change of the active set the offsets move from the old to the new set's prediction
-        with this time constant [s of machine time] (0: at once, only rate limited)
+    blend_s : after a change of the active set, what remains between the offsets written and the new set's
+        prediction (a generated set continues them by construction) decays with this time constant [s]
+    validity : when the active set is kept, replaced or regenerated (predicted compensation error in µm)
+    observer : noise levels of the structure model's state observer
     sensors : plausibility rules for the temperature sensors
     source, sink, regeneration : see their classes
     reconnect : backoff schedule for a dropped data source or sink
@@ -123,13 +133,17 @@ class MonitorConfig:
     pose_mm: Mapping[str, float] | None = None
     compensation_interval_s: float = 5.0
     monitoring_interval_s: float = 900.0
-    increment_s: float = 300.0
+    increment_s: float = 20.0
     max_gap_s: float = DEFAULT_MAX_GAP_S
     threshold_K: float = 0.5
     model_drift_K: float = 1.0
+    strategy: str = "hybrid"
+    sensor_filter_s: float = 20.0
     max_offset_um: float = 200.0
-    max_step_um: float = 5.0
-    blend_s: float = 300.0
+    max_step_um: float = 0.2
+    blend_s: float = 0.0
+    validity: Validity = field(default_factory=Validity)
+    observer: ObserverSettings = field(default_factory=ObserverSettings)
     sensors: SensorRules = field(default_factory=SensorRules)
     source: SourceConfig = field(default_factory=SourceConfig)
     sink: SinkConfig = field(default_factory=SinkConfig)
@@ -145,7 +159,9 @@ _MONITOR_KEYS = {
 }
 _SECTIONS = {
     "monitor": _MONITOR_KEYS,
-    "compensation": {"max_offset_um", "max_step_um", "blend_s"},
+    "compensation": {"strategy", "sensor_filter_s", "max_offset_um", "max_step_um", "blend_s"},
+    "validity": {f.name for f in dataclass_fields(Validity)},
+    "observer": {f.name for f in dataclass_fields(ObserverSettings)},
     "sensors": {"hold_s", "frozen_s", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
     "source": {"kind", "path", "speed", "start_s", "url", "nodes", "publishing_interval_ms", "stale_s"},
     "sink": {"kind", "path", "url", "nodes"},
@@ -153,6 +169,7 @@ _SECTIONS = {
     "reconnect": {"initial_s", "factor", "max_s", "jitter"},
 }
 SOURCE_KINDS = ("replay", "opcua")
+STRATEGIES = ("hybrid", "observer")
 SINK_KINDS = ("jsonl", "csv", "opcua", "none")
 
 
@@ -198,7 +215,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         machine = str(mp)
     comp = m.number("compensation_interval_s", 5.0, positive=True)
     mon = m.number("monitoring_interval_s", 900.0, positive=True)
-    inc = m.number("increment_s", 300.0, positive=True)
+    inc = m.number("increment_s", MonitorConfig.increment_s, positive=True)
     ratio = mon / inc
     if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
         raise ConfigError(f"{source}: monitor.monitoring_interval_s {mon:g} must be a whole multiple of monitor.increment_s {inc:g}")
@@ -207,6 +224,17 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
     pose = m.mapping("pose_mm", float) or None
 
     c = _Reader(source, "compensation", data.get("compensation", {}))
+    v = _Reader(source, "validity", data.get("validity", {}))
+    try:
+        validity = Validity(**{f.name: v.number(f.name, f.default, nonneg=True) for f in dataclass_fields(Validity)})
+    except ValueError as exc:
+        raise ConfigError(f"{source}: [validity] {exc}") from None
+    o = _Reader(source, "observer", data.get("observer", {}))
+    try:
+        observer = ObserverSettings(**{f.name: o.number(f.name, f.default, nonneg=True)
+                                       for f in dataclass_fields(ObserverSettings)})
+    except ObserverError as exc:
+        raise ConfigError(f"{source}: [observer] {exc}") from None
     s = _Reader(source, "sensors", data.get("sensors", {}))
     d = SensorRules()
     try:
@@ -286,9 +314,13 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         max_gap_s=m.number("max_gap_s", DEFAULT_MAX_GAP_S, positive=True),
         threshold_K=m.number("threshold_K", 0.5, positive=True),
         model_drift_K=m.number("model_drift_K", 1.0, positive=True),
+        strategy=c.string("strategy", MonitorConfig.strategy, STRATEGIES),
+        sensor_filter_s=c.number("sensor_filter_s", MonitorConfig.sensor_filter_s, nonneg=True),
         max_offset_um=c.number("max_offset_um", 200.0, positive=True),
-        max_step_um=c.number("max_step_um", 5.0, positive=True),
-        blend_s=c.number("blend_s", 300.0, nonneg=True),
+        max_step_um=c.number("max_step_um", MonitorConfig.max_step_um, positive=True),
+        blend_s=c.number("blend_s", MonitorConfig.blend_s, nonneg=True),
+        validity=validity,
+        observer=observer,
         sensors=rules,
         source=src,
         sink=sink,
@@ -314,16 +346,35 @@ database = "cd.db"                 # SQLite file or any SQLAlchemy URL (postgres
 rom = "vmc800.rom.npz"             # hybridcomp reduce --machine vmc800 --out vmc800.rom.npz
 compensation_interval_s = 5        # machine time between compensation cycles [s]
 monitoring_interval_s = 900        # machine time between monitoring cycles [s]
-increment_s = 300                  # histogram increment [s]
+increment_s = 20                   # histogram increment = step of the structure model and its observer [s]
 max_gap_s = 10                     # samples farther apart are a recording gap (standstill) [s]
-threshold_K = 0.5                  # |T_actual - T_reference| that trips a switch or a generation [K]
-model_drift_K = 1.0                # |ROM - measured| at a sensor that raises a model-drift event [K]
+threshold_K = 0.5                  # the seeds' test, reported: |T_actual - T_reference| of the active set [K]
+model_drift_K = 1.0                # |observer - measured| at a sensor that raises a model-drift event [K]
 prometheus_port = 0                # 0: off; else Prometheus text metrics on 127.0.0.1:port/metrics
 
 [compensation]
+strategy = "hybrid"                # "hybrid": CD tables on the sensors, chosen and generated by the corrected
+                                   # structure model; "observer": that model's drift itself (CDs while it is flagged)
+sensor_filter_s = 20               # low-pass on the sensors the CDs read [s]
 max_offset_um = 200                # offsets are clamped to this magnitude [um]
-max_step_um = 5                    # and change by at most this much per compensation cycle [um]
-blend_s = 300                      # after a change of CD set: from the old to the new prediction with this time constant [s]
+max_step_um = 0.2                  # and change by at most this much per compensation cycle [um]
+blend_s = 0                        # after a change of CD set, what is left of a jump decays with this time constant [s]
+                                   # (0: it is taken out at max_step_um per cycle)
+
+[validity]                         # the active set's predicted compensation error decides
+keep_um = 1.5                      # keep while |CD(T) - drift| over the last interval stays below this [um]
+forecast_um = 3.0                  # ... and below this over the forecasts (load continued, cool-down) [um]
+hard_um = 3.0                      # above this over the last interval, act even within the dwell time [um]
+dwell_s = 3600                     # after an activation, keep a set at least this long [s of machine time]
+forecast_h = 3                     # forecast horizon [h]
+bump_um = 1.0                      # a set that continues the offsets within this is made to continue them [um]
+max_candidates = 8                 # stored sets evaluated per decision
+
+[observer]                         # the Kalman filter that keeps the structure model on the machine
+sensor_sigma_K = 0.15              # sensor noise including model error [K]
+probe_sigma_um = 0.5               # noise of a probed drift (probe_dx_um ... columns of the trace) [um]
+# air_sigma_K, air_rate_K, scale_sigma, scale_rate, heat_sigma_W, heat_rate_W, bias_sigma_um, bias_rate_um,
+# input_sigma, initial_load, gate_sigma: see monitor/README.md
 
 [sensors]
 hold_s = 60                        # a bad reading is replaced by the last good value this long [s]
@@ -350,8 +401,8 @@ path = "offsets.jsonl"
 enabled = true
 job = "hybridcomp.monitor.regeneration:default_job"
 timeout_s = 3600                   # wall-clock limit of one generation job [s]
-element_size_mm = 80               # FE mesh of the job [mm]
-history_s = 28800                  # recent load history the job trains on [s]
+element_size_mm = 80               # FE mesh of the FE job (job = "hybridcomp.monitor.regeneration:fe_job") [mm]
+history_s = 57600                  # history (estimated states, loads) the job trains on [s]
 retry_after_s = 3600               # after a failed or timed-out job, none for this long [s of machine time]
 
 [reconnect]

@@ -1,28 +1,35 @@
-"""The monitoring daemon: a thin stateful shell around the pure decisions.
+"""The monitoring daemon: a thin stateful shell around the pure decisions and the structure model's observer.
 
-:class:`Monitor` holds what has to be remembered between samples (the
-structure model's state, sensor states, the histogram buffer of the current
-monitoring interval, the last offsets) and turns each :class:`Reading` into
-compensation offsets and, at each monitoring boundary, one decision.
-Everything it decides is decided by :mod:`hybridcomp.monitor.decisions`.
-:func:`run_monitor` is the asyncio loop around it: data source with reconnect,
-sink, background regeneration in a worker process, clean stop.
+:class:`Monitor` keeps one :class:`~hybridcomp.monitor.state.MonitorState` and turns each
+:class:`Reading` into compensation offsets. Three clocks of machine time drive it:
 
-Machine time drives both loops (compensation every ``compensation_interval_s``,
-monitoring every ``monitoring_interval_s`` of machine time), so a replay at
-1000× makes the same decisions as the machine in real time.
+* every ``compensation_interval_s`` (5 s): offsets — the active CD set on the low-passed sensors (strategy
+  ``hybrid``) or the corrected structure model's drift (strategy ``observer``, the CDs standing in while the
+  observer is flagged), clamped and rate limited;
+* every ``increment_s`` (60 s, a model step): the histogram of the step's samples gives the loads; the
+  observer (:mod:`hybridcomp.rom.observer`) steps the structure model and corrects it with the sensors and,
+  when there is one, a probed drift;
+* every ``monitoring_interval_s`` (15 min, and at the first sample): the active set's predicted compensation
+  error — the CDs on the measured sensors against the corrected model's drift over the interval, and on the
+  forecast sensors against the forecast drift — decides keep, switch or generate
+  (:func:`hybridcomp.monitor.decisions.decide`); the seeds' ΔT test is reported beside it.
 
-Persistence and restarts: at every monitoring boundary the whole state is
-written as one JSON value (``MonitorStore.put_state``), and every event carries a
-key made of its kind, the pose and its machine time, so a daemon killed at
-any moment and restarted re-processes the samples after the last boundary,
-makes the same decisions again and writes no event twice.
+Everything it decides is decided by :mod:`hybridcomp.monitor.decisions`. :func:`run_monitor` is the asyncio
+loop around it: data source with reconnect, sink, background generation in a worker process, clean stop.
+A replay at 1000× makes the same decisions as the machine in real time.
+
+Persistence and restarts: at every monitoring boundary the whole state is written as one JSON value
+(``MonitorStore.put_state``), and every event carries a key made of its kind, the pose and its machine time,
+so a daemon killed at any moment and restarted re-processes the samples after the last boundary, makes the
+same decisions again and writes no event twice.
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures as cf
+import dataclasses
+import hashlib
 import importlib
 import json
 import logging
@@ -32,42 +39,44 @@ import random
 import signal
 import time
 import warnings
-from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
+
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.increments import increments_from_samples
 from hybridcomp.histogram.signature import SignatureLayout, signatures
 from hybridcomp.histogram.trace import Samples, TraceFileError
 from hybridcomp.models import jsonio
+from hybridcomp.models.layout import DIRECTIONS, DRIFT_COLUMNS
 from hybridcomp.monitor.config import MonitorConfig
 from hybridcomp.monitor.decisions import (
     Candidate,
     Decision,
     SensorState,
+    SetError,
     accept_time,
     backoff_delay,
     blend_offsets,
     check_sensor,
+    compensation_error_um,
     decide,
     limit_offsets,
     model_drift,
     substitute,
     temperature_deviation,
 )
-from hybridcomp.monitor.regeneration import RegenerationRequest
+from hybridcomp.monitor.regeneration import FORECAST_STEP_S, RegenerationRequest
 from hybridcomp.monitor.sinks import Offset
-from hybridcomp.models.layout import DIRECTIONS
-from hybridcomp.rom.machine import inputs_from_columns
 from hybridcomp.monitor.sources import Reading, SourceDisconnected, WallClock
+from hybridcomp.monitor.state import STATE_VERSION, ZERO_OFFSETS, MonitorState
 from hybridcomp.monitor.store import MonitorStore
+from hybridcomp.rom.observer import build_observer
 
 log = logging.getLogger(__name__)
 
-STATE_VERSION = 1
-AXIS_INPUTS = DIRECTIONS  # CD inputs that are axis positions
+HISTORY_STEP_S = 300.0  # one history row (sensors, estimated drift, mean loads) per this much machine time
 
 
 def state_key(machine: str, pose_key: str) -> str:
@@ -83,12 +92,18 @@ def _finite(x) -> float | None:
     return float(x) if x is not None and math.isfinite(x) else None
 
 
+def digest(text: str) -> str:
+    """A short stable digest (the same in every process, unlike ``hash()``)."""
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
 @dataclass
 class Counters:
     """What the daemon counts (status, metrics)."""
 
     readings: int = 0
     compensations: int = 0
+    model_steps: int = 0
     monitorings: int = 0
     dropped_repeated: int = 0
     dropped_backwards: int = 0
@@ -96,8 +111,16 @@ class Counters:
     switches: int = 0
     generations: int = 0
     reconnects: int = 0
+    probes: int = 0
     max_decision_s: float = 0.0
     last_decision_s: float = 0.0
+
+
+def set_predictions(cds, T_rows: np.ndarray, sensor_names, pose_mm: Mapping[str, float]) -> np.ndarray:
+    """A CD set's offsets (n × 3: dx, dy, dz) [µm] on sensor rows [°C] at the pose's axis positions."""
+    cols = {f"{s}_degC": T_rows[:, j] for j, s in enumerate(sensor_names)}
+    cols |= {f"{a.lower()}_mm": np.full(len(T_rows), float(v)) for a, v in pose_mm.items()}
+    return np.column_stack([cds[d].evaluate_table(cols)[0] for d in DIRECTIONS])
 
 
 class Monitor:
@@ -106,7 +129,7 @@ class Monitor:
     Parameters
     ----------
     cfg : configuration
-    machine : the machine (axes, sensors, zones)
+    machine : the machine (axes, sensors, zones, heat sources)
     rom : reduced structure model of the machine at the CDs' pose
     db : CD database (``hybridcomp.chardiag.db.CDDatabase`` or anything with its methods)
     pose_key : the pose's database key
@@ -124,148 +147,75 @@ class Monitor:
         self.key = state_key(machine.name, pose_key)
         self.sensor_names = tuple(s.name for s in machine.sensors)
         self.axis_names = tuple(a.name for a in machine.axes)
+        self.pose_mm = dict(rom.meta.get("pose_mm") or machine.default_pose_mm())
         self.counters = Counters()
-        self.layout = SignatureLayout.of(machine)
-        self.t_ref = rom.layout().reference_temperature_degC
-        n_inc = int(round(cfg.monitoring_interval_s / cfg.increment_s))
-        self.history_rows = max(1, int(math.ceil(cfg.regeneration.history_s / cfg.increment_s)))
-        self._n_inc = n_inc
-        # --- the state (everything below is persisted at each monitoring boundary)
-        self.origin_s: float | None = None
-        self.last_time_s: float | None = None
-        self.next_comp_s = -math.inf
-        self.next_mon_s = -math.inf
-        self.x: np.ndarray | None = None  # reduced state at rom_time_s
-        self.rom_time_s: float | None = None
-        self.rom_sensors_degC: dict[str, float] = {}
-        self.bias_K: dict[str, float] = {}
-        self.sensors: dict[str, SensorState] = {s: SensorState() for s in self.sensor_names}
-        self.offsets_um = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
-        self.blend_um = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
-        self.blend_time_s: float | None = None
-        self.blend_pending = False  # the active set changed: the next cycle starts a bumpless transfer
-        self.carry: Reading | None = None  # last sample of the previous interval
-        self.air_hold: dict[str, float] = {}
-        self.pos_hold: list[float] = [a.mid_mm for a in machine.axes]
-        self.spindle_hold = 0.0
-        self.history: deque = deque(maxlen=self.history_rows)  # (time_s, loads row) of past increments
-        self.loads_names: tuple[str, ...] | None = None
-        self.pending: dict | None = None  # a regeneration request not yet finished
-        self.regen_blocked_until_s = -math.inf
-        self.last_decision: dict | None = None
-        self.last_delta_T_K: float | None = None
-        self.interval_drops = {"repeated": 0, "backwards": 0, "invalid": 0}
+        self.sig_layout = SignatureLayout.of(machine)
+        self.layout = machine.layout()
+        self.t_ref = self.layout.reference_temperature_degC
+        self.observer = build_observer(rom, machine, cfg.observer)
+        self.s = self._fresh()
         # --- not persisted
-        self.buffer: list[Reading] = []
+        self.buffer: list[Reading] = []  # samples of the current model step
+        self.temps: dict[str, float] = {}  # the sensors of the last sample as the CDs read them (stand-ins included)
+        self.measured: dict[str, float] = {}  # ... as the observer reads them (NaN for a degraded sensor)
+        self.step_sum = np.zeros(len(self.sensor_names))  # sums and counts of the measured sensors over the step
+        self.step_n = np.zeros(len(self.sensor_names))
         self.active = None
-        self.active_ids: dict[str, int] | None = None
         self.regeneration_running = False
-        self._outbox: list[dict] = []  # regeneration requests for the shell
+        self._outbox: list[dict] = []
         self._eval_failed_logged = False
         self._snap: dict | None = None
         self.restore()
         self.reload_active()
 
+    def _fresh(self) -> MonitorState:
+        return MonitorState(machine=self.machine.name, pose_key=self.pose_key, rom_id=self.rom.rom_id,
+                            sensors={s: SensorState() for s in self.sensor_names},
+                            pos_hold=[a.mid_mm for a in self.machine.axes])
+
     # ------------------------------------------------------------------ persistence
-    def snapshot(self) -> dict:
-        """The persisted state (JSON-able)."""
-        c = self.carry
-        return {
-            "version": STATE_VERSION,
-            "machine": self.machine.name,
-            "pose_key": self.pose_key,
-            "rom_id": self.rom.rom_id,
-            "origin_s": self.origin_s,
-            "last_time_s": self.last_time_s,
-            "next_comp_s": _finite(self.next_comp_s),
-            "next_mon_s": _finite(self.next_mon_s),
-            "x": None if self.x is None else self.x.tolist(),
-            "rom_time_s": self.rom_time_s,
-            "rom_sensors_degC": self.rom_sensors_degC,
-            "bias_K": self.bias_K,
-            "sensors": {k: v.to_dict() for k, v in self.sensors.items()},
-            "offsets_um": self.offsets_um,
-            "blend_um": self.blend_um,
-            "blend_time_s": self.blend_time_s,
-            "blend_pending": self.blend_pending,
-            "carry": None if c is None else [c.time_s, list(c.position_mm), c.spindle_rpm, dict(c.sensors_degC), dict(c.air_degC)],
-            "air_hold": self.air_hold,
-            "pos_hold": self.pos_hold,
-            "spindle_hold": self.spindle_hold,
-            "history": [[t, list(u)] for t, u in self.history],
-            "loads_names": None if self.loads_names is None else list(self.loads_names),
-            "pending": self.pending,
-            "regen_blocked_until_s": _finite(self.regen_blocked_until_s),
-            "last_decision": self.last_decision,
-            "last_delta_T_K": self.last_delta_T_K,
-            "active_ids": self.active_ids,
-            "updated_unix": self.clock.unix(),
-        }
-
     def persist(self) -> None:
-        """Write the state of the last monitoring boundary (with the current regeneration bookkeeping).
+        """Write the state of the last monitoring boundary (with the current generation bookkeeping).
 
-        Only boundary states are written: a restart re-processes the samples
-        after the boundary, so the histogram of the interval is complete.
+        Only boundary states are written: a restart re-processes the samples after the boundary, so the
+        histogram of the interval is complete. Before the first boundary, a fresh state is written (a
+        restart starts from the beginning; events are keyed, nothing doubles).
         """
-        if self._snap is not None:
-            snap = self._snap
-        else:  # before the first boundary: a restart starts from the beginning (events are keyed, nothing doubles)
-            snap = {**self.snapshot(), "origin_s": None, "last_time_s": None, "next_comp_s": None, "next_mon_s": None,
-                    "x": None, "rom_time_s": None, "carry": None, "history": [],
-                    "sensors": {k: SensorState().to_dict() for k in self.sensor_names},
-                    "offsets_um": {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}}
-        snap = {**snap, "pending": self.pending, "regen_blocked_until_s": _finite(self.regen_blocked_until_s),
-                "updated_unix": self.clock.unix()}
-        self.store.put_state(self.key, jsonio.dumps(snap))
+        snap = self._snap if self._snap is not None else self._fresh().to_dict()
+        snap = {**snap, "pending": self.s.pending, "regen_blocked_until_s": _finite(self.s.regen_blocked_until_s),
+                "activated_s": _finite(self.s.activated_s), "active_ids": self.s.active_ids}
+        self.store.put_state(self.key, jsonio.dumps({**snap, "updated_unix": self.clock.unix()}))
 
     def restore(self) -> None:
         text = self.store.get_state(self.key)
         if not text:
             return
-        s = json.loads(text)
-        if s.get("version") != STATE_VERSION:
-            log.warning("state %s has version %r; starting fresh", self.key, s.get("version"))
+        d = json.loads(text)
+        d.pop("updated_unix", None)
+        if d.get("version") != STATE_VERSION:
+            log.warning("state %s has version %r, this daemon writes %d: starting fresh", self.key, d.get("version"),
+                        STATE_VERSION)
             return
-        self.origin_s = s["origin_s"]
-        self.last_time_s = s["last_time_s"]
-        self.next_comp_s = s["next_comp_s"] if s["next_comp_s"] is not None else -math.inf
-        self.next_mon_s = s["next_mon_s"] if s["next_mon_s"] is not None else -math.inf
-        if s.get("x") is not None and s.get("rom_id") == self.rom.rom_id:
-            self.x = np.asarray(s["x"], float)
-            self.rom_time_s = s["rom_time_s"]
-        elif s.get("x") is not None:
-            log.warning("state %s belongs to reduced model %s, not %s: the structure model restarts from steady state",
-                        self.key, s.get("rom_id"), self.rom.rom_id)
-        self.rom_sensors_degC = {k: (math.nan if v is None else v) for k, v in s["rom_sensors_degC"].items()}
-        self.bias_K = {k: (math.nan if v is None else v) for k, v in s["bias_K"].items()}
-        self.sensors = {k: SensorState.from_dict(v) for k, v in s["sensors"].items()}
-        self.offsets_um = s["offsets_um"]
-        self.blend_um = s.get("blend_um") or dict.fromkeys(self.offsets_um, 0.0)
-        self.blend_time_s = s.get("blend_time_s")
-        self.blend_pending = bool(s.get("blend_pending"))
-        if s["carry"] is not None:
-            t, p, r, sn, air = s["carry"]
-            self.carry = Reading(t, tuple(p), r, {k: (math.nan if v is None else v) for k, v in sn.items()}, air)
-        self.air_hold = s["air_hold"]
-        self.pos_hold = s["pos_hold"]
-        self.spindle_hold = s["spindle_hold"]
-        self.history = deque([(t, np.asarray(u, float)) for t, u in s["history"]], maxlen=self.history_rows)
-        self.loads_names = tuple(s["loads_names"]) if s["loads_names"] else None
-        self.pending = s["pending"]
-        self.regen_blocked_until_s = s["regen_blocked_until_s"] if s["regen_blocked_until_s"] is not None else -math.inf
-        self.last_decision = s["last_decision"]
-        self.last_delta_T_K = s["last_delta_T_K"]
-        self._snap = s
-        if self.carry is not None:
-            self.buffer = [self.carry]
-        if self.pending is not None:
-            self._outbox.append(self.pending)  # resubmit a generation the last run did not finish
-        log.info("resumed %s at machine time %s s", self.key, self.last_time_s)
+        try:
+            s = MonitorState.from_dict(d)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("state %s is unreadable (%s): starting fresh", self.key, exc)
+            return
+        if s.rom_id != self.rom.rom_id:
+            log.warning("state %s belongs to reduced model %s, not %s: starting fresh", self.key, s.rom_id,
+                        self.rom.rom_id)
+            return
+        self.s = s
+        self._snap = s.to_dict()
+        if s.carry is not None:
+            self.buffer = [s.carry]
+        if s.pending is not None:
+            self._outbox.append(s.pending)  # resubmit a generation the last run did not finish
+        log.info("resumed %s at machine time %s s", self.key, s.last_time_s)
 
     def reload_active(self) -> None:
         self.active = self.db.active_set(self.machine.name, self.pose_key)
-        self.active_ids = {k: int(v) for k, v in self.active.ids.items()} if self.active is not None else None
+        self.s.active_ids = {k: int(v) for k, v in self.active.ids.items()} if self.active is not None else None
         self._eval_failed_logged = False
 
     def event(self, kind: str, t: float | None, payload: dict, key: str) -> None:
@@ -274,64 +224,86 @@ class Monitor:
     # ------------------------------------------------------------------ one reading
     def process(self, r: Reading) -> list[Offset]:
         """Handle one reading; returns the offsets of the compensation cycles it completes (0 or 1)."""
-        verdict = accept_time(self.last_time_s, r.time_s)
+        s = self.s
+        verdict = accept_time(s.last_time_s, r.time_s)
         if verdict != "ok":
-            self.interval_drops[verdict] += 1
+            s.interval_drops[verdict] += 1
             setattr(self.counters, f"dropped_{verdict}", getattr(self.counters, f"dropped_{verdict}") + 1)
             return []
         self.counters.readings += 1
         r = self._clean(r)
-        if self.origin_s is None:
-            self.origin_s = r.time_s
-            self.next_comp_s = r.time_s
-            self.next_mon_s = r.time_s + self.cfg.monitoring_interval_s
-            self.buffer = []
-        # monitoring boundary: samples up to the boundary belong to the closing interval
-        if r.time_s > self.next_mon_s:
-            self._close_interval(r.time_s)
-        self.buffer.append(r)
-        self.last_time_s = r.time_s
-        temps = self._check_sensors(r)
+        first = s.origin_s is None
+        if first:
+            self._start(r)
+        else:
+            # model steps ending before this sample close first (samples up to a boundary belong to its step)
+            while r.time_s > s.next_step_s:
+                self._close_step(s.next_step_s)
+            self.buffer.append(r)
+        s.last_time_s = r.time_s
+        self._check_sensors(r)
+        self._filter(r.time_s)
+        if r.probe_um is not None:
+            s.probe_um = [float(v) for v in r.probe_um]
+        if first:
+            self._first_estimate(r.time_s)
         out = []
-        if r.time_s >= self.next_comp_s:
-            out.append(self._compensate(r, temps))
-            k = math.floor((r.time_s - self.origin_s) / self.cfg.compensation_interval_s) + 1
-            self.next_comp_s = self.origin_s + k * self.cfg.compensation_interval_s
-        if r.time_s == self.next_mon_s:  # r is the last sample of the interval
-            self._close_interval(r.time_s)
+        if r.time_s >= s.next_comp_s:
+            out.append(self._compensate(r))
+            k = math.floor((r.time_s - s.origin_s) / self.cfg.compensation_interval_s) + 1
+            s.next_comp_s = s.origin_s + k * self.cfg.compensation_interval_s
+        if r.time_s == s.next_step_s:  # r is the last sample of the step
+            self._close_step(r.time_s)
         return out
+
+    def _start(self, r: Reading) -> None:
+        s = self.s
+        s.origin_s = r.time_s
+        s.next_comp_s = r.time_s
+        s.next_step_s = r.time_s + self.cfg.increment_s
+        s.next_mon_s = r.time_s  # the first decision at once
+        s.carry = r  # the first step's histogram starts here, after a restart from the first decision too
+        self.buffer = [r]
 
     def _clean(self, r: Reading) -> Reading:
         """Hold positions, spindle speed and air at their last finite values (NaN from a glitching bus)."""
+        s = self.s
         pos = list(r.position_mm)
         for j, v in enumerate(pos):
             if math.isfinite(v):
-                self.pos_hold[j] = v
+                s.pos_hold[j] = v
             else:
-                pos[j] = self.pos_hold[j]
+                pos[j] = s.pos_hold[j]
         sp = r.spindle_rpm
         if math.isfinite(sp):
-            self.spindle_hold = sp
+            s.spindle_hold = sp
         else:
-            sp = self.spindle_hold
+            sp = s.spindle_hold
         air = dict(r.air_degC)
         for k, v in air.items():
             if v is not None and math.isfinite(v):
-                self.air_hold[k] = v
+                s.air_hold[k] = v
             else:
-                air[k] = self.air_hold.get(k, self.t_ref)
-        return Reading(r.time_s, tuple(pos), sp, r.sensors_degC, air)
+                air[k] = s.air_hold.get(k, self.t_ref)
+        return Reading(r.time_s, tuple(pos), sp, r.sensors_degC, air, r.probe_um)
 
-    def _check_sensors(self, r: Reading) -> dict[str, float]:
-        temps = {}
+    def _estimate_degC(self) -> dict[str, float]:
+        if self.s.observer is None:
+            return {}
+        return dict(zip(self.sensor_names, map(float, self.observer.sensors_degC(self.s.observer))))
+
+    def _check_sensors(self, r: Reading) -> None:
+        s = self.s
+        est = self._estimate_degC()
+        temps, measured = {}, {}
         for name in self.sensor_names:
             raw = r.sensors_degC.get(name)
             if raw is None:
-                continue
-            st = self.sensors[name]
-            ref = substitute(self.rom_sensors_degC.get(name, math.nan), self.bias_K.get(name, math.nan))
+                raw = math.nan
+            st = s.sensors[name]
+            ref = substitute(est.get(name, math.nan), s.bias_K.get(name, math.nan))
             v = check_sensor(st, r.time_s, float(raw), self.cfg.sensors, ref)
-            self.sensors[name] = v.state
+            s.sensors[name] = v.state
             if v.event is not None:
                 self.event("sensor", r.time_s, {
                     "sensor": name, "status": v.event, "reason": v.state.reason, "raw_degC": _finite(raw),
@@ -340,23 +312,162 @@ class Monitor:
                 }, f"{name}@{v.event}@{_t(r.time_s)}")
                 (log.warning if v.event == "degraded" else log.info)(
                     "sensor %s %s at %.0f s (%s)", name, v.event, r.time_s, v.state.reason)
+            measured[name] = v.value_degC if v.state.status != "degraded" else math.nan
             temps[name] = v.value_degC if math.isfinite(v.value_degC) else ref
-        return temps
+        self.temps, self.measured = temps, measured
+        m = np.array([measured[n] for n in self.sensor_names])
+        ok = np.isfinite(m)
+        self.step_sum[ok] += m[ok]
+        self.step_n[ok] += 1
+
+    def _filter(self, t: float) -> None:
+        """Low-pass the sensors the CDs read (first order, ``sensor_filter_s``)."""
+        s = self.s
+        tau = self.cfg.sensor_filter_s
+        a = 1.0 if tau <= 0 or s.filter_time_s is None else -math.expm1(-(t - s.filter_time_s) / tau)
+        for name, v in self.temps.items():
+            old = s.filtered_degC.get(name, math.nan)
+            s.filtered_degC[name] = v if not math.isfinite(old) or not math.isfinite(v) else old + a * (v - old)
+        s.filter_time_s = t
+
+    # ------------------------------------------------------------------ the structure model and its observer
+    def _first_estimate(self, t: float) -> None:
+        """The observer's prior at the first sample (steady in its air, no load), corrected by its sensors;
+        then the first monitoring decision."""
+        s = self.s
+        u = self._standstill_inputs(self.buffer[-1])
+        s.observer = self.observer.initial(u, t)
+        s.observer, _ = self.observer.update_sensors(s.observer, [self.measured[n] for n in self.sensor_names])
+        self.step_sum[:] = 0.0
+        self.step_n[:] = 0.0
+        self._after_update(t, u)
+        self._record(t)
+        self._close_interval(t)
+
+    def _standstill_inputs(self, r: Reading) -> np.ndarray:
+        u = np.zeros(self.layout.n_inputs)
+        air = self.layout.inputs(list(r.air_degC), np.array([list(r.air_degC.values())], float), "monitor",
+                                 self.layout.air_sources(list(r.air_degC)))[0]
+        nh = len(self.layout.heat_inputs)
+        u[nh:] = air[nh:]
+        return u
+
+    def _step_inputs(self, end_s: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """Mean model inputs over the closing step from its samples' histogram, and its signature row."""
+        s = self.s
+        b = self.buffer
+        if len(b) >= 2:
+            air_names = tuple(sorted(b[-1].air_degC))
+            smp = Samples(np.fromiter((x.time_s for x in b), float, len(b)), np.array([x.position_mm for x in b], float),
+                          None, np.fromiter((x.spindle_rpm for x in b), float, len(b)), air_names,
+                          np.array([[x.air_degC.get(k, self.t_ref) for k in air_names] for x in b], float)
+                          .reshape(len(b), len(air_names)), np.arange(len(b)) + 2)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                try:
+                    span = max(smp.time_s[-1] - smp.time_s[0], 1e-6)
+                    inc = increments_from_samples(self.machine, smp, min(self.cfg.increment_s, span),
+                                                  max_gap_s=self.cfg.max_gap_s, source=f"model step ending {end_s:g} s")
+                    loads = boundary_conditions(self.machine, inc)
+                    U = self.layout.inputs(loads.names, loads.values, "monitor")
+                    _, _, sig_rows = signatures(inc)
+                    w = inc.duration_s
+                    return (U[1:] * w[:, None]).sum(axis=0) / w.sum(), (sig_rows * w[:, None]).sum(axis=0) / w.sum()
+                except (TraceFileError, ValueError) as exc:
+                    self.event("warning", end_s, {"message": f"histogram of the step failed: {exc}; last loads held"},
+                               f"histogram-error@{_t(end_s)}")
+                finally:
+                    for wn in caught:
+                        self.event("warning", end_s, {"message": str(wn.message)},
+                                   f"histogram@{_t(end_s)}@{digest(str(wn.message))}")
+        if s.step_inputs is None:
+            return self._standstill_inputs(b[-1] if b else s.carry), None
+        return np.asarray(s.step_inputs, float), None  # no samples, or an implausible histogram: hold the loads
+
+    def _close_step(self, end_s: float) -> None:
+        """One model step: loads of the step's samples → observer predict → correct with sensors and probe."""
+        s = self.s
+        u, sig = self._step_inputs(end_s)
+        dt = end_s - s.observer.time_s
+        if dt > 0:
+            s.observer = self.observer.predict(s.observer, u, dt)
+        # the sensors' mean over the step (their noise averages out; the thermal state moves little in a step)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            y = np.where(self.step_n > 0, self.step_sum / self.step_n, math.nan)
+        self.step_sum[:] = 0.0
+        self.step_n[:] = 0.0
+        s.observer, inn = self.observer.update_sensors(s.observer, y)
+        for name in inn.rejected:
+            s.rejected[name] = s.rejected.get(name, 0) + 1
+        if s.probe_um is not None:
+            s.observer = self.observer.update_probe(s.observer, s.probe_um)
+            self.counters.probes += 1
+            self.event("probe", end_s, {"measured_um": dict(zip(DRIFT_COLUMNS, s.probe_um)),
+                                        "estimate_um": dict(zip(DRIFT_COLUMNS, map(float, self.observer.drift_um(s.observer))))},
+                       _t(end_s))
+            s.probe_um = None
+        self._after_update(end_s, u)
+        if sig is not None:
+            d = self.cfg.increment_s
+            s.signature_sum = list(np.asarray(s.signature_sum if s.signature_sum is not None else np.zeros_like(sig)) + d * sig)
+            s.signature_s += d
+        s.step_rows.append([end_s, *map(float, u)])
+        self._record(end_s)
+        self.counters.model_steps += 1
+        # next step: the last sample carries over (continuity of the histogram)
+        s.carry = self.buffer[-1] if self.buffer else s.carry
+        self.buffer = [s.carry] if s.carry is not None else []
+        s.next_step_s = end_s + self.cfg.increment_s
+        if end_s >= s.next_mon_s:
+            self._close_interval(end_s)
+
+    def _after_update(self, t: float, u: np.ndarray) -> None:
+        """Estimates after an observer update: drift now and one step ahead, stand-in biases."""
+        s = self.s
+        s.step_time_s = t
+        s.step_inputs = [float(v) for v in u]
+        s.drift_um = [float(v) for v in self.observer.drift_um(s.observer)]
+        s.drift_next_um = [float(v) for v in self.observer.forecast(s.observer, u[None, :], self.cfg.increment_s)[1][0]]
+        est = self._estimate_degC()
+        for n, v in self.measured.items():
+            if math.isfinite(v) and s.sensors[n].status == "ok":
+                s.bias_K[n] = v - est[n]
+
+    def _record(self, t: float) -> None:
+        """The interval row of this step, and a history row every ``HISTORY_STEP_S``."""
+        s = self.s
+        row = [t, *(s.filtered_degC.get(n, math.nan) for n in self.sensor_names), *s.drift_um]
+        s.interval.append(row)
+        last = s.history[-1][0] if s.history else -math.inf
+        if t - last >= HISTORY_STEP_S - 1e-9 or not s.history:
+            s.history.append(row)
+            if s.step_rows:
+                s.loads.append([t, *np.mean(np.asarray(s.step_rows, float)[:, 1:], axis=0)])
+            elif s.step_inputs is not None:
+                s.loads.append([t, *s.step_inputs])
+            s.step_rows = []
+            keep = t - self.cfg.regeneration.history_s
+            s.history = [h for h in s.history if h[0] >= keep]
+            s.loads = [h for h in s.loads if h[0] >= keep]
 
     # ------------------------------------------------------------------ compensation
-    def _compensate(self, r: Reading, temps: Mapping[str, float]) -> Offset:
+    def _compensate(self, r: Reading) -> Offset:
+        s = self.s
         self.counters.compensations += 1
-        degraded = ",".join(n for n in self.sensor_names if self.sensors[n].status == "degraded")
-        values = dict(temps)
-        for name, p in zip(self.axis_names, r.position_mm):
-            values[name] = p
-        target = None
-        outside = False
-        if self.active is not None:
+        degraded = ",".join(n for n in self.sensor_names if s.sensors[n].status == "degraded")
+        target, outside, by = None, False, "cd"
+        if self.cfg.strategy == "observer" and not s.observer_flag and s.drift_um is not None:
+            f = min(max((r.time_s - s.step_time_s) / self.cfg.increment_s, 0.0), 1.0)
+            target = {c: a + f * (b - a) for c, a, b in zip(DRIFT_COLUMNS, s.drift_um, s.drift_next_um)}
+            by = "observer"
+        elif self.active is not None:
+            values = dict(s.filtered_degC)
+            values.update(zip(self.axis_names, r.position_mm))
             try:
                 target, outside = self.active.evaluate_point(values)
                 if not all(math.isfinite(v) for v in target.values()):
                     raise ValueError(f"non-finite offsets {target}")
+                self._eval_failed_logged = False
             except (KeyError, ValueError) as exc:
                 target = None
                 if not self._eval_failed_logged:
@@ -365,190 +476,198 @@ class Monitor:
                                                      "values": {k: _finite(v) for k, v in values.items()}},
                                f"evaluate@{_t(r.time_s)}")
         if target is None:
-            target = dict(self.offsets_um)  # hold (zero before the first CD)
+            target = dict(s.offsets_um)  # hold (zero before the first CD)
         else:
-            self._eval_failed_logged = False
             target = {k: float(v) for k, v in target.items()}
-            if self.blend_pending:  # bumpless transfer: continue from the offsets written last
-                self.blend_um = {k: self.offsets_um.get(k, 0.0) - v for k, v in target.items()}
-                self.blend_time_s = r.time_s
-                self.blend_pending = False
-            dt = 0.0 if self.blend_time_s is None else r.time_s - self.blend_time_s
-            target, self.blend_um = blend_offsets(target, self.blend_um, dt, self.cfg.blend_s)
-            self.blend_time_s = r.time_s
-        applied, clamped, limited = limit_offsets(target, self.offsets_um, self.cfg.max_offset_um, self.cfg.max_step_um)
-        self.offsets_um = applied
-        ids = self.active_ids or {}
+            if by == "cd":
+                if s.blend_pending:  # after a set change: continue from the offsets written last
+                    s.blend_um = {k: s.offsets_um.get(k, 0.0) - v for k, v in target.items()}
+                    s.blend_time_s = r.time_s
+                    s.blend_pending = False
+                dt = 0.0 if s.blend_time_s is None else r.time_s - s.blend_time_s
+                target, s.blend_um = blend_offsets(target, s.blend_um, dt, self.cfg.blend_s)
+                s.blend_time_s = r.time_s
+        # the first offsets of a fresh state have nothing to continue: only clamped (a restart continues its own)
+        step = self.cfg.max_step_um if s.written else math.inf
+        applied, clamped, limited = limit_offsets(target, s.offsets_um, self.cfg.max_offset_um, step)
+        s.offsets_um, s.written = applied, True
+        ids = s.active_ids or {}
         return Offset(r.time_s, applied["dx_um"], applied["dy_um"], applied["dz_um"],
-                      ",".join(f"{k}={ids[k]}" for k in sorted(ids)), clamped, limited, bool(outside), degraded)
+                      ",".join(f"{k}={ids[k]}" for k in sorted(ids)), clamped, limited, bool(outside), degraded, by)
 
     # ------------------------------------------------------------------ monitoring
-    def _samples(self) -> Samples | None:
-        b = self.buffer
-        if len(b) < 2:
-            return None
-        air_names = tuple(sorted(b[-1].air_degC))
-        t = np.fromiter((x.time_s for x in b), float, len(b))
-        P = np.array([x.position_mm for x in b], float)
-        S = np.fromiter((x.spindle_rpm for x in b), float, len(b))
-        A = np.array([[x.air_degC.get(k, self.t_ref) for k in air_names] for x in b], float).reshape(len(b), len(air_names))
-        return Samples(t, P, None, S, air_names, A, np.arange(len(b)) + 2)
-
-    def _close_interval(self, now_s: float) -> None:
-        """Monitoring cycle over the buffered interval, then persist and start the next interval."""
+    def _close_interval(self, boundary: float) -> None:
+        """The monitoring cycle at a boundary, then persist and start the next interval."""
         t0 = time.perf_counter()
-        boundary = self.next_mon_s
-        s = self._samples()
-        if s is not None:
-            self._monitor(s, boundary)
-        else:
-            self.event("warning", boundary, {"message": "no samples in the monitoring interval: structure model not advanced"},
-                       f"empty@{_t(boundary)}")
-        if any(self.interval_drops.values()):
-            self.event("time", boundary, {"message": "samples dropped for repeated, backward or invalid time stamps",
-                                          **self.interval_drops}, _t(boundary))
-            self.interval_drops = {"repeated": 0, "backwards": 0, "invalid": 0}
-        # next interval: the last sample carries over (continuity of the histogram)
-        self.carry = self.buffer[-1] if self.buffer else self.carry
-        self.buffer = [self.carry] if self.carry is not None else []
-        k = math.floor((now_s - self.origin_s) / self.cfg.monitoring_interval_s) + 1
-        if self.origin_s + k * self.cfg.monitoring_interval_s <= now_s:
-            k += 1
-        if now_s == self.next_mon_s:
-            k = round((now_s - self.origin_s) / self.cfg.monitoring_interval_s) + 1
-        self.next_mon_s = self.origin_s + k * self.cfg.monitoring_interval_s
-        self.counters.monitorings += 1
-        dt = time.perf_counter() - t0
-        self.counters.last_decision_s = dt
-        self.counters.max_decision_s = max(self.counters.max_decision_s, dt)
-        self._snap = self.snapshot()
-        self.persist()
+        s = self.s
+        try:
+            self._monitor(boundary)
+        finally:
+            if any(s.interval_drops.values()):
+                self.event("time", boundary, {"message": "samples dropped for repeated, backward or invalid time stamps",
+                                              **s.interval_drops}, _t(boundary))
+                s.interval_drops = {"repeated": 0, "backwards": 0, "invalid": 0}
+            s.interval = s.interval[-1:]  # the boundary row opens the next interval
+            s.signature_sum, s.signature_s, s.rejected = None, 0.0, {}
+            s.next_mon_s = boundary + self.cfg.monitoring_interval_s
+            self.counters.monitorings += 1
+            dt = time.perf_counter() - t0
+            self.counters.last_decision_s = dt
+            self.counters.max_decision_s = max(self.counters.max_decision_s, dt)
+            self._snap = s.to_dict()
+            self.persist()
 
-    def _monitor(self, s: Samples, boundary: float) -> None:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            try:
-                inc = increments_from_samples(self.machine, s, min(self.cfg.increment_s, max(s.time_s[-1] - s.time_s[0], 1e-6)),
-                                              max_gap_s=self.cfg.max_gap_s, source=f"monitor interval ending {boundary:g} s")
-                loads = boundary_conditions(self.machine, inc)
-                error = None
-            except (TraceFileError, ValueError) as exc:
-                inc, loads, error = None, None, exc
-        for w in caught:
-            self.event("warning", boundary, {"message": str(w.message)}, f"histogram@{_t(boundary)}@{hash(str(w.message)) & 0xffff}")
-        if error is not None:
-            # an implausible interval (a glitch faster than the axes can move): hold the last loads
-            self.event("warning", boundary, {"message": f"histogram of the interval failed: {error}; last loads held"},
-                       f"histogram-error@{_t(boundary)}")
-            if self.x is None or not self.history:
-                return
-            u = self.history[-1][1]
-            U = np.tile(u, (2, 1))
-            dts = [s.time_s[-1] - (self.rom_time_s or s.time_s[0])]
-            times = [s.time_s[-1]]
-            sig = None
-        else:
-            U_all = inputs_from_columns(self.rom, loads.names, loads.values, "monitor")
-            self.loads_names = self.rom.input_names
-            if self.x is None:
-                self.x = self.rom.steady_state(U_all[0])  # a machine that stood still in the first sample's air
-                self.rom_time_s = float(loads.time_s[0])
-            U = U_all
-            times = list(loads.time_s[1:])
-            dts = list(np.diff(loads.time_s))
-            _, _, sig_rows = signatures(inc)
-            w = inc.duration_s
-            sig = (sig_rows * w[:, None]).sum(axis=0) / w.sum()
-        # each increment's loads row held over it (mean power); empty increments are skipped
-        grid = np.concatenate([[times[0] - dts[0]], times])
-        keep = np.concatenate([[True], np.asarray(dts) > 0])
-        if keep[1:].any():
-            _, self.x = self.rom.integrate(grid[keep], U[:grid.size][keep], initial=self.x, hold="step")
-        self.history.extend((float(tk), U[k + 1].copy()) for k, tk in enumerate(times))
-        self.rom_time_s = float(times[-1])
-        y = self.rom.outputs(self.x)
-        n_s = len(self.rom.output_names) - 3
-        actual = {name: float(y[j]) + self.t_ref for j, name in enumerate(self.rom.output_names[:n_s])}
-        self.rom_sensors_degC = actual
+    def _forecasts(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Sensors and drift over the forecast horizon: the last hour's load continued, and a cool-down."""
+        s = self.s
+        rows = [r[1:] for r in s.loads if r[0] > s.step_time_s - 3600.0] + [r[1:] for r in s.step_rows]
+        u = np.mean(np.asarray(rows, float), axis=0) if rows else np.asarray(s.step_inputs, float)
+        nh = len(self.layout.heat_inputs)
+        cool = np.concatenate([np.zeros(nh), np.asarray(s.step_inputs, float)[nh:]])
+        n = max(1, int(round(self.cfg.validity.forecast_h * 3600.0 / FORECAST_STEP_S)))
+        return [self.observer.forecast(s.observer, np.tile(v, (n, 1)), FORECAST_STEP_S) for v in (u, cool)]
 
-        # the structure model against the measured sensors (the input for the diagnosis)
-        measured = {n: self.sensors[n].value_degC for n in self.sensor_names if self.sensors[n].status == "ok"}
-        drifted, drift_K, drift_sensor = model_drift(actual, measured, self.cfg.model_drift_K)
-        for n, v in measured.items():
-            if n in actual and math.isfinite(v):
-                self.bias_K[n] = v - actual[n]
-        if drifted:
+    def _set_error(self, cds, rows: np.ndarray, forecasts) -> SetError:
+        ns = len(self.sensor_names)
+        interval = compensation_error_um(set_predictions(cds, rows[:, 1:1 + ns], self.sensor_names, self.pose_mm),
+                                         rows[:, 1 + ns:])
+        fc = max(compensation_error_um(set_predictions(cds, T, self.sensor_names, self.pose_mm), d) for T, d in forecasts)
+        return SetError(interval, fc)
+
+    def _monitor(self, boundary: float) -> None:
+        s = self.s
+        rows = np.asarray(s.interval, float)
+        est = self._estimate_degC()
+        measured = {n: v for n, v in self.measured.items() if math.isfinite(v) and s.sensors[n].status == "ok"}
+        drifted, drift_K, drift_sensor = model_drift(est, measured, self.cfg.model_drift_K)
+        s.max_residual_K = _finite(drift_K)
+        self._flag(boundary, drifted, drift_K, drift_sensor)
+        if drifted or s.rejected:
             self.event("model_drift", boundary, {
-                "max_abs_K": drift_K, "sensor": drift_sensor, "threshold_K": self.cfg.model_drift_K,
-                "model_degC": actual, "measured_degC": measured,
+                "max_abs_K": _finite(drift_K), "sensor": drift_sensor, "threshold_K": self.cfg.model_drift_K,
+                "rejected": dict(s.rejected), "estimate_degC": est, "measured_degC": measured,
+                "disturbances": self.observer.disturbances(s.observer),
             }, _t(boundary))
-
-        # does the active CD set still fit?
+        forecasts = self._forecasts()
+        error = None
+        if self.active is not None:
+            try:
+                error = self._set_error(self.active.cds, rows, forecasts)
+            except (KeyError, ValueError) as exc:
+                log.warning("the active set cannot be assessed: %s", exc)
         t_ref = self.active.t_reference_degC if self.active is not None else {}
-        dT, sensor = temperature_deviation(actual, t_ref) if self.active is not None else (math.inf, None)
-        candidates = []
-        if self.active is None or dT > self.cfg.threshold_K:
-            for m in self.db.search(self.machine.name, self.pose_key, None if sig is None else np.asarray(sig), actual,
-                                    self.cfg.threshold_K, layout=self.layout):
-                candidates.append(Candidate({k: int(v) for k, v in m.ids.items()}, m.load_case, float(m.delta_T_K),
-                                            float(m.distance) if m.distance is not None else math.nan))
-        enabled = self.cfg.regeneration.enabled and boundary >= self.regen_blocked_until_s
-        d = decide(dT, sensor, self.cfg.threshold_K, self.active_ids, candidates, enabled,
-                   self.regeneration_running or self.pending is not None)
+        dT, dT_sensor = temperature_deviation(est, t_ref) if self.active is not None else (math.inf, None)
+        v = self.cfg.validity
+        enabled = self.cfg.regeneration.enabled and boundary >= s.regen_blocked_until_s
+        why = ("regeneration is disabled" if not self.cfg.regeneration.enabled else
+               f"no generation before {s.regen_blocked_until_s:.0f} s after a failed one")
+        running = self.regeneration_running or s.pending is not None
+        since = boundary - s.activated_s
+        d = decide(s.active_ids, error, since, v, [], enabled, running, why)
+        candidates: list[Candidate] = []
+        if d.action != "keep" and v.max_candidates:
+            candidates = self._candidates(rows, forecasts, est)
+            d = decide(s.active_ids, error, since, v, candidates, enabled, running, why)
+        sig = None if s.signature_sum is None else [float(x) / s.signature_s for x in s.signature_sum]
         payload = {
-            "action": d.action, "reason": d.reason, "delta_T_K": _finite(d.delta_T_K), "sensor": d.sensor,
-            "threshold_K": self.cfg.threshold_K, "active": self.active_ids,
+            "action": d.action, "reason": d.reason, "error_um": None if error is None else error.as_dict(),
+            "active": s.active_ids, "candidates": len(candidates),
             "target": None if d.target is None else {"ids": dict(d.target.ids), "load_case": d.target.load_case,
-                                                     "delta_T_K": d.target.delta_T_K},
-            "candidates": len(candidates), "T_actual_degC": actual, "T_reference_degC": t_ref,
-            "model_drift_K": _finite(drift_K), "signature": None if sig is None else [round(float(v), 6) for v in sig],
+                                                     "error_um": d.target.error.as_dict(), "jump_um": d.target.jump_um},
+            "delta_T_K": _finite(dT), "sensor": dT_sensor, "threshold_K": self.cfg.threshold_K,
+            "T_actual_degC": est, "T_reference_degC": t_ref, "drift_um": dict(zip(DRIFT_COLUMNS, s.drift_um)),
+            "model_drift_K": _finite(drift_K), "signature": None if sig is None else [round(x, 6) for x in sig],
         }
         self.event("decision", boundary, payload, _t(boundary))
-        self.last_decision = {"time_s": boundary, "action": d.action, "reason": d.reason}
-        self.last_delta_T_K = _finite(d.delta_T_K)
+        s.last_decision = {"time_s": boundary, "action": d.action, "reason": d.reason}
+        s.last_error = None if error is None else error.as_dict()
+        s.last_delta_T_K = _finite(dT)
         log.info("t = %.0f s: %s (%s)", boundary, d.action, d.reason)
-        self._act(d, boundary, actual, sig)
+        self._act(d, boundary, est, sig)
 
-    def _act(self, d: Decision, t: float, actual: Mapping[str, float], sig) -> None:
+    def _flag(self, t: float, drifted: bool, drift_K: float, sensor: str | None) -> None:
+        """The observer is flagged while it departs from the sensors or half of them are degraded."""
+        s = self.s
+        degraded = [n for n in self.sensor_names if s.sensors[n].status == "degraded"]
+        reason = ""
+        if drifted:
+            reason = f"|estimate − measured| {drift_K:.2f} K at {sensor} above {self.cfg.model_drift_K:g} K"
+        elif 2 * len(degraded) >= len(self.sensor_names):
+            reason = f"{len(degraded)} of {len(self.sensor_names)} sensors degraded"
+        if reason != s.observer_flag:
+            self.event("observer", t, {"status": "flagged" if reason else "ok", "reason": reason}, _t(t))
+            s.observer_flag = reason
+
+    def _candidates(self, rows: np.ndarray, forecasts, est: Mapping[str, float]) -> list[Candidate]:
+        """Stored sets (best by signature, then ΔT) with their predicted errors and their jumps now."""
+        s = self.s
+        sig = None if s.signature_sum is None else np.asarray(s.signature_sum, float) / s.signature_s
+        out = []
+        now = np.array([[s.filtered_degC.get(n, math.nan) for n in self.sensor_names]])
+        for m in self.db.search(self.machine.name, self.pose_key, sig, est, math.inf, layout=self.sig_layout):
+            ids = {k: int(v) for k, v in m.ids.items()}
+            if ids == s.active_ids:
+                continue
+            try:
+                cds = {d: self.db.get(ids[d]) for d in DIRECTIONS}
+                err = self._set_error(cds, rows, forecasts)
+                jump = float(np.max(np.abs(set_predictions(cds, now, self.sensor_names, self.pose_mm)[0]
+                                           - np.array([s.offsets_um[c] for c in DRIFT_COLUMNS]))))
+            except (KeyError, ValueError) as exc:
+                log.info("stored set %s cannot be assessed: %s", ids, exc)
+                continue
+            out.append(Candidate(ids, m.load_case, err, jump, float(m.delta_T_K)))
+            if len(out) >= self.cfg.validity.max_candidates:
+                break
+        return out
+
+    def _act(self, d: Decision, t: float, est: Mapping[str, float], sig) -> None:
         if d.action == "switch":
             self.activate(d.target.ids, f"switch: {d.reason}", t)
         elif d.action == "regenerate":
-            self.pending = self._request(t, actual, sig)
-            self._outbox.append(self.pending)
-            self.event("generation", t, {"status": "started", "request": _brief(self.pending)}, f"{_t(t)}@started")
+            self.s.pending = self._request(t, est, sig)
+            self._outbox.append(self.s.pending)
+            self.event("generation", t, {"status": "started", "request": _brief(self.s.pending)}, f"{_t(t)}@started")
         elif d.action == "warn":
-            self.event("warning", t, {"message": d.reason, "delta_T_K": _finite(d.delta_T_K)}, f"decision@{_t(t)}")
+            self.event("warning", t, {"message": d.reason}, f"decision@{_t(t)}")
 
     def activate(self, ids: Mapping[str, int], reason: str, t: float) -> None:
         """Make a set active (idempotent: nothing happens when it already is)."""
         ids = {k: int(v) for k, v in ids.items()}
-        if self.active_ids == ids:
+        if self.s.active_ids == ids:
             return
         self.db.activate(self.machine.name, self.pose_key, ids, reason=reason, machine_time_s=t,
                          event_key=f"activation@{self.pose_key}@{_t(t)}@{ids['X']},{ids['Y']},{ids['Z']}")
         self.counters.switches += 1
         had_set = self.active is not None
         self.reload_active()
-        self.blend_pending = had_set and self.cfg.blend_s > 0
+        self.s.activated_s = t
+        self.s.blend_pending = had_set and self.cfg.blend_s > 0
 
-    def _request(self, t: float, actual: Mapping[str, float], sig) -> dict:
+    def _request(self, t: float, est: Mapping[str, float], sig) -> dict:
+        s = self.s
+        ns = len(self.sensor_names)
+        H = np.asarray(s.history, float).reshape(-1, 1 + ns + 3)
+        L = np.asarray(s.loads, float).reshape(-1, 1 + self.layout.n_inputs)
         return RegenerationRequest(
-            machine=self.cfg.machine, pose_key=self.pose_key, pose_mm=dict(self.rom.meta.get("pose_mm") or {}),
-            database=self.cfg.database, machine_time_s=t, t_reference_degC=dict(actual),
-            signature=None if sig is None else [float(v) for v in sig],
-            loads_names=list(self.loads_names or self.rom.input_names),
-            loads_time_s=[h[0] for h in self.history], loads_inputs=[list(map(float, h[1])) for h in self.history],
+            machine=self.cfg.machine, pose_key=self.pose_key, pose_mm=dict(self.pose_mm), database=self.cfg.database,
+            machine_time_s=t, t_reference_degC=dict(est), signature=sig, rom=str(self.cfg.rom),
+            observer=dataclasses.asdict(self.cfg.observer), observer_x=[float(v) for v in s.observer.x],
+            history_time_s=H[:, 0].tolist(), history_degC=H[:, 1:1 + ns].tolist(), history_drift_um=H[:, 1 + ns:].tolist(),
+            loads_names=list(self.layout.columns), loads_time_s=L[:, 0].tolist(), loads_inputs=L[:, 1:].tolist(),
+            anchor_degC={n: float(s.filtered_degC[n]) for n in self.sensor_names},
+            anchor_um=dict(s.offsets_um), forecast_h=self.cfg.validity.forecast_h, bump_um=self.cfg.validity.bump_um,
             reference_temperature_degC=self.t_ref, element_size_mm=self.cfg.regeneration.element_size_mm,
-            initial_x=None,
         ).to_dict()
 
-    # ------------------------------------------------------------------ regeneration results
+    # ------------------------------------------------------------------ generation results
     def take_requests(self) -> list[dict]:
         out, self._outbox = self._outbox, []
         return out
 
     def regeneration_finished(self, request: dict, result: Mapping | None, error: str | None, status: str) -> None:
         """Record the outcome of a generation job; activate its set when it succeeded."""
+        s = self.s
         t = float(request["machine_time_s"])
         if status == "finished" and result is not None:
             ids = {k: int(v) for k, v in result["ids"].items()}
@@ -557,7 +676,7 @@ class Monitor:
                        f"{_t(t)}@finished")
             self.counters.generations += 1
             try:
-                self.activate(ids, f"generated for the load case at {t:.0f} s", self.last_time_s)
+                self.activate(ids, f"generated for the load case at {t:.0f} s", s.last_time_s)
             except Exception as exc:  # noqa: BLE001 - a broken result must not stop the daemon
                 self.event("generation", t, {"status": "activation_failed", "ids": ids, "error": f"{type(exc).__name__}: {exc}"},
                            f"{_t(t)}@activation_failed")
@@ -565,24 +684,26 @@ class Monitor:
         else:
             self.event("generation", t, {"status": status, "error": error}, f"{_t(t)}@{status}")
             # do not start another job for a while
-            self.regen_blocked_until_s = (self.last_time_s or t) + self.cfg.regeneration.retry_after_s
+            s.regen_blocked_until_s = (s.last_time_s or t) + self.cfg.regeneration.retry_after_s
             log.warning("generation job for %.0f s %s: %s", t, status, error)
-        self.pending = None
+        s.pending = None
         self.persist()
 
     def status(self) -> dict:
         """Numbers for the status command and the metrics endpoint."""
+        s = self.s
         return {
-            "machine": self.machine.name, "pose_key": self.pose_key, "active": self.active_ids,
-            "last_time_s": self.last_time_s, "last_delta_T_K": self.last_delta_T_K, "last_decision": self.last_decision,
-            "offsets_um": self.offsets_um, "degraded": [n for n in self.sensor_names if self.sensors[n].status == "degraded"],
+            "machine": self.machine.name, "pose_key": self.pose_key, "active": s.active_ids, "strategy": self.cfg.strategy,
+            "last_time_s": s.last_time_s, "last_delta_T_K": s.last_delta_T_K, "last_decision": s.last_decision,
+            "last_error_um": s.last_error, "observer_flag": s.observer_flag, "max_residual_K": s.max_residual_K,
+            "offsets_um": s.offsets_um, "degraded": [n for n in self.sensor_names if s.sensors[n].status == "degraded"],
             "regeneration_running": self.regeneration_running, **self.counters.__dict__,
         }
 
 
 def _brief(req: Mapping) -> dict:
-    return {k: req[k] for k in ("machine", "pose_key", "machine_time_s", "element_size_mm") if k in req} | {
-        "history_rows": len(req.get("loads_time_s", []))}
+    return {k: req[k] for k in ("machine", "pose_key", "machine_time_s") if k in req} | {
+        "history_rows": len(req.get("history_time_s", []))}
 
 
 def _sensor_message(name: str, event: str, reason: str, rules) -> str:
@@ -726,8 +847,8 @@ async def run_monitor(
         if force or now - last_beat >= heartbeat_s:
             last_beat = now
             monitor.store.put_state(monitor.key + ":heartbeat", jsonio.dumps(
-                {"unix": clock.unix(), "last_time_s": monitor.last_time_s, "offsets_um": monitor.offsets_um,
-                 "active": monitor.active_ids, "degraded": monitor.status()["degraded"],
+                {"unix": clock.unix(), "last_time_s": monitor.s.last_time_s, "offsets_um": monitor.s.offsets_um,
+                 "active": monitor.s.active_ids, "degraded": monitor.status()["degraded"],
                  "regeneration_running": monitor.regeneration_running}))
 
     async def consume() -> str:
@@ -735,7 +856,7 @@ async def run_monitor(
         while True:
             connected = False
             try:
-                async for r in source.readings(start_after_s=monitor.last_time_s):
+                async for r in source.readings(start_after_s=monitor.s.last_time_s):
                     if not connected:
                         connected = True
                         if attempt:
@@ -755,7 +876,7 @@ async def run_monitor(
                 delay = backoff_delay(attempt, cfg.reconnect, rng.random())
                 log.warning("data source: %s; reconnecting in %.2f s (attempt %d)", exc, delay, attempt + 1)
                 if attempt == 0:
-                    monitor.store.log_event("source", monitor.last_time_s, {"status": "disconnected", "error": str(exc)})
+                    monitor.store.log_event("source", monitor.s.last_time_s, {"status": "disconnected", "error": str(exc)})
                 attempt += 1
                 await clock.sleep(delay)
 
@@ -791,7 +912,7 @@ async def run_monitor(
             await asyncio.gather(*jobs, return_exceptions=True)
         regen.close()
         await sink.close()
-        if monitor.last_time_s is not None:
+        if monitor.s.last_time_s is not None:
             beat(force=True)
     return RunResult(monitor.status(), stopped_by)
 

@@ -10,8 +10,10 @@ these functions and acts on what they return; each is tested on its own
 * :func:`check_sensor` — NaN, frozen and spiking sensors: hold the last good value for a
   bounded time, then degrade (the structure model's estimate stands in), recover when the
   readings are plausible again;
-* :func:`temperature_deviation` — the largest |T_actual − T_reference| over common sensors;
-* :func:`decide` — keep, switch to a stored CD set, regenerate, or warn;
+* :func:`temperature_deviation` — the largest |T_actual − T_reference| over common sensors (the seeds' test,
+  reported beside the decision);
+* :func:`compensation_error_um` and :func:`decide` — keep, switch to a stored CD set, regenerate, or warn, on
+  the predicted compensation error in µm (:class:`Validity`);
 * :func:`model_drift` — does the structure model still follow the measured sensors;
 * :func:`backoff_delay` — the reconnect schedule for a dropped data source.
 """
@@ -20,7 +22,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
+
+import numpy as np
 
 # --------------------------------------------------------------------------- compensation offsets
 
@@ -277,13 +281,87 @@ def temperature_deviation(actual_degC: Mapping[str, float], reference_degC: Mapp
 
 
 @dataclass(frozen=True)
+class Validity:
+    """When the active CD set is kept, replaced or regenerated: its predicted compensation error [µm].
+
+    Attributes
+    ----------
+    keep_um : keep while the set's error against the structure model's drift over the last interval stays
+        at most this [µm]
+    forecast_um : ... and over the forecasts (the current load continued, a cool-down) at most this [µm]
+    hard_um : above this over the last interval, act even within the dwell time [µm]
+    dwell_s : after an activation, keep a set at least this long unless ``hard_um`` is exceeded [s]
+    forecast_h : forecast horizon [h]
+    bump_um : a generated set whose own fit differs from the offsets being written by at most this is made
+        to continue them exactly; a stored set may be switched to only within this of them [µm]
+    max_candidates : stored sets evaluated per decision (best by signature, then ΔT)
+    """
+
+    keep_um: float = 1.5
+    forecast_um: float = 3.0
+    hard_um: float = 3.0
+    dwell_s: float = 3600.0
+    forecast_h: float = 3.0
+    bump_um: float = 1.0
+    max_candidates: int = 8
+
+    def __post_init__(self):
+        for name in ("keep_um", "forecast_um", "hard_um", "forecast_h"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
+        for name in ("dwell_s", "bump_um"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a number ≥ 0, got {v!r}")
+        if int(self.max_candidates) != self.max_candidates or self.max_candidates < 0:
+            raise ValueError(f"max_candidates must be a whole number ≥ 0, got {self.max_candidates!r}")
+        object.__setattr__(self, "max_candidates", int(self.max_candidates))
+
+
+@dataclass(frozen=True)
+class SetError:
+    """A CD set's predicted compensation error: max over directions and samples of |CD(T) − drift| [µm].
+
+    Attributes
+    ----------
+    interval_um : over the last monitoring interval (the CDs on the measured sensors against the corrected
+        structure model's drift)
+    forecast_um : over the forecasts (the CDs on the forecast sensors against the forecast drift)
+    """
+
+    interval_um: float
+    forecast_um: float
+
+    def as_dict(self) -> dict:
+        return {"interval_um": self.interval_um, "forecast_um": self.forecast_um}
+
+
+def compensation_error_um(predicted_um, reference_um) -> float:
+    """max |predicted − reference| over all finite entries [µm] (inf when there is none: no evidence)."""
+    d = np.abs(np.asarray(predicted_um, float) - np.asarray(reference_um, float))
+    d = d[np.isfinite(d)]
+    return float(d.max()) if d.size else math.inf
+
+
+@dataclass(frozen=True)
 class Candidate:
-    """A stored CD set the database offers: ids per direction, its load case and its deviation [K]."""
+    """A stored CD set the database offers, with its predicted error and its jump.
+
+    Attributes
+    ----------
+    ids : CD id per direction
+    load_case : its training load case
+    error : its predicted error (:class:`SetError`)
+    jump_um : largest |its prediction − the offsets being written| now [µm]
+    delta_T_K : the seeds' test, |T_reference − T_actual| [K]
+    """
 
     ids: Mapping[str, int]
     load_case: str
-    delta_T_K: float
-    distance: float = math.nan
+    error: SetError
+    jump_um: float
+    delta_T_K: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -294,59 +372,68 @@ class Decision:
     ----------
     action : ``"keep"``, ``"switch"``, ``"regenerate"`` or ``"warn"``
     reason : one sentence with the numbers
-    delta_T_K : deviation of the active set [K] (inf without an active set)
-    sensor : the sensor with the largest deviation
+    error : the active set's predicted error (None without an active set)
     target : the set to switch to (``"switch"``), else None
     """
 
     action: str
     reason: str
-    delta_T_K: float
-    sensor: str | None = None
+    error: SetError | None
     target: Candidate | None = None
-    payload: dict = field(default_factory=dict, compare=False)
+
+
+def _fits(e: SetError, v: Validity) -> bool:
+    return e.interval_um <= v.keep_um and e.forecast_um <= v.forecast_um
 
 
 def decide(
-    delta_T_K: float,
-    sensor: str | None,
-    threshold_K: float,
     active_ids: Mapping[str, int] | None,
+    error: SetError | None,
+    since_activation_s: float,
+    validity: Validity,
     candidates: Sequence[Candidate],
     regeneration_enabled: bool,
     regeneration_running: bool,
+    not_enabled_because: str = "regeneration is disabled",
 ) -> Decision:
-    """Keep the active CD set, switch to a stored one, regenerate, or warn.
+    """Keep the active CD set, switch to a stored one, regenerate, or warn, on the predicted error in µm.
 
     Parameters
     ----------
-    delta_T_K : largest |T_actual − T_reference| of the active set [K] (inf: no active set)
-    sensor : the sensor it occurs at
-    threshold_K : deviation above which the active set no longer fits [K]
     active_ids : ids of the active set per direction, None without one
-    candidates : stored sets that fit the current temperatures, best first (from the database search)
+    error : the active set's predicted error (None without an active set)
+    since_activation_s : machine time since the active set was activated [s] (inf: unknown)
+    validity : thresholds, dwell time, jump limit
+    candidates : stored sets with their errors and jumps (any order)
     regeneration_enabled : whether the monitor may generate a new set
     regeneration_running : whether a generation job is already under way
+    not_enabled_because : why the monitor may not generate (for the reason of a warning)
     """
-    if not threshold_K > 0:
-        raise ValueError(f"threshold_K must be positive, got {threshold_K}")
     active = dict(active_ids) if active_ids else None
-    if active is not None and delta_T_K <= threshold_K:
-        return Decision("keep", f"ΔT {delta_T_K:.3f} K at {sensor} within {threshold_K:g} K", delta_T_K, sensor)
-    what = "no active CD set" if active is None else f"ΔT {delta_T_K:.3f} K at {sensor} above {threshold_K:g} K"
-    for c in candidates:
-        if dict(c.ids) != active:
-            return Decision(
-                "switch", f"{what}; stored set {c.load_case!r} fits with ΔT {c.delta_T_K:.3f} K", delta_T_K, sensor, c
-            )
-    if active is not None and any(dict(c.ids) == active for c in candidates):
-        # the search says the active set fits after all (e.g. over other sensors): keep it
-        return Decision("keep", f"{what}, but the database finds no better set than the active one", delta_T_K, sensor)
+    if active is not None and error is not None:
+        said = (f"predicted error {error.interval_um:.2f} µm over the interval, {error.forecast_um:.2f} µm over the "
+                f"forecasts")
+        if _fits(error, validity):
+            return Decision("keep", f"{said}: within {validity.keep_um:g} / {validity.forecast_um:g} µm", error)
+        if since_activation_s < validity.dwell_s and error.interval_um <= validity.hard_um:
+            return Decision("keep", f"{said}, above {validity.keep_um:g} / {validity.forecast_um:g} µm, but the set "
+                            f"was activated {since_activation_s / 60:.0f} min ago (dwell {validity.dwell_s / 60:g} min) "
+                            f"and stays within {validity.hard_um:g} µm", error)
+        what = f"{said}: above {validity.keep_um:g} / {validity.forecast_um:g} µm"
+    else:
+        what = "no active CD set"
+    fitting = [c for c in candidates if dict(c.ids) != active and _fits(c.error, validity)
+               and c.jump_um <= validity.bump_um]
+    if fitting:
+        c = min(fitting, key=lambda c: (max(c.error.interval_um / validity.keep_um,
+                                            c.error.forecast_um / validity.forecast_um), c.jump_um))
+        return Decision("switch", f"{what}; stored set {c.load_case!r} fits ({c.error.interval_um:.2f} / "
+                        f"{c.error.forecast_um:.2f} µm, jump {c.jump_um:.2f} µm)", error, c)
     if regeneration_running:
-        return Decision("warn", f"{what}; no stored set fits, a generation job is already running", delta_T_K, sensor)
+        return Decision("warn", f"{what}; no stored set fits, a generation job is already running", error)
     if regeneration_enabled:
-        return Decision("regenerate", f"{what}; no stored set fits: generating one", delta_T_K, sensor)
-    return Decision("warn", f"{what}; no stored set fits and regeneration is disabled", delta_T_K, sensor)
+        return Decision("regenerate", f"{what}; no stored set fits: generating one", error)
+    return Decision("warn", f"{what}; no stored set fits and {not_enabled_because}", error)
 
 
 def model_drift(model_degC: Mapping[str, float], measured_degC: Mapping[str, float], threshold_K: float) -> tuple[bool, float, str | None]:

@@ -1,18 +1,24 @@
-"""The regeneration job: recent load history → BCs → FE → CD fit → database.
+"""The regeneration job: a new CD set for the states ahead, written to the database for the daemon to activate.
 
-The daemon runs a job in a worker process (``daemon.Regenerator``) with a
-timeout and activates the set the job returns, so a job that fails, hangs or
-dies never touches the active set. A job is any importable function
-``job(request: dict) -> {"ids": {"X": id, "Y": id, "Z": id}, "load_case": str}``
-named ``"module:function"`` in the configuration; the request is the JSON form
-of :class:`RegenerationRequest` (plain data: it crosses a process boundary and
-is stored in the database so that a restart can resubmit it).
+The daemon runs a job in a worker process (``daemon.Regenerator``) with a timeout and activates the set the
+job returns, so a job that fails, hangs or dies never touches the active set. A job is any importable
+function ``job(request: dict) -> {"ids": {"X": id, "Y": id, "Z": id}, "load_case": str}`` named
+``"module:function"`` in the configuration; the request is the JSON form of :class:`RegenerationRequest`
+(plain data: it crosses a process boundary and is stored in the database so that a restart can resubmit it).
+
+:func:`default_job` trains the CDs on the structure model as the observer has corrected it: the estimated
+history of the machine (the sensors as measured, the drift as estimated) and forecasts from its estimated
+state (the current load continued, a cool-down, the history's mean and its busiest load, and each drive
+alone), so that the set covers the states ahead; at the sensors' current values it continues the offsets
+being written (an anchor of the fit) whenever its own fit is within ``bump_um`` of them. :func:`fe_job` is
+the classic generator: the recent load history run on the FE model.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass, fields
 
@@ -20,18 +26,25 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-N_SUPPORT = 4  # support points per input of a generated CD: a few hours of history fill a 4 × 4 × 4 grid
-MAX_INPUTS = 3  # at most this many sensors (chosen by BIC): sensors move together, more inputs extrapolate wildly
-# The recent load history is run on FE as it was measured and with the air around the machine shifted, so that
-# the CD learns how the drift follows the sensors when the air differs from what the histogram knows (a warmer
-# enclosure, a draught): (zones: "workspace" | "all", offset [K]).
+# a CD of the default job: up to six sensors chosen by BIC, one 1-D table of four support points each (an
+# additive CD: a full grid over several sensors extrapolates wildly where they do not move together)
+FIT = {"n_support": 4, "select": "bic", "max_inputs": 6, "max_full_dims": 1, "min_target_range_um": 1.0, "min_range_K": 1.0}
+FORECAST_STEP_S = 300.0
+FORECAST_WEIGHT = 3.0  # a forecast row against a history row: the set is for the states ahead
+BASIC_FACTOR = 0.6  # each drive alone at this load factor, as a forecast scenario
+
+N_SUPPORT = 4  # FE job: support points per input; a few hours of history fill a 4 × 4 × 4 grid
+MAX_INPUTS = 3  # FE job: at most this many sensors (chosen by BIC)
+# The FE job runs the recent load history on FE as it was measured and with the air around the machine shifted,
+# so that the CD learns how the drift follows the sensors when the air differs from what the histogram knows
+# (a warmer enclosure, a draught): (zones: "workspace" | "all", offset [K]).
 AIR_VARIANTS_K = (("all", 0.0), ("workspace", 2.0), ("workspace", -2.0), ("all", 1.5), ("all", -1.5))
-_MODELS: dict = {}  # FE models built in this worker process, by (machine file hash, pose, element size)
+_MODELS: dict = {}  # models built in this worker process (FE by machine, pose and element size; ROMs by path)
 
 
 @dataclass(frozen=True)
 class RegenerationRequest:
-    """What a generation job needs.
+    """What a generation job needs (plain data).
 
     Attributes
     ----------
@@ -39,14 +52,23 @@ class RegenerationRequest:
     pose_key, pose_mm : the pose of the CDs (database key, axis positions [mm])
     database : CD database path or URL
     machine_time_s : machine time of the decision [s]
-    t_reference_degC : the structure model's sensor temperatures at the decision [°C]; the new set's T_reference
+    t_reference_degC : the corrected structure model's sensor temperatures at the decision [°C]
     signature : load-case signature of the last monitoring interval (or None)
+    rom : the structure model's file
+    observer : the observer's settings (:class:`~hybridcomp.rom.observer.ObserverSettings` fields)
+    observer_x : the observer's estimate (augmented mean) at the decision
+    history_time_s : times of the history rows [s]
+    history_degC : the sensors as measured (low-pass filtered; the estimate where a sensor was degraded) [°C]
+    history_drift_um : the drift as the observer estimated it [µm]
     loads_names : model input names (``*_W`` powers, ``*_degC`` zone air)
-    loads_time_s : end times of the recent increments [s]
-    loads_inputs : model inputs over each of them (powers [W], air rises over the reference [K])
+    loads_time_s : end times of the history's load rows [s]
+    loads_inputs : mean model inputs over each of them (powers [W], air rises over the reference [K])
+    anchor_degC : the sensors the CDs read now [°C]
+    anchor_um : the offsets being written now (``dx_um`` ...) [µm]
+    forecast_h : forecast horizon [h]
+    bump_um : continue the offsets exactly when the set's own fit is within this of them [µm]
     reference_temperature_degC : the model's reference temperature [°C]
-    element_size_mm : FE element size for the job [mm]
-    initial_x : reduced state at the start of the history (reserved; the FE starts from steady state)
+    element_size_mm : FE element size for :func:`fe_job` [mm]
     """
 
     machine: str
@@ -56,22 +78,32 @@ class RegenerationRequest:
     machine_time_s: float
     t_reference_degC: dict
     signature: list | None
+    rom: str
+    observer: dict
+    observer_x: list
+    history_time_s: list
+    history_degC: list
+    history_drift_um: list
     loads_names: list
     loads_time_s: list
     loads_inputs: list
+    anchor_degC: dict
+    anchor_um: dict
+    forecast_h: float
+    bump_um: float
     reference_temperature_degC: float
     element_size_mm: float
-    initial_x: list | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @staticmethod
     def from_dict(d: dict) -> RegenerationRequest:
+        """The request of a dict, every field present and no other."""
         names = {f.name for f in fields(RegenerationRequest)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"regeneration request: unknown field(s) {sorted(unknown)}")
+        unknown, missing = set(d) - names, names - set(d)
+        if unknown or missing:
+            raise ValueError(f"regeneration request: unknown field(s) {sorted(unknown)}, missing {sorted(missing)}")
         return RegenerationRequest(**d)
 
 
@@ -101,14 +133,140 @@ def request_loads(req: RegenerationRequest, dt_s: float = 60.0):
     return Loads(grid, V[k], tuple(req.loads_names))
 
 
+def forecast_scenarios(machine, loads_names, loads_inputs, horizon_h: float) -> dict[str, np.ndarray]:
+    """Inputs of the forecast scenarios, each held over ``horizon_h`` hours in ``FORECAST_STEP_S`` rows.
+
+    From the history's load rows (model inputs, the last one the most recent): the last hour continued, a
+    cool-down (no heat, the air as now), the history's mean and its busiest load (per input maximum), and each
+    drive alone at ``BASIC_FACTOR`` (the basic load cases), all with the air as now.
+    """
+    U = np.asarray(loads_inputs, float)
+    layout = machine.layout()
+    if U.ndim != 2 or U.shape[1] != layout.n_inputs or tuple(loads_names) != layout.columns:
+        raise ValueError(f"forecast scenarios need load rows over machine {machine.name!r}'s {layout.n_inputs} inputs, "
+                         f"got {U.shape} over {len(loads_names)} names")
+    nh = len(layout.heat_inputs)
+    n = max(1, int(round(horizon_h * 3600.0 / FORECAST_STEP_S)))
+    recent = U[-max(1, int(round(3600.0 / FORECAST_STEP_S))):].mean(axis=0)
+    air = recent[nh:]
+
+    def held(heat):
+        return np.tile(np.concatenate([heat, air]), (n, 1))
+
+    out = {"load continued": np.tile(recent, (n, 1)), "cool-down": held(np.zeros(nh)),
+           "history mean": held(U[:, :nh].mean(axis=0)), "history maximum": held(U[:, :nh].max(axis=0))}
+    drives: dict[str, np.ndarray] = {}
+    for src in machine.heat_sources:
+        driver = src.driver or src.axis
+        if driver is None:
+            continue
+        u = drives.setdefault(driver, np.zeros(nh))
+        cols = list(layout.source_columns(src.name))
+        u[cols] = src.power_W * BASIC_FACTOR ** src.exponent / len(cols)
+    out |= {f"{d} alone": held(u) for d, u in drives.items()}
+    return out
+
+
+def training_table(observer, x, req: RegenerationRequest, machine) -> tuple[dict[str, np.ndarray], np.ndarray, dict]:
+    """The default job's training data: the history rows and the forecasts from the estimate ``x``.
+
+    Returns the table (``<sensor>_degC`` [°C], ``dx_um`` ... [µm]), the row weights (1 per history row,
+    ``FORECAST_WEIGHT`` per forecast row) and the number of rows per part.
+    """
+    from hybridcomp.models.layout import DRIFT_COLUMNS
+    from hybridcomp.rom.observer import ObserverState
+
+    state = ObserverState(req.machine_time_s, np.asarray(x, float), np.zeros((len(x), len(x))))
+    T = [np.asarray(req.history_degC, float).reshape(-1, len(observer.sensor_names))]
+    D = [np.asarray(req.history_drift_um, float).reshape(-1, 3)]
+    w = [np.ones(len(T[0]))]
+    parts = {"history": len(T[0])}
+    for name, U in forecast_scenarios(machine, req.loads_names, req.loads_inputs, req.forecast_h).items():
+        Tf, Df = observer.forecast(state, U, FORECAST_STEP_S)
+        T.append(Tf)
+        D.append(Df)
+        w.append(np.full(len(Tf), FORECAST_WEIGHT))
+        parts[name] = len(Tf)
+    T, D = np.vstack(T), np.vstack(D)
+    keep = np.all(np.isfinite(T), axis=1) & np.all(np.isfinite(D), axis=1)
+    table = {f"{s}_degC": T[keep, j] for j, s in enumerate(observer.sensor_names)}
+    table |= {c: D[keep, j] for j, c in enumerate(DRIFT_COLUMNS)}
+    return table, np.concatenate(w)[keep], parts
+
+
+def _rom(path: str, machine):
+    from hybridcomp.rom import load_rom
+
+    key = ("rom", path, machine.sha256)
+    if key not in _MODELS:
+        _MODELS.clear()
+        _MODELS[key] = load_rom(path, machine)
+    return _MODELS[key]
+
+
 def default_job(request: dict) -> dict:
+    """The corrected structure model's history and forecasts → three CDs → database (the daemon activates them).
+
+    Each CD: up to six sensors by BIC, an additive table (``FIT``); a drift that spans less than 1 µm gets a
+    constant CD. The fit is anchored at the sensors' current values to the offsets being written when its own
+    value there is within ``bump_um`` of them (bumpless by construction); otherwise the daemon's blend takes
+    the difference out gradually. The new set's T_reference is the corrected model's sensors at the decision.
+    """
+    from hybridcomp.chardiag.cd import DIRECTIONS, TARGETS
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.chardiag.fit import CDFitError, FitOptions, fit_cd
+    from hybridcomp.models import load_machine
+    from hybridcomp.rom.observer import ObserverSettings, build_observer
+
+    t0 = time.monotonic()
+    req = RegenerationRequest.from_dict(request)
+    machine = load_machine(req.machine)
+    pose = machine.check_pose(dict(req.pose_mm or {}))
+    observer = build_observer(_rom(req.rom, machine), machine, ObserverSettings(**req.observer))
+    table, weights, parts = training_table(observer, req.observer_x, req, machine)
+    name = f"generated@{req.machine_time_s:.0f}s"
+    sig = None if req.signature is None else np.asarray(req.signature, float)
+    kw = dict(machine=machine.name, machine_sha256=machine.sha256, pose_mm=pose, load_case=name, signature=sig,
+              t_reference_degC=req.t_reference_degC, source=name, options=FitOptions(**FIT), weights=weights)
+    anchor_T = {f"{k}_degC": float(v) for k, v in req.anchor_degC.items()}
+    cds, notes, at_anchor = {}, {}, {}
+    constant = dataclasses.replace(FitOptions(**FIT), min_target_range_um=1e12)  # any range: constant
+    for d in DIRECTIONS:
+        target = TARGETS[d]
+        try:
+            cd = fit_cd(table, d, **kw)
+        except CDFitError as exc:  # no sensor explains this direction's drift significantly: a constant CD
+            log.info("%s: %s; a constant CD", target, exc)
+            kw_d = {**kw, "options": constant}
+            cd = fit_cd(table, d, **kw_d)
+        else:
+            kw_d = kw
+        own = cd.evaluate_table({k: np.array([v]) for k, v in anchor_T.items()})[0][0]
+        jump = float(own - req.anchor_um[target])
+        bumpless = abs(jump) <= req.bump_um
+        if bumpless:
+            cd = fit_cd(table, d, **kw_d, anchor=(anchor_T, float(req.anchor_um[target])))
+        cds[d] = cd
+        at_anchor[target] = float(cd.evaluate_table({k: np.array([v]) for k, v in anchor_T.items()})[0][0])
+        notes[d] = {"inputs": [i.name for i in cd.inputs if i.active], "rms_residual_um": dict(cd.fit)["rms_residual_um"],
+                    "own_jump_um": jump, "bumpless": bumpless}
+    db = CDDatabase(req.database)
+    try:
+        ids = {d: int(db.add(cds[d], load_case=name)) for d in DIRECTIONS}
+    finally:
+        db.close()
+    return {"ids": ids, "load_case": name, "wall_s": time.monotonic() - t0, "notes": notes, "rows": parts,
+            "at_anchor_um": at_anchor}
+
+
+def fe_job(request: dict) -> dict:
     """BCs of the recent history → FE training run → three CDs → database (the daemon activates them).
 
-    Uses ``hybridcomp.chardiag.training`` and ``hybridcomp.chardiag.fit`` (``N_SUPPORT`` support points per
-    input). The history is run as measured and with the air shifted (``AIR_VARIANTS_K``), one table. The
-    new CDs' T_reference is the structure model's temperatures at the decision. A direction whose drift no
-    sensor explains in the history keeps the active set's CD (relabelled; noted in the result). The FE
-    model is built once per worker process.
+    The classic generator: ``hybridcomp.chardiag.training`` and ``hybridcomp.chardiag.fit`` (``N_SUPPORT``
+    support points per input). The load history is run from a steady start as measured and with the air
+    shifted (``AIR_VARIANTS_K``), one table. The new CDs' T_reference is the structure model's temperatures at
+    the decision. A direction whose drift no sensor explains in the history keeps the active set's CD
+    (relabelled; noted in the result). The FE model is built once per worker process.
     """
     from hybridcomp.chardiag.cd import DIRECTIONS
     from hybridcomp.chardiag.db import CDDatabase

@@ -38,6 +38,7 @@ class Offset:
     clamped, limited : whether the clamp or the rate limit acted
     outside : whether an input was outside the CDs' trained range
     degraded : sensors standing in by the structure model's estimate
+    by : what computed the offsets: ``"cd"`` (the active CD set) or ``"observer"`` (the corrected structure model)
     """
 
     time_s: float
@@ -49,6 +50,7 @@ class Offset:
     limited: bool = False
     outside: bool = False
     degraded: str = ""
+    by: str = "cd"
 
     def values(self) -> dict[str, float]:
         return {"dx_um": self.dx_um, "dy_um": self.dy_um, "dz_um": self.dz_um}
@@ -91,7 +93,7 @@ class JsonlSink:
 class CsvSink:
     """Appends one CSV row per cycle (header written when the file is new)."""
 
-    FIELDS = ("time_s", *DIRECTIONS, "active", "clamped", "limited", "outside", "degraded")
+    FIELDS = ("time_s", *DIRECTIONS, "active", "clamped", "limited", "outside", "degraded", "by")
 
     def __init__(self, path: str | Path, flush_every: int = 1):
         self.path = Path(path)

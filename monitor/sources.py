@@ -32,6 +32,7 @@ from hybridcomp.histogram.trace import (
     position_column,
     velocity_column,
 )
+from hybridcomp.models.layout import PROBE_COLUMNS
 from hybridcomp.models.machine import Machine
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,7 @@ class Reading:
     spindle_rpm : spindle speed [1/min]
     sensors_degC : temperature sensors by name (``T1`` ...) [°C], NaN for a missing value
     air_degC : measured air by trace column (``Tamb_degC`` ...) [°C]
+    probe_um : a drift measured at this time (dx, dy, dz; NaN for a direction not probed) [µm], or None
     """
 
     time_s: float
@@ -63,6 +65,7 @@ class Reading:
     spindle_rpm: float
     sensors_degC: Mapping[str, float]
     air_degC: Mapping[str, float]
+    probe_um: tuple[float, float, float] | None = None
 
 
 class WallClock:
@@ -87,6 +90,7 @@ class TraceColumns:
     spindle: int | None
     sensors: tuple[tuple[str, int], ...]
     air: tuple[tuple[str, int], ...]
+    probe: tuple[int, int, int] | None = None
 
 
 def trace_columns(header: Sequence[str], machine: Machine, source: str = "<trace>") -> TraceColumns:
@@ -104,12 +108,17 @@ def trace_columns(header: Sequence[str], machine: Machine, source: str = "<trace
     airs = tuple((c, idx[c]) for c in air_columns(machine) if c in idx)
     known = {TIME, SPINDLE_RPM, *DRIFT, *(position_column(a.name) for a in machine.axes),
              *(velocity_column(a.name) for a in machine.axes), *(f"{s.name}_degC" for s in machine.sensors),
-             *air_columns(machine)}
+             *air_columns(machine), *PROBE_COLUMNS}
     for h in header:
         if h not in known:
             raise SourceFileError(f"{source}: line 1: unknown column {h!r} (machine {machine.name} sensors: "
                                   f"{', '.join(s.name + '_degC' for s in machine.sensors)})")
-    return TraceColumns(idx[TIME], tuple(pos), idx.get(SPINDLE_RPM), sensors, airs)
+    probe = None
+    if any(c in idx for c in PROBE_COLUMNS):
+        if not all(c in idx for c in PROBE_COLUMNS):
+            raise SourceFileError(f"{source}: line 1: probe columns come as all of {', '.join(PROBE_COLUMNS)}")
+        probe = tuple(idx[c] for c in PROBE_COLUMNS)
+    return TraceColumns(idx[TIME], tuple(pos), idx.get(SPINDLE_RPM), sensors, airs, probe)
 
 
 def _float(text: str) -> float:
@@ -140,10 +149,16 @@ def read_replay(path: str | Path, machine: Machine) -> Iterable[Reading]:
                     _float(f[cols.spindle]) if cols.spindle is not None else 0.0,
                     {name: _float(f[i]) for name, i in cols.sensors},
                     {name: _float(f[i]) for name, i in cols.air},
+                    _probe(tuple(_float(f[i]) for i in cols.probe)) if cols.probe else None,
                 )
             except ValueError:
                 bad = next(h for h, x in zip(header, f) if not _is_number(x))
                 raise SourceFileError(f"{path}: line {lineno}: column {bad!r} is not a number: {f[header.index(bad)]!r}") from None
+
+
+def _probe(values: tuple[float, ...]) -> tuple[float, ...] | None:
+    """A probed drift, or None when nothing was probed at this sample (all NaN)."""
+    return values if any(math.isfinite(v) for v in values) else None
 
 
 def _is_number(x: str) -> bool:

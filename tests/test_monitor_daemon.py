@@ -1,9 +1,10 @@
-"""The monitoring daemon on replayed traces: loops, decisions, sensor faults, time stamps, regeneration jobs.
+"""The monitoring daemon on replayed traces: loops, decisions, the observer, sensor faults, time stamps,
+generation jobs, restarts.
 
-The structure model is a small ROM of the demonstrator (200 mm mesh); the
-traces are synthetic with sensor temperatures from that very ROM, so the
-planted effects (a warm-up that leaves the cold CD set's reference, sensor
-faults, a planted workspace disturbance) are the only differences.
+The structure model is a small ROM of the demonstrator (200 mm mesh); the traces are synthetic with sensor
+temperatures (and drift) from that very ROM stepped like the daemon (60 s, loads held), so the planted
+effects (CD sets that predict the drift wrongly, sensor faults, a drift no sensor sees) are the only
+differences.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from hybridcomp.fem.loads import example_loads
 from hybridcomp.histogram.trace import samples
 from hybridcomp.monitor.config import parse_config
 from hybridcomp.monitor.daemon import Monitor, run_monitor
-from hybridcomp.monitor.scenario import rom_sensor_temperatures
+from hybridcomp.scenario import low_pass, rom_outputs
 from hybridcomp.monitor.sinks import MemorySink
 from hybridcomp.monitor.sources import ListSource, ReplaySource, read_replay
 from hybridcomp.monitor.store import MonitorStore
@@ -59,9 +60,10 @@ def motion(machine, hours=HOURS, dt_s=DT_S, busy_h=3.0):
     return samples(machine, t, {"X": x, "Y": y, "Z": np.zeros_like(t)}, spindle, air_degC={"Tamb_degC": tamb})
 
 
-def sensor_truth(machine, rom, s, offset_K=0.0):
-    """Sensor temperatures [°C] at the sample times: the ROM on the trace's own BCs (5 min increments)."""
-    return rom_sensor_temperatures(machine, rom, s, 300.0) + offset_K
+def truth(machine, rom, s):
+    """Sensor temperatures [°C] and drift [µm] at the sample times: the ROM on the trace's own BCs, stepped per
+    60 s with the loads held (as the daemon steps it)."""
+    return rom_outputs(machine, rom, s, 60.0)
 
 
 def write_trace_csv(path, machine, s, T):
@@ -77,8 +79,14 @@ def write_trace_csv(path, machine, s, T):
 @pytest.fixture(scope="module")
 def trace(machine, rom, tmp_path_factory):
     s = motion(machine)
-    T = sensor_truth(machine, rom, s)
+    T, _ = truth(machine, rom, s)
     return write_trace_csv(tmp_path_factory.mktemp("trace") / "trace.csv", machine, s, T), s, T
+
+
+@pytest.fixture(scope="module")
+def drift(machine, rom, trace):
+    """The ROM's drift at the trace's samples [µm] (what a right CD set predicts)."""
+    return truth(machine, rom, trace[1])[1]
 
 
 # --------------------------------------------------------------------------- CD database with two fitted sets
@@ -87,16 +95,20 @@ POSE = {"X": 0.0, "Y": 0.0, "Z": 0.0}
 PKEY = "X=0,Y=0,Z=0"
 
 
-def fit_set(machine, T, gains, t_ref, name):
-    """A CD set fitted to drift linear in (T1 − T8) [µm/K] over the trace's temperatures."""
-    from hybridcomp.chardiag.fit import fit_cd_set
+def fit_set(machine, T, gains, t_ref, name, drift=None):
+    """A CD set fitted to drift linear in (T1 − T8) [µm/K] over the trace's temperatures, or to ``drift``."""
+    from hybridcomp.chardiag.fit import FitOptions, fit_cd_set
 
     d = T[:, 0] - T[:, 7]
     table = {f"{sn.name}_degC": T[:, j] for j, sn in enumerate(machine.sensors)}
-    table |= {"dx_um": gains[0] * d, "dy_um": gains[1] * d, "dz_um": gains[2] * d}
+    if drift is None:
+        table |= {"dx_um": gains[0] * d, "dy_um": gains[1] * d, "dz_um": gains[2] * d}
+    else:
+        table |= {"dx_um": drift[:, 0], "dy_um": drift[:, 1], "dz_um": drift[:, 2]}
     names = [sn.name for sn in machine.sensors]
+    opts = FitOptions(n_support=6, select="bic", max_inputs=4, max_full_dims=1, min_target_range_um=0.5)
     return fit_cd_set(table, machine=machine.name, machine_sha256=machine.sha256, pose_mm=POSE, load_case=name,
-                      t_reference_degC=dict(zip(names, map(float, t_ref))))
+                      t_reference_degC=dict(zip(names, map(float, t_ref))), options=opts)
 
 
 def make_db(path, machine, T, gains=((0.5, -1.0, -3.0), (0.4, -0.8, -2.5)), warm=True):
@@ -144,53 +156,101 @@ def values_at(r):
     return {**r.sensors_degC, **dict(zip(("X", "Y", "Z"), r.position_mm))}
 
 
-def test_replay_compensates_every_cycle_and_switches_when_the_machine_warms_up(machine, rom, rom_file, trace, tmp_path):
+def right_and_wrong(tmp_path, machine, T, drift, name="cd.db"):
+    """A database with a set that predicts the drift ('right') and one that predicts half of it ('wrong', active)."""
+    from hybridcomp.chardiag.db import CDDatabase
+
+    db = CDDatabase(tmp_path / name)
+    ids = {"wrong": db.add_set(fit_set(machine, T, None, T[0], "wrong", 0.5 * drift), "wrong"),
+           "right": db.add_set(fit_set(machine, T, None, T[0], "right", drift), "right")}
+    db.activate(machine.name, PKEY, ids["wrong"], "initial")
+    return db, ids
+
+
+def test_replay_decides_on_the_predicted_error_and_switches_to_the_set_that_fits(machine, rom, rom_file, trace, drift,
+                                                                                 tmp_path):
     path, s, T = trace
-    db, ids = make_db(tmp_path / "cd.db", machine, T)
-    cfg = config(rom_file, path, tmp_path, compensation={"blend_s": 0.0})
+    db, ids = right_and_wrong(tmp_path, machine, T, drift)
+    # a stored set may be switched to whatever it jumps (the blend takes the jump out)
+    cfg = config(rom_file, path, tmp_path, validity={"bump_um": 100.0}, compensation={"max_step_um": 100.0})
     mon, sink, res = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=0))
     duration = s.time_s[-1]
-    # one offset per 5 s of machine time (samples every 10 s: one per sample), one decision per 15 min
+    # one offset per 5 s of machine time (samples every 10 s: one per sample), a decision at the start and
+    # every 15 min, one model step per minute
     assert len(sink.rows) == len(s)
     decisions = events(db, "decision")
-    assert [e[1] for e in decisions] == [900.0 * k for k in range(1, int(duration // 900) + 1)]
+    assert [e[1] for e in decisions] == [900.0 * k for k in range(0, int(duration // 900) + 1)]
+    assert res.status["model_steps"] == int(duration // 60)
     actions = [e[2]["action"] for e in decisions]
-    assert "switch" in actions
     first = actions.index("switch")
-    # warming up, the cold set no longer fits and the warm one not yet: warn (regeneration is off) ...
-    assert first > 0 and all(e[2]["action"] == "warn" and e[2]["delta_T_K"] > 0.5 for e in decisions[:first])
-    # ... until the warm set fits: switch, and from then on it is the active one that fits
-    assert decisions[first][2]["target"]["ids"] == ids["warm"]
-    assert decisions[first + 1][2]["action"] == "keep" and decisions[first + 1][2]["delta_T_K"] <= 0.5
-    assert decisions[first + 1][2]["active"] == ids["warm"]
-    assert [e[2]["ids"] for e in events(db, "activation")] == [ids["cold"], ids["warm"]]
-    # offsets are the active set's prediction (no limit acts in steady parts): the warm set after the switch
-    readings = list(read_replay(path, machine))
-    i = int(np.searchsorted(s.time_s, decisions[first][1])) + 60
-    want, _ = db.active_set(machine.name, PKEY).evaluate_point(values_at(readings[i]))
-    assert sink.rows[i].active == ",".join(f"{k}={v}" for k, v in sorted(ids["warm"].items()))
-    assert not sink.rows[i].limited
+    # the wrong set predicts half the drift: kept while that half stays within 1.5 µm, then replaced by the
+    # stored set that fits
+    for e in decisions[:first]:
+        assert e[2]["action"] == "keep" and e[2]["error_um"]["interval_um"] <= 1.5
+    sw = decisions[first][2]
+    assert sw["target"]["ids"] == ids["right"] and sw["target"]["error_um"]["interval_um"] < 0.6
+    assert sw["error_um"]["interval_um"] > 1.5 or sw["error_um"]["forecast_um"] > 3.0
+    k_sw = int(np.searchsorted(s.time_s, decisions[first][1]))
+    half = 0.5 * np.abs(drift[:k_sw + 1]).max()
+    assert half > 1.0  # the wrong set was off by this much before the switch
+    # from then on the right set stays, with an interval error that the truth confirms (its forecast error may
+    # pass 3 µm where the forecast leaves the states it was fitted on: then the monitor warns, as no generation
+    # is allowed here)
+    for e in decisions[first + 1:]:
+        assert e[2]["active"] == ids["right"] and e[2]["error_um"]["interval_um"] < 0.6
+        assert e[2]["action"] == "keep" or (e[2]["action"] == "warn" and e[2]["error_um"]["forecast_um"] > 3.0)
+    assert [e[2]["ids"] for e in events(db, "activation")] == [ids["wrong"], ids["right"]]
+    # the seeds' ΔT test is reported beside the decision
+    assert all(math.isfinite(e[2]["delta_T_K"]) and e[2]["threshold_K"] == 0.5 for e in decisions)
+    # offsets are the active set's prediction at the low-passed sensors once the blend has decayed
+    filtered = low_pass(s.time_s, T, cfg.sensor_filter_s)
+    i = k_sw + 360  # 1 h (12 blend time constants) after the switch
+    want, _ = db.active_set(machine.name, PKEY).evaluate_point(
+        {**dict(zip([sn.name for sn in machine.sensors], filtered[i])), "X": 0.0, "Y": 0.0, "Z": 0.0})
+    assert sink.rows[i].active == ",".join(f"{k}={v}" for k, v in sorted(ids["right"].items()))
     assert (sink.rows[i].dx_um, sink.rows[i].dy_um, sink.rows[i].dz_um) == pytest.approx(
-        (want["dx_um"], want["dy_um"], want["dz_um"]), abs=1e-9)
-    assert want["dz_um"] == pytest.approx(-2.5 * (T[i, 0] - T[i, 7]), abs=0.3)  # the fitted CD reproduces its data
-    # the ROM reproduces the trace's sensors (they come from it): no model drift
+        (want["dx_um"], want["dy_um"], want["dz_um"]), abs=1e-3)
+    # and they compensate the drift: after the switch the residual stays within the set's fit error
+    late = np.array([[r.dx_um, r.dy_um, r.dz_um] for r in sink.rows[i:]])
+    assert np.abs(late - drift[i:]).max() < 0.6
+    # the observer reproduces the trace's sensors (they come from its model): no model drift
     assert not events(db, "model_drift")
-    assert res.status["max_decision_s"] < 1.0
-
-    # with a bumpless transfer (blend_s) the offsets continue through the switch and approach the new set's
-    k = int(np.searchsorted(s.time_s, decisions[first][1])) + 1  # the first cycle after the decision
-    jump = abs(sink.rows[k].dz_um - sink.rows[k - 1].dz_um)
-    db2, _ = make_db(tmp_path / "cd2.db", machine, T)
-    _, sink2, _ = run(config(rom_file, path, tmp_path, compensation={"blend_s": 300.0}), machine, rom, db2,
-                      ReplaySource(path, machine, speed=0))
-    assert jump == pytest.approx(2.0)  # the two sets differ by more than max_step_um at the switch ...
-    assert abs(sink2.rows[k].dz_um - sink2.rows[k - 1].dz_um) < 0.1  # ... but blended the offsets do not jump
-    late = k + 360  # 1 h = 12 time constants later: the new set's prediction (e^-12 of a few µm left)
-    assert abs(sink2.rows[late].dz_um - sink.rows[late].dz_um) < 1e-3
-    assert abs(sink2.rows[k + 30].dz_um - sink.rows[k + 30].dz_um) > 0.1  # (5 min = 1 time constant: still blending)
+    assert res.status["max_decision_s"] < 2.0
 
 
-def test_model_drift_event_when_the_machine_departs_from_the_structure_model(machine, rom, rom_file, trace, tmp_path):
+def test_generated_sets_follow_the_structure_model_and_continue_the_offsets(machine, rom, rom_file, trace, drift,
+                                                                            tmp_path):
+    path, s, T = trace
+    db, ids = right_and_wrong(tmp_path, machine, T, drift)
+    db.close()
+    from hybridcomp.chardiag.db import CDDatabase
+
+    db = CDDatabase(tmp_path / "cd.db")
+    # no stored set may be switched to (they all jump): every change is a generated set; a tight limit makes
+    # the monitor generate several
+    cfg = config(rom_file, path, tmp_path, monitor={"database": str(tmp_path / "cd.db")},
+                 validity={"bump_um": 1.0, "keep_um": 1.0, "forecast_um": 2.0, "dwell_s": 1800.0},
+                 compensation={"max_step_um": 100.0, "blend_s": 0.0}, regeneration={"enabled": True})
+    mon, sink, res = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=0), await_regeneration=True)
+    gen = [e[2] for e in events(db, "generation") if e[2]["status"] == "finished"]
+    acts = [a for a in events(db, "activation")[1:] if a[2]["reason"].startswith("generated")]
+    assert 2 <= len(gen) == len(acts) <= 6
+    off = np.array([[r.dx_um, r.dy_um, r.dz_um] for r in sink.rows])
+    # after the first generated set the offsets follow the drift of the structure model (the trace's truth)
+    k0 = int(np.searchsorted(s.time_s, acts[0][1])) + 1
+    assert np.abs(off[k0:] - drift[k0:]).max() < 1.0
+    # a generated set whose own fit was within 1 µm of the offsets continues them exactly (no blend, no rate
+    # limit here): the first offset after its activation differs from the last before by the drift's own change
+    bumpless = [(e, a) for e, a in zip(gen, acts) if all(n["bumpless"] for n in e["notes"].values())]
+    assert bumpless, [e["notes"] for e in gen]
+    for e, a in bumpless:
+        k = int(np.searchsorted(s.time_s, a[1]))
+        assert np.abs(off[k + 1] - off[k]).max() < 0.05 + np.abs(drift[k + 1] - drift[k]).max()
+    for e in gen:
+        assert set(e["notes"]) == {"X", "Y", "Z"} and all(n["rms_residual_um"] < 1.0 for n in e["notes"].values())
+
+
+def test_a_sensor_that_departs_from_the_model_is_rejected_named_and_flags_the_observer(machine, rom, rom_file, trace, tmp_path):
     path, s, T = trace
     T2 = T.copy()
     T2[:, 3] += np.clip((s.time_s - 7200.0) / 3600.0, 0.0, 2.0)  # T4 drifts 2 K away from the model after 2 h
@@ -198,8 +258,14 @@ def test_model_drift_event_when_the_machine_departs_from_the_structure_model(mac
     db, _ = make_db(tmp_path / "cd.db", machine, T)
     run(config(rom_file, p, tmp_path, monitor={"model_drift_K": 1.0}), machine, rom, db, ReplaySource(p, machine, speed=0))
     ev = events(db, "model_drift")
-    assert ev and ev[0][1] == 7200.0 + 3600.0 + 900.0  # first boundary with more than 1 K (1.25 K at 3 h 15 min)
-    assert ev[0][2]["sensor"] == "T4" and ev[0][2]["max_abs_K"] == pytest.approx(1.25, abs=0.02)
+    # the observer's gate rejects T4 once its innovation is implausible (0.5 K off at 2.5 h), so the estimate
+    # is not pulled along: the reported residual grows with the planted drift (2 K) and T4 is named every time
+    assert ev[0][1] == 9000.0 and all(e[1] > 7200.0 for e in ev)
+    assert all(e[2]["sensor"] == "T4" and set(e[2]["rejected"]) == {"T4"} for e in ev)
+    assert ev[-1][2]["max_abs_K"] > 1.6
+    # once the residual passes model_drift_K the observer is flagged (the CDs would stand in for it)
+    flags = [(e[1], e[2]["status"]) for e in events(db, "observer")]
+    assert flags and flags[0][1] == "flagged" and flags[0][0] == next(e[1] for e in ev if e[2]["max_abs_K"] > 1.0)
 
 
 def test_offsets_are_clamped_and_rate_limited(machine, rom, rom_file, trace, tmp_path):
@@ -350,18 +416,21 @@ def test_kill_9_at_random_moments_and_restart_loses_and_duplicates_no_event(mach
     import sys
 
     path, s, T = trace
-    # reference: one uninterrupted run
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    # reference: one uninterrupted run, in a process like the restarted ones (the same BLAS threads: the observer
+    # filters for hours, so a different summation order would show in the last digits)
     ref_db, ids = make_db(tmp_path / "ref.db", machine, T)
-    run(config(rom_file, path, tmp_path), machine, rom, ref_db, ReplaySource(path, machine, speed=0))
+    cfg_ref = write_config(tmp_path / "ref.toml", rom_file, path, tmp_path / "ref.db", tmp_path / "ref.jsonl", 0)
+    subprocess.run([sys.executable, "-m", "hybridcomp", "monitor", "run", "--config", str(cfg_ref)], env=env,
+                   check=True, timeout=300, stdout=subprocess.DEVNULL)
     ref = {e.key: (e.kind, e.machine_time_s, e.payload) for e in MonitorStore(ref_db).events() if e.key is not None}
-    assert len([k for k in ref if k.startswith("decision@")]) == int(s.time_s[-1] // 900)
+    assert len([k for k in ref if k.startswith("decision@")]) == int(s.time_s[-1] // 900) + 1  # and one at the start
 
     db, ids2 = make_db(tmp_path / "cd.db", machine, T)
     assert ids2 == ids
     rng = np.random.default_rng(7)
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-    # the whole trace in 30 s of replay: ten runs of at most 2 s each (start-up included) cannot finish it, so every
-    # one of them is killed part-way, however slow or busy the machine
+    # the whole trace in 30 s of replay: ten runs of at most 1.5 s after their first offset cannot finish it, so
+    # every one of them is killed part-way, however slow or busy the machine
     speed = s.time_s[-1] / 30.0
     active_after_kill = []
     kills = 0
@@ -371,8 +440,13 @@ def test_kill_9_at_random_moments_and_restart_loses_and_duplicates_no_event(mach
             proc = subprocess.Popen([sys.executable, "-m", "hybridcomp", "monitor", "run", "--config", str(cfg_file)],
                                     env=env, stdout=subprocess.DEVNULL, stderr=err)
         if k < 10:
+            # killed at a random moment after its first offset (a start-up takes 1-5 s, more on a busy machine)
+            out = tmp_path / f"off{k}.jsonl"
+            t0 = time.monotonic()
+            while proc.poll() is None and not (out.exists() and out.stat().st_size) and time.monotonic() - t0 < 60:
+                time.sleep(0.02)
             try:
-                proc.wait(timeout=float(rng.uniform(0.6, 2.0)))
+                proc.wait(timeout=float(rng.uniform(0.0, 1.5)))
             except subprocess.TimeoutExpired:
                 proc.kill()  # SIGKILL: no clean-up of any kind
                 kills += 1
@@ -404,7 +478,7 @@ def test_kill_9_at_random_moments_and_restart_loses_and_duplicates_no_event(mach
         if rows:
             assert rows[0]["active"] == ",".join(f"{d}={v}" for d, v in sorted(active.items()))
             checked += 1
-    assert checked >= 3
+    assert checked >= 8  # (a run killed before its first flushed row has none)
 
 
 # --------------------------------------------------------------------------- OPC UA: a real server playing the trace
@@ -445,8 +519,9 @@ def test_opcua_source_and_sink_survive_a_dropped_server(machine, rom, rom_file, 
     db, ids = make_db(tmp_path / "cd.db", machine, T)
     # samples arrive every publishing interval (50 ms, 180 s of machine time at this speed): not gaps; the 600 s
     # of the drop are
+    # (model steps of 5 min: a sample every 180 s of machine time would otherwise close three per sample)
     cfg = config(rom_file, path, tmp_path, reconnect={"initial_s": 0.1, "max_s": 0.4, "jitter": 0.0},
-                 monitor={"max_gap_s": 500.0})
+                 monitor={"max_gap_s": 500.0, "increment_s": 300.0})
     port = free_port()
     url = f"opc.tcp://127.0.0.1:{port}/"
     header = (path.read_text().split("\n", 1)[0]).split(",")
@@ -462,15 +537,15 @@ def test_opcua_source_and_sink_survive_a_dropped_server(machine, rom, rom_file, 
         sink = OpcUaSink(url, node_ids(("dx_um", "dy_um", "dz_um")), cfg.reconnect, timeout_s=1.0)
         task = asyncio.create_task(run_monitor(cfg, mon, src, sink, stop=stop, seed=1))
         t0 = time.monotonic()
-        while (mon.last_time_s or 0.0) < 2 * 3600.0:
+        while (mon.s.last_time_s or 0.0) < 2 * 3600.0:
             assert time.monotonic() - t0 < 20 and not task.done(), "no data from the OPC UA server"
             await asyncio.sleep(0.05)
-        drop["at"] = mon.last_time_s
+        drop["at"] = mon.s.last_time_s
         await asyncio.to_thread(stop_server, servers[0], True)  # the control disappears without a goodbye
         await asyncio.sleep(1.0)
         servers.append(await asyncio.to_thread(start_server, path, port, speed, drop["at"] + 600.0))
-        while (mon.last_time_s or 0.0) < t_end:
-            assert time.monotonic() - t0 < 40 and not task.done(), f"the monitor did not come back after the drop: {mon.last_time_s}"
+        while (mon.s.last_time_s or 0.0) < t_end:
+            assert time.monotonic() - t0 < 40 and not task.done(), f"the monitor did not come back after the drop: {mon.s.last_time_s}"
             await asyncio.sleep(0.05)
         await asyncio.sleep(0.3)
         stop.set()
@@ -493,7 +568,7 @@ def test_opcua_source_and_sink_survive_a_dropped_server(machine, rom, rom_file, 
     assert res.status["reconnects"] == 1
     dec = [e[1] for e in events(db, "decision")]
     assert any(t < drop["at"] for t in dec) and any(t > drop["at"] + 600.0 for t in dec)
-    assert got == pytest.approx([mon.offsets_um[k] for k in ("dx_um", "dy_um", "dz_um")], abs=1e-12)
-    assert sink.written > 20
+    assert got == pytest.approx([mon.s.offsets_um[k] for k in ("dx_um", "dy_um", "dz_um")], abs=1e-12)
+    assert sink.written > 20, (sink.written, sink.failed, mon.counters)
     # (no switch is asserted: at 180 s of machine time between OPC UA samples the axis path is under-read, so the
     # structure model warms less than in the 10 s replay)

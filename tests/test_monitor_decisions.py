@@ -10,10 +10,13 @@ from hybridcomp.monitor.decisions import (
     Candidate,
     SensorRules,
     SensorState,
+    SetError,
+    Validity,
     accept_time,
     backoff_delay,
     blend_offsets,
     check_sensor,
+    compensation_error_um,
     decide,
     limit_offsets,
     model_drift,
@@ -160,33 +163,62 @@ def test_temperature_deviation_over_common_finite_sensors():
 
 
 A = {"X": 1, "Y": 2, "Z": 3}
-B = Candidate({"X": 4, "Y": 5, "Z": 6}, "basic_X", 0.2)
+V = Validity(keep_um=1.5, forecast_um=3.0, hard_um=3.0, dwell_s=3600.0, bump_um=1.0)
+GOOD = SetError(0.4, 1.0)
 
 
-def test_decide_keep_within_threshold_even_exactly_at_it():
-    assert decide(0.5, "T1", 0.5, A, [], True, False).action == "keep"
+def cand(ids=(4, 5, 6), interval=0.5, forecast=1.0, jump=0.2, name="stored"):
+    return Candidate(dict(zip("XYZ", ids)), name, SetError(interval, forecast), jump)
 
 
-def test_decide_switch_to_the_best_other_set():
-    d = decide(0.8, "T1", 0.5, A, [Candidate(A, "same", 0.1), B], True, False)
-    assert d.action == "switch" and d.target == B
-    assert "0.800 K" in d.reason and "basic_X" in d.reason
+def test_compensation_error_is_the_largest_finite_difference():
+    assert compensation_error_um([[1.0, 2.0, 3.0], [0.0, math.nan, 0.0]], [[1.5, 2.0, 1.0], [0.0, 0.0, 0.0]]) == 2.0
+    assert compensation_error_um([[math.nan]], [[0.0]]) == math.inf  # no evidence that the set fits
 
 
-def test_decide_keep_when_the_database_only_offers_the_active_set():
-    assert decide(0.8, "T1", 0.5, A, [Candidate(A, "same", 0.4)], True, False).action == "keep"
+def test_decide_keeps_a_set_within_both_limits_even_exactly_at_them():
+    d = decide(A, SetError(1.5, 3.0), 10.0, V, [], True, False)
+    assert d.action == "keep" and "1.50 µm over the interval" in d.reason
 
 
-def test_decide_regenerate_warn():
-    assert decide(0.8, "T1", 0.5, A, [], True, False).action == "regenerate"
-    assert decide(0.8, "T1", 0.5, A, [], True, True).action == "warn"
-    assert decide(0.8, "T1", 0.5, A, [], False, False).action == "warn"
+def test_decide_keeps_within_the_dwell_time_unless_the_hard_limit_is_passed():
+    assert decide(A, SetError(2.5, 5.0), 1800.0, V, [], True, False).action == "keep"
+    assert "dwell" in decide(A, SetError(2.5, 5.0), 1800.0, V, [], True, False).reason
+    assert decide(A, SetError(3.1, 5.0), 1800.0, V, [], True, False).action == "regenerate"
+    assert decide(A, SetError(2.5, 5.0), 3600.0, V, [], True, False).action == "regenerate"
+    # a good interval but a bad forecast is also a reason to act (after the dwell)
+    assert decide(A, SetError(0.5, 3.5), 7200.0, V, [], True, False).action == "regenerate"
+
+
+def test_decide_switches_to_the_best_fitting_stored_set_within_the_jump_limit():
+    far = cand((7, 8, 9), 0.3, 0.5, jump=1.5, name="far")  # fits but would jump 1.5 µm
+    ok = cand((4, 5, 6), 1.0, 2.0, name="ok")
+    best = cand((10, 11, 12), 0.5, 1.0, name="best")
+    bad = cand((13, 14, 15), 2.0, 1.0, name="bad")
+    same = cand((1, 2, 3), 0.1, 0.1, name="active")  # the active set itself is never a target
+    d = decide(A, SetError(2.0, 4.0), 7200.0, V, [far, ok, best, bad, same], True, False)
+    assert d.action == "switch" and d.target == best
+    assert "'best'" in d.reason and "jump 0.20 µm" in d.reason
+
+
+def test_decide_regenerates_or_warns_when_no_stored_set_fits():
+    e = SetError(2.0, 4.0)
+    assert decide(A, e, 7200.0, V, [cand(jump=2.0)], True, False).action == "regenerate"
+    assert decide(A, e, 7200.0, V, [], True, True).action == "warn"
+    d = decide(A, e, 7200.0, V, [], False, False)
+    assert d.action == "warn" and "disabled" in d.reason
 
 
 def test_decide_without_active_set():
-    assert decide(math.inf, None, 0.5, None, [B], True, False).action == "switch"
-    d = decide(math.inf, None, 0.5, None, [], False, False)
+    assert decide(None, None, math.inf, V, [cand()], True, False).action == "switch"
+    d = decide(None, None, math.inf, V, [], False, False)
     assert d.action == "warn" and "no active CD set" in d.reason
+
+
+@pytest.mark.parametrize("kw", [{"keep_um": 0.0}, {"dwell_s": -1.0}, {"max_candidates": 1.5}, {"forecast_h": math.inf}])
+def test_validity_rejects_bad_settings(kw):
+    with pytest.raises(ValueError):
+        Validity(**kw)
 
 
 def test_model_drift():
