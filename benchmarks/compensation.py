@@ -1,0 +1,158 @@
+"""Benchmark: every compensation strategy on the job-shop day, with the disturbances a real machine brings.
+
+One set of models (FE model, structure model, default CDs of the basic load cases) of the demonstrator at
+``--element-size-mm``; for each disturbance (``hybridcomp.scenario.DISTURBANCES``: the demo day's mis-scaled
+front spindle bearing, an ambient swing the trace does not measure, an unmodelled coolant pump, a mis-scaled
+spindle motor, a sensor that freezes, a warmer workspace) a real machine is simulated and replayed to the
+daemon twice (strategies ``hybrid`` and ``observer``). After the demo day, the recorded day is diagnosed and
+the scenario is run again with models from the extended machine file ("after diagnosis").
+
+Per case and strategy: RMS, P2P and E_P95 of the 3-D residual at 15 min, 1 h, 4 h and 15 h, activations per
+16 h day and the largest offset step per 5 s cycle; then the targets of the compensation issue, each marked
+met or not:
+
+* hybrid ≤ min(static CDs, ROM direct) in RMS and at every E_P95 window;
+* observer ≤ 0.5 × ROM direct in RMS where the model is wrong (ROM direct RMS > 1 µm), and its 3-D
+  peak-to-peak ≤ 10 % of the uncompensated one;
+* ≤ 6 activations per 16 h day, no offset step above 0.2 µm per 5 s cycle;
+* after the diagnosis: hybrid RMS ≤ 0.5 × before and ≤ 2 × ROM direct after + 0.5 µm.
+
+    python benchmarks/compensation.py [--element-size-mm 150] [--cases all] [--out DIR] [--no-diagnosis]
+
+Prints a table and, last, one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from hybridcomp.models import jsonio
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _table import table  # noqa: E402
+
+WINDOWS = {"E15min": 900.0, "E1h": 3600.0, "E4h": 14400.0, "E15h": 54000.0}
+STRATEGY_ROWS = ("no compensation", "static default CDs", "hybrid monitor", "observer", "ROM direct", "MLR on sensors")
+
+
+def row(case: str, name: str, m: dict) -> dict:
+    d = m["3d"]
+    r = {"case": case, "strategy": name, "RMS": f"{d['rms_um']:.2f}", "P2P": f"{d['p2p_um']:.2f}"}
+    r |= {k: f"{d['p95_range_um'][w]:.2f}" for k, w in WINDOWS.items()}
+    r["act/16h"] = f"{m['activations_per_16h']:.1f}" if "activations_per_16h" in m else ""
+    r["max step"] = f"{m['largest_step_um']:.3f}" if "largest_step_um" in m else ""
+    return r
+
+
+def targets(case: str, metrics: dict) -> list[dict]:
+    """The issue's targets on one case, each with its numbers and whether it is met."""
+    m3 = {k: v["3d"] for k, v in metrics.items()}
+    out = []
+
+    def add(what, value, limit, ok=None):
+        out.append({"case": case, "target": what, "value": round(value, 3), "limit": round(limit, 3),
+                    "met": bool(value <= limit + 1e-9) if ok is None else ok})
+
+    hyb, obs = m3["hybrid monitor"], m3["observer"]
+    add("hybrid RMS <= min(static, ROM direct)", hyb["rms_um"], min(m3["static default CDs"]["rms_um"],
+                                                                     m3["ROM direct"]["rms_um"]))
+    for k, w in WINDOWS.items():
+        add(f"hybrid {k} <= min(static, ROM direct)", hyb["p95_range_um"][w],
+            min(m3["static default CDs"]["p95_range_um"][w], m3["ROM direct"]["p95_range_um"][w]))
+    if m3["ROM direct"]["rms_um"] > 1.0:
+        add("observer RMS <= 0.5 ROM direct", obs["rms_um"], 0.5 * m3["ROM direct"]["rms_um"])
+    add("observer P2P <= 10 % uncompensated", obs["p2p_um"], 0.1 * m3["no compensation"]["p2p_um"])
+    for s in ("hybrid monitor", "observer"):
+        add(f"{s} activations per 16 h <= 6", metrics[s]["activations_per_16h"], 6.0)
+        add(f"{s} largest step per cycle <= 0.2 µm", metrics[s]["largest_step_um"], 0.2)
+    return out
+
+
+def main(argv=None) -> dict:
+    from hybridcomp.scenario import DISTURBANCES, build_models, run_scenario
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--element-size-mm", type=float, default=150.0, help="FE element size of every model [mm]")
+    p.add_argument("--cases", default="all", help=f"comma-separated disturbances ({', '.join(DISTURBANCES)}) or all")
+    p.add_argument("--day-hours", type=float, default=16.0, help="hours of the job-shop day replayed")
+    p.add_argument("--out", type=Path, default=None, help="keep every case's folder here (default: a temporary one)")
+    p.add_argument("--no-diagnosis", action="store_true", help="skip the diagnosis of the demo day and the rerun")
+    args = p.parse_args(argv)
+    names = list(DISTURBANCES) if args.cases == "all" else [c.strip() for c in args.cases.split(",")]
+    for n in names:
+        if n not in DISTURBANCES:
+            p.error(f"--cases: unknown disturbance {n!r} (known: {', '.join(DISTURBANCES)})")
+    tmp = None
+    if args.out is None:
+        tmp = tempfile.TemporaryDirectory()
+        out = Path(tmp.name)
+    else:
+        out = args.out.resolve()
+    t_all = time.perf_counter()
+    common = dict(element_size_mm=args.element_size_mm, day_hours=args.day_hours)
+    models = build_models(out / "models", element_size_mm=args.element_size_mm, keep_basis=True)
+    rows, checks, cases = [], [], {}
+    for n in names:
+        t0 = time.perf_counter()
+        res = run_scenario(out / n.replace(" ", "_"), disturbance=DISTURBANCES[n], models=models, **common)
+        cases[n] = {"metrics": res.metrics, "wall_s": time.perf_counter() - t0, "summary": res.summary}
+        rows += [row(n, s, res.metrics[s]) for s in STRATEGY_ROWS]
+        checks += targets(n, res.metrics)
+        print(f"{n}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        if n == "demo day" and not args.no_diagnosis:
+            after = _after_diagnosis(out, res, models, common)
+            cases["demo day, after diagnosis"] = {"metrics": after.metrics, "summary": after.summary}
+            rows += [row("after diagnosis", s, after.metrics[s]) for s in STRATEGY_ROWS]
+            before, later = res.metrics["hybrid monitor"]["3d"]["rms_um"], after.metrics["hybrid monitor"]["3d"]["rms_um"]
+            rom_after = after.metrics["ROM direct"]["3d"]["rms_um"]
+            for what, limit in (("hybrid RMS after diagnosis <= 0.5 before", 0.5 * before),
+                                ("hybrid RMS after diagnosis <= 2 ROM direct after + 0.5", 2 * rom_after + 0.5)):
+                checks.append({"case": n, "target": what, "value": round(later, 3), "limit": round(limit, 3),
+                               "met": bool(later <= limit + 1e-9)})
+    print(table(rows, ["case", "strategy", "RMS", "P2P", *WINDOWS, "act/16h", "max step"]))
+    print()
+    print(table([{**c, "met": "yes" if c["met"] else "NO"} for c in checks], ["case", "target", "value", "limit", "met"]))
+    summary = {
+        "benchmark": "compensation", "element_size_mm": args.element_size_mm, "day_hours": args.day_hours,
+        "machine": platform.processor() or platform.machine(), "wall_s": time.perf_counter() - t_all,
+        "targets_met": sum(c["met"] for c in checks), "targets": len(checks), "checks": checks,
+        "cases": {n: {"rms_3d_um": {k: v["3d"]["rms_um"] for k, v in c["metrics"].items()},
+                      "p95_3d_um": {k: {w: v["3d"]["p95_range_um"][s] for w, s in WINDOWS.items()}
+                                    for k, v in c["metrics"].items()},
+                      "p2p_3d_um": {k: v["3d"]["p2p_um"] for k, v in c["metrics"].items()},
+                      "activations_per_16h": {k: v.get("activations_per_16h") for k, v in c["metrics"].items()
+                                              if "activations_per_16h" in v},
+                      "largest_step_um": {k: v.get("largest_step_um") for k, v in c["metrics"].items()
+                                          if "largest_step_um" in v}}
+                  for n, c in cases.items()},
+    }
+    print(jsonio.dumps(summary))
+    if tmp is not None:
+        tmp.cleanup()
+    return summary
+
+
+def _after_diagnosis(out: Path, res, models, common):
+    """Diagnose the demo day's recorded data; the scenario again with models from the extended machine file."""
+    from hybridcomp.diagnose import diagnose, prepare_model, read_measured, write_report
+    from hybridcomp.models import load_machine
+    from hybridcomp.scenario import DISTURBANCES, build_models, run_scenario
+
+    machine = models.machine
+    rom = prepare_model(machine, rom=models.rom, element_size_mm=common["element_size_mm"])
+    d = diagnose(machine, read_measured(res.files["recorded"], machine), rom=rom)
+    write_report(d, out / "diagnosis")
+    extended = out / "diagnosis" / "machine_extended.toml"
+    real = load_machine(res.summary["real_machine"])
+    after_models = build_models(out / "models_after", str(extended), common["element_size_mm"])
+    return run_scenario(out / "demo_day_after", disturbance=DISTURBANCES["demo day"], real_machine=real,
+                        models=after_models, **common)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,578 @@
+"""The hybrid scenario: the bundled job-shop day on a simulated real machine, every compensation strategy judged.
+
+:func:`run_scenario` replays the 16 h job-shop day. The *real machine* is an FE model that differs from the
+models by a :class:`Disturbance` (a mis-scaled or unmodelled heat source in its machine file, air the trace
+does not measure, a failing sensor); it is driven by the BCs of the controller's trace at a finer step than
+the monitor's, and what it measures (sensors with noise, occasional probed drift) is what the monitor gets.
+Compared on the residual drift (true drift − compensation), every 60 s of the day:
+
+* no compensation;
+* static default CDs: fitted on the basic load cases (each axis alone, the spindle alone; FE training runs);
+* the hybrid monitor: the daemon replaying the trace, its observer keeping the structure model on the machine,
+  choosing and generating CD sets (strategy ``hybrid``);
+* the observer: the same daemon writing the corrected structure model's drift (strategy ``observer``);
+* the ROM used directly: the structure model on the trace's BCs, uncorrected;
+* a multiple linear regression of the drift on the eight sensors, fitted on the basic load cases.
+
+Metrics (:mod:`hybridcomp.metrics`): RMS, peak-to-peak, E_P95 over 15 min … 15 h, activations per 16 h day and
+the largest offset step per compensation cycle.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import logging
+import math
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hybridcomp.metrics import DIRS, drift_metrics, largest_step_um, metrics_table
+from hybridcomp.models import jsonio
+from hybridcomp.models.layout import PROBE_COLUMNS
+
+log = logging.getLogger(__name__)
+
+STRATEGIES = ("hybrid", "observer")
+NAMES = {"hybrid": "hybrid monitor", "observer": "observer"}
+
+
+@dataclass(frozen=True)
+class Disturbance:
+    """What the real machine does that the models do not know.
+
+    Attributes
+    ----------
+    name : short name (a table row, a folder)
+    description : one sentence
+    source_factor : (heat source, factor): the real machine dissipates factor × the source's power
+    added_source : a heat source the models lack (a machine-file ``[[heat_sources]]`` table)
+    workspace_air_K : the workspace zones' air runs this much warmer than the trace says, ramped in over 2 h [K]
+    ambient_swing_K : every zone's air swings by ± this around what the trace says [K] ...
+    swing_period_h : ... with this period [h]
+    sensor_fault : (sensor, from [h], kind): ``"stuck"`` (the reading freezes) or ``"open"`` (it reads NaN)
+    """
+
+    name: str
+    description: str
+    source_factor: tuple[str, float] | None = None
+    added_source: dict | None = None
+    workspace_air_K: float = 0.0
+    ambient_swing_K: float = 0.0
+    swing_period_h: float = 6.0
+    sensor_fault: tuple[str, float, str] | None = None
+
+    def machine_edits(self) -> bool:
+        return self.source_factor is not None or self.added_source is not None
+
+
+NOMINAL = Disturbance("nominal", "the real machine is the model")
+
+#: the benchmark's disturbances (the demo day is the mis-scaled front spindle bearing)
+DISTURBANCES = {
+    d.name: d for d in (
+        Disturbance("demo day", "the front spindle bearing dissipates 1.6 × its nominal power",
+                    source_factor=("spindle_bearing_front", 1.6)),
+        Disturbance("ambient swing", "the air around the machine swings ±1.5 K with a 6 h period that the trace "
+                    "does not measure", ambient_swing_K=1.5, swing_period_h=6.0),
+        Disturbance("unmodelled source", "a coolant pump on the column's back (60 W, on while the spindle runs) "
+                    "that the machine file lacks",
+                    added_source={"name": "coolant_pump", "body": "column", "position_mm": [0.0, 1090.0, 600.0],
+                                  "size_mm": [300.0, 20.0, 300.0], "power_W": 60.0, "driver": "spindle",
+                                  "exponent": 0.05}),
+        Disturbance("mis-scaled source", "the spindle motor leaves 0.6 × the heat the model assumes in the "
+                    "structure (a better cooling jacket)", source_factor=("spindle_motor", 0.6)),
+        Disturbance("sensor fault", "the demo day, and sensor T1 (spindle housing) freezes at 8 h",
+                    source_factor=("spindle_bearing_front", 1.6), sensor_fault=("T1", 8.0, "stuck")),
+        Disturbance("workspace air", "the workspace air behind the enclosure runs 2 K warmer than the workshop "
+                    "air the trace measures", workspace_air_K=2.0),
+    )
+}
+
+
+def real_machine_file(machine, disturbance: Disturbance, path: Path) -> Path:
+    """Write the real machine's file: the machine file with the disturbance's source edits."""
+    from hybridcomp.models.toml import dumps_toml, read_toml
+
+    data, _ = read_toml(machine.source)
+    sources = {s["name"]: s for s in data.get("heat_sources", [])}
+    notes = []
+    if disturbance.source_factor is not None:
+        name, factor = disturbance.source_factor
+        if name not in sources:
+            raise ValueError(f"disturbance {disturbance.name!r}: machine {machine.name!r} has no heat source {name!r} "
+                             f"(sources: {', '.join(sources)})")
+        if not factor > 0:
+            raise ValueError(f"disturbance {disturbance.name!r}: the power factor must be positive, got {factor}")
+        sources[name]["power_W"] = float(sources[name]["power_W"]) * factor
+        notes.append(f"{name} at {factor:g} x its power")
+    if disturbance.added_source is not None:
+        data.setdefault("heat_sources", []).append(dict(disturbance.added_source))
+        notes.append(f"an added source {disturbance.added_source['name']!r}")
+    data["machine"]["name"] = f"{machine.name}_real"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"# the real machine of the scenario: {machine.name} with {', '.join(notes) or 'no change'}\n\n"
+                    + dumps_toml(data))
+    return path
+
+
+def low_pass(time_s: np.ndarray, X: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order low-pass of the columns of ``X`` (the daemon's sensor filter), NaN held over."""
+    X = np.asarray(X, float)
+    if tau_s <= 0:
+        return X.copy()
+    out = np.empty_like(X)
+    y = X[0].copy()
+    out[0] = y
+    a = -np.expm1(-np.diff(time_s) / tau_s)
+    for k in range(1, len(X)):
+        x = X[k]
+        ok = np.isfinite(x) & np.isfinite(y)
+        y = np.where(ok, y + a[k - 1] * (x - y), np.where(np.isfinite(x), x, y))
+        out[k] = y
+    return out
+
+
+def fit_mlr(T_degC: np.ndarray, drift_um: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients of ``drift = c0 + Σ c_i T_i`` per direction ((1 + n_sensors) × 3)."""
+    X = np.column_stack([np.ones(len(T_degC)), T_degC])
+    coef, *_ = np.linalg.lstsq(X, drift_um, rcond=None)
+    return coef
+
+
+def predict_mlr(coef: np.ndarray, T_degC: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.ones(len(T_degC)), T_degC]) @ coef
+
+
+def rom_outputs(machine, rom, samples, increment_s: float = 300.0, loads_edit=None) -> tuple[np.ndarray, np.ndarray]:
+    """Sensor temperatures [°C] and drift [µm] at the sample times of a trace: the structure model on the trace's
+    own BCs.
+
+    The BCs are the histogram generator's, per ``increment_s`` [s] (``loads_edit(loads)`` may change them);
+    the ROM steps each increment with its loads row held constant (row k+1 over increment k) and the outputs
+    are interpolated linearly to the sample times.
+    """
+    from hybridcomp.histogram.bcs import boundary_conditions
+    from hybridcomp.histogram.increments import increments_from_samples
+
+    loads = boundary_conditions(machine, increments_from_samples(machine, samples, increment_s))
+    if loads_edit is not None:
+        loads = loads_edit(loads)
+    res = rom.simulate(loads, hold="step")
+    at = lambda Y: np.column_stack([np.interp(samples.time_s, loads.time_s, Y[:, j]) for j in range(Y.shape[1])])  # noqa: E731
+    return at(res.sensors_degC), at(res.drift_um)
+
+
+def rom_sensor_temperatures(machine, rom, samples, increment_s: float = 300.0) -> np.ndarray:
+    """Sensor temperatures [°C] at the sample times of a trace (see :func:`rom_outputs`)."""
+    return rom_outputs(machine, rom, samples, increment_s)[0]
+
+
+@dataclass(frozen=True)
+class Models:
+    """What the scenario's monitor knows, built once per machine file and mesh: the FE model, the structure
+    model (saved), the default CDs of the basic load cases and a CD database holding them (activated)."""
+
+    machine: object
+    pose_mm: dict
+    model: object
+    rom: object
+    rom_path: Path
+    default: dict
+    train: object
+    database: Path
+    timings_s: dict
+
+
+def build_models(out_dir, machine_name: str = "vmc800", element_size_mm: float = 80.0, rom_order: int | None = None,
+                 basic_hours: float = 8.0, dt_s: float = 60.0, keep_basis: bool = False) -> Models:
+    """The models of a scenario (see :class:`Models`), written into ``out_dir``."""
+    from hybridcomp.chardiag.cd import pose_key
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.chardiag.fit import fit_cd_set
+    from hybridcomp.chardiag.training import simulate_load_cases, standard_load_cases
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.models import load_machine
+    from hybridcomp.rom import save_rom
+    from hybridcomp.rom.machine import reduce_model
+
+    out = Path(out_dir).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    machine = load_machine(machine_name)
+    pose = machine.default_pose_mm()
+    timings = {}
+    t0 = time.perf_counter()
+    model = build_model(machine, pose, element_size_mm)
+    rom = reduce_model(model, order=rom_order, keep_basis=keep_basis)
+    rom_path = save_rom(out / "structure.rom.npz", rom)
+    timings["reduction_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cases = standard_load_cases(machine, ("basic",), heat_h=basic_hours, cool_h=basic_hours)
+    train = simulate_load_cases(machine, cases, pose, element_size_mm, dt_s=dt_s, model=model)
+    timings["training_s"] = time.perf_counter() - t0
+    default = fit_cd_set(train.columns, machine=machine.name, machine_sha256=machine.sha256, pose_mm=pose,
+                         load_case="basic", signature=train.signature(), source="basic load cases")
+    database = out / "cd_default.db"
+    _fresh_db(database)
+    db = CDDatabase(database)
+    try:
+        db.activate(machine.name, pose_key(pose), db.add_set(default, "basic"), "default CDs of the basic load cases", 0.0)
+    finally:
+        db.close()
+    return Models(machine, pose, model, rom, rom_path, default, train, database, timings)
+
+
+@dataclass(frozen=True)
+class ScenarioResult:
+    """What :func:`run_scenario` produced: metrics per strategy, the Markdown table, events, files, a summary."""
+
+    metrics: dict
+    table: str
+    events: list
+    files: dict
+    summary: dict
+
+
+def _resample_loads(loads, machine, dt_s: float):
+    from hybridcomp.fem.loads import Loads, in_model_order
+
+    L = in_model_order(loads, machine)
+    t = np.arange(L.time_s[0], L.time_s[-1] + 0.5 * dt_s, dt_s)
+    t = t[t <= L.time_s[-1] + 1e-9]
+    V = np.column_stack([np.interp(t, L.time_s, L.values[:, j]) for j in range(L.values.shape[1])])
+    return Loads(t, V, L.names)
+
+
+def planted_air(machine, loads, d: Disturbance):
+    """The loads with the disturbance's air: workspace zones warmer (ramped in over 2 h), every zone swinging."""
+    from hybridcomp.fem.loads import Loads
+
+    V = loads.values.copy()
+    t = loads.time_s - loads.time_s[0]
+    ramp = d.workspace_air_K * np.clip(t / 7200.0, 0.0, 1.0)
+    swing = d.ambient_swing_K * np.sin(2 * np.pi * t / (d.swing_period_h * 3600.0))
+    for z in machine.zones:
+        j = loads.names.index(f"{z.name}_degC")
+        V[:, j] += swing + (ramp if z.air == "workspace" else 0.0)
+    return Loads(loads.time_s, V, loads.names)
+
+
+def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=None, machine_name: str = "vmc800",
+                 element_size_mm: float = 80.0, rom_order: int | None = None, basic_hours: float = 8.0,
+                 day_hours: float | None = None, dt_s: float = 60.0, real_dt_s: float = 20.0,
+                 trace_rate_hz: float = 1.0, sensor_noise_K: float = 0.02, probe_every_h: float | None = 4.0,
+                 probe_noise_um: float = 0.3, strategies: Sequence[str] = STRATEGIES, plot: bool = True,
+                 keep_basis: bool = False, seed: int = 0, monitor_overrides: dict | None = None,
+                 models: Models | None = None) -> ScenarioResult:
+    """Run the hybrid scenario end to end (see the module docstring) and write table, plot and events.
+
+    Parameters
+    ----------
+    out_dir : output directory
+    disturbance : what the real machine does that the models do not know
+    real_machine : the real machine's ``models.Machine`` (default: the models' machine with the disturbance's
+        source edits)
+    machine_name : the machine of the models (ROM, CDs, generation): a bundled name or a machine file
+    element_size_mm : FE element size of the real machine and of every model [mm]
+    rom_order : order of the structure model (None: reduce to the default tolerances)
+    basic_hours : heating hours of each basic load case of the default CDs [h] (as many cooling hours follow)
+    day_hours : replay only the first hours of the day [h] (default the whole 16 h)
+    dt_s : evaluation grid and the models' loads step [s]
+    real_dt_s : load step of the real machine's FE run [s] (finer than the monitor's 60 s histograms)
+    trace_rate_hz : sampling rate of the trace the monitor replays [Hz]
+    sensor_noise_K : noise of the sensors the monitor reads [K]
+    probe_every_h : a probed drift (noise ``probe_noise_um``) at the start and every this many hours [h]; None:
+        no probing
+    strategies : daemon strategies to run (``"hybrid"``, ``"observer"``)
+    keep_basis : keep the ROM's projection basis in ``structure.rom.npz`` (for a diagnosis on the same model)
+    seed : seed of the sensor and probe noise
+    monitor_overrides : extra sections for the daemon's configuration (``{"validity": {...}}``)
+    models : the models, built by :func:`build_models` (default: built here, into ``out_dir``); several
+        disturbances of one machine share them
+
+    Besides the table, plot and events, ``recorded.csv`` holds what a measuring campaign would have recorded
+    on the real machine: the trace (positions, spindle speed, workshop air), the sensors and the drift.
+    """
+    from hybridcomp.chardiag.cd import pose_key
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.fem.transient import simulate
+    from hybridcomp.histogram.bcs import boundary_conditions
+    from hybridcomp.histogram.increments import increments_from_trace
+    from hybridcomp.histogram.scenarios import JOBSHOP_HOURS, write_scenario
+    from hybridcomp.models import load_machine
+
+    for s in strategies:
+        if s not in STRATEGIES:
+            raise ValueError(f"unknown strategy {s!r} (strategies: {', '.join(STRATEGIES)})")
+    if day_hours is not None and not 0 < day_hours <= JOBSHOP_HOURS:
+        raise ValueError(f"day_hours must be in (0, {JOBSHOP_HOURS:g}], got {day_hours}")
+    out = Path(out_dir).resolve()  # once, against the caller's working directory (paths cross into the worker)
+    out.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    if models is None:
+        models = build_models(out, machine_name, element_size_mm, rom_order, basic_hours, dt_s, keep_basis)
+    timings = dict(models.timings_s)
+    machine, pose, model, rom = models.machine, models.pose_mm, models.model, models.rom
+    pkey = pose_key(pose)
+    if real_machine is None:
+        real_machine = (load_machine(real_machine_file(machine, disturbance, out / "real_machine.toml"))
+                        if disturbance.machine_edits() else machine)
+
+    # 1. the day as the controller records it, the models' BCs of it, and the real machine driven by the BCs of
+    #    the same record at a finer step, with the disturbance's air
+    t0 = time.perf_counter()
+    files = write_scenario("jobshop", machine, out / "scenario", rate_hz=trace_rate_hz)
+    t_end = (day_hours or JOBSHOP_HOURS) * 3600.0
+    controller = out / "jobshop_controller_trace.csv"
+    _write_trace(files["jobshop_trace.csv"], controller, trace_rate_hz, t_end=t_end)
+    loads = _resample_loads(boundary_conditions(machine, increments_from_trace(controller, machine, dt_s)), machine, dt_s)
+    real_model = model if real_machine.sha256 == machine.sha256 else build_model(real_machine, pose, element_size_mm)
+    real_loads = _resample_loads(boundary_conditions(real_machine, increments_from_trace(controller, real_machine,
+                                                                                         real_dt_s)),
+                                 real_machine, real_dt_s)
+    real_loads = planted_air(real_machine, real_loads, disturbance)
+    res = simulate(real_model, real_loads.time_s, real_loads.as_inputs(real_machine.reference_temperature_degC),
+                   theta=0.5)
+    t = loads.time_s
+    T_real = np.column_stack([np.interp(t, res.time_s, res.sensors_degC[:, j]) for j in range(res.sensors_degC.shape[1])])
+    truth = np.column_stack([np.interp(t, res.time_s, res.drift_um[:, j]) for j in range(3)])
+    timings["real_machine_s"] = time.perf_counter() - t0
+    log.info("real machine: %d nodes, %d steps, |drift| up to %.1f µm", real_model.n, res.time_s.size, np.abs(truth).max())
+
+    # 2. what the controller measures (sensors with noise and the fault, probes) and a measuring campaign records
+    sensor_names = [s.name for s in machine.sensors]
+    trace = out / "jobshop_monitor_trace.csv"
+    measured = _write_trace(controller, trace, trace_rate_hz, fe=(res.time_s, res.sensors_degC, res.drift_um),
+                            sensor_names=sensor_names, noise_K=sensor_noise_K, rng=rng, fault=disturbance.sensor_fault,
+                            probe_every_h=probe_every_h, probe_noise_um=probe_noise_um)
+    recorded = out / "recorded.csv"
+    _write_recorded(trace, recorded, res, sensor_names)
+
+    # 5. the daemon on the replay, once per strategy, each with its own copy of the database
+    preds, runs, events = {}, {}, {}
+    for strategy in strategies:
+        t0 = time.perf_counter()
+        db_path = out / f"cd_{strategy}.db"
+        _fresh_db(db_path)
+        shutil.copyfile(models.database, db_path)
+        runs[strategy] = _replay(strategy, str(machine.source), db_path, models.rom_path, trace, pose, pkey, machine,
+                                 rom, element_size_mm, monitor_overrides)
+        timings[f"{strategy}_s"] = time.perf_counter() - t0
+        tt, off = runs[strategy]["time_s"], runs[strategy]["offsets_um"]
+        k = np.clip(np.searchsorted(tt, t, side="right") - 1, 0, len(tt) - 1)
+        preds[NAMES[strategy]] = off[k]
+        events[strategy] = runs[strategy]["events"]
+
+    # 6. the other strategies (the CDs and the regression read the sensors through the daemon's low-pass)
+    T_cd = at_times(measured["time_s"], measured["filtered_degC"], t)
+    cols = {f"{n}_degC": T_cd[:, j] for j, n in enumerate(sensor_names)}
+    cols |= {f"{a.name.lower()}_mm": np.full(t.size, float(pose[a.name])) for a in machine.axes}
+    static = np.column_stack([models.default[d].evaluate_table(cols)[0] for d in ("X", "Y", "Z")])
+    rom_drift = rom.simulate(loads).drift_um  # what the models know: no disturbance, no sensor
+    T_train = np.column_stack([models.train.columns[f"{s}_degC"] for s in sensor_names])
+    D_train = np.column_stack([models.train.columns[d] for d in DIRS])
+    mlr = predict_mlr(fit_mlr(T_train, D_train), T_cd)
+    preds = {"no compensation": np.zeros_like(truth), "static default CDs": static, **preds, "ROM direct": rom_drift,
+             "MLR on sensors": mlr}
+    metrics = {k_: drift_metrics(t, truth - p) for k_, p in preds.items()}
+    day = 16.0 * 3600.0 / max(t[-1] - t[0], 1.0)
+    for strategy, r in runs.items():
+        m = metrics[NAMES[strategy]]
+        m["activations"] = r["activations"]
+        m["activations_per_16h"] = r["activations"] * day
+        m["largest_step_um"] = r["largest_step_um"]
+        m["generations"] = r["generations"]
+    table = metrics_table(metrics)
+
+    # 7. files: table, per-minute residuals, events, plot
+    (out / "table.md").write_text(table + "\n")
+    with (out / "residuals.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["time_s", *DIRS, *(f"{s.replace(' ', '_')}_{d}" for s in preds for d in DIRS)])
+        for i in range(t.size):
+            w.writerow([f"{t[i]:g}", *(f"{v:.4f}" for v in truth[i]), *(f"{v:.4f}" for p in preds.values() for v in p[i])])
+    all_events = [dict(e, strategy=s) for s, ev in events.items() for e in ev]
+    (out / "events.json").write_text(jsonio.dumps(all_events, indent=1))
+    plot_path = _plot(out / "scenario.png", t, truth, preds, events.get("hybrid", []),
+                      f"{disturbance.name}: {disturbance.description}") if plot else None
+    m3 = {k_: v["3d"]["rms_um"] for k_, v in metrics.items()}
+    summary = {
+        "disturbance": {"name": disturbance.name, "description": disturbance.description},
+        "element_size_mm": element_size_mm, "nodes": int(model.n), "rom_order": rom.order,
+        "models_machine": str(machine.source), "real_machine": str(real_machine.source), "day_hours": float(t[-1] / 3600),
+        "sensor_noise_K": sensor_noise_K, "probe_every_h": probe_every_h,
+        "rms_3d_um": m3,
+        "switches": {s: r["activations"] for s, r in runs.items()},
+        "generations": {s: r["generations"] for s, r in runs.items()},
+        "largest_step_um": {s: r["largest_step_um"] for s, r in runs.items()},
+        "timings_s": {**timings, "total": time.perf_counter() - t_all},
+    }
+    (out / "summary.json").write_text(jsonio.dumps(summary, indent=1))
+    return ScenarioResult(metrics, table, all_events,
+                          {"table": out / "table.md", "plot": plot_path, "events": out / "events.json",
+                           "residuals": out / "residuals.csv", "recorded": recorded, "rom": models.rom_path,
+                           "controller": controller, "trace": trace},
+                          summary)
+
+
+def _fresh_db(path: Path) -> None:
+    for suffix in ("", "-wal", "-shm"):
+        Path(str(path) + suffix).unlink(missing_ok=True)
+
+
+def _replay(strategy, machine_name, db_path, rom_path, trace, pose, pkey, machine, rom, element_size_mm, overrides):
+    """One daemon run on the replay: offsets, activations, generations, the largest step, the events."""
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.config import parse_config
+    from hybridcomp.monitor.daemon import Monitor, Regenerator, run_monitor
+    from hybridcomp.monitor.sinks import MemorySink
+    from hybridcomp.monitor.sources import ReplaySource
+    from hybridcomp.monitor.store import MonitorStore
+
+    db_path, rom_path, trace = Path(db_path).resolve(), Path(rom_path).resolve(), Path(trace).resolve()
+    data = {
+        "monitor": {"machine": machine_name, "database": str(db_path), "rom": str(rom_path), "pose_mm": dict(pose)},
+        "compensation": {"strategy": strategy},
+        "source": {"kind": "replay", "path": str(trace), "speed": 0},
+        "sink": {"kind": "none"},
+        "regeneration": {"enabled": True, "timeout_s": 1800.0, "element_size_mm": element_size_mm},
+    }
+    for sec, kv in (overrides or {}).items():
+        data.setdefault(sec, {}).update(kv)
+    cfg = parse_config(data, f"scenario ({strategy})", db_path.parent)
+    db = CDDatabase(db_path)
+    try:
+        mon = Monitor(cfg, machine, rom, db, pkey)
+        sink = MemorySink()
+        asyncio.run(run_monitor(cfg, mon, ReplaySource(trace, machine, 0.0), sink,
+                                regenerator=Regenerator(cfg.regeneration.job, cfg.regeneration.timeout_s),
+                                await_regeneration=True))
+        ev = [{"kind": e.kind, "machine_time_s": e.machine_time_s, **_event_brief(e)} for e in MonitorStore(db).events()
+              if e.kind in ("activation", "generation", "observer", "probe")
+              or (e.kind == "decision" and e.payload["action"] != "keep")]
+    finally:
+        db.close()
+    off = np.array([[r.dx_um, r.dy_um, r.dz_um] for r in sink.rows])
+    return {"time_s": np.array([r.time_s for r in sink.rows]), "offsets_um": off, "events": ev,
+            "activations": sum(1 for e in ev if e["kind"] == "activation"),
+            "generations": sum(1 for e in ev if e["kind"] == "generation" and e.get("status") == "finished"),
+            "largest_step_um": largest_step_um(off)}
+
+
+def _event_brief(e) -> dict:
+    p = e.payload
+    if e.kind == "activation":
+        return {"ids": p.get("ids"), "reason": p.get("reason")}
+    if e.kind == "generation":
+        return {"status": p.get("status"), "ids": p.get("ids"), "error": p.get("error"), "wall_s": p.get("wall_s"),
+                "notes": p.get("notes")}
+    if e.kind in ("observer", "probe"):
+        return dict(p)
+    return {"action": p.get("action"), "reason": p.get("reason"), "error_um": p.get("error_um"),
+            "delta_T_K": p.get("delta_T_K")}
+
+
+def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, fe=None, sensor_names=(),
+                 noise_K: float = 0.0, rng=None, fault=None, probe_every_h=None, probe_noise_um: float = 0.3) -> dict:
+    """Every sample of ``src`` on the ``rate_hz`` grid up to ``t_end`` [s]; with ``fe`` = (times, sensors, drift)
+    of the real machine, the sensors it measures (noise, fault) and, every ``probe_every_h``, a probed drift.
+
+    Returns the measured sensors at the samples and their low-pass (the daemon's filter), per sample time.
+    """
+    with src.open() as fi:
+        header = fi.readline().strip().split(",")
+        ti = header.index("time_s")
+        rows, next_t = [], -math.inf
+        for line in fi:
+            f = line.strip().split(",")
+            tt = float(f[ti])
+            if tt > t_end + 1e-9:
+                break
+            if tt + 1e-9 < next_t:
+                continue
+            next_t = tt + 1.0 / rate_hz
+            rows.append((tt, f))
+    if fe is None:
+        with dst.open("w") as fo:
+            fo.write(",".join(header) + "\n")
+            fo.writelines(",".join(f) + "\n" for _, f in rows)
+        return {}
+    times = np.array([r[0] for r in rows])
+    t_fe, T_fe, D_fe = fe
+    T = np.column_stack([np.interp(times, t_fe, T_fe[:, j]) for j in range(T_fe.shape[1])])
+    M = T + rng.normal(0.0, noise_K, T.shape) if noise_K > 0 else T.copy()
+    if fault is not None:
+        name, from_h, kind = fault
+        j = list(sensor_names).index(name)
+        k0 = int(np.searchsorted(times, from_h * 3600.0))
+        M[k0:, j] = M[k0, j] if kind == "stuck" else math.nan
+    P = np.full((len(times), 3), math.nan)
+    if probe_every_h:
+        D = np.column_stack([np.interp(times, t_fe, D_fe[:, j]) for j in range(3)])
+        for k in np.unique(np.searchsorted(times, np.arange(times[0], times[-1], probe_every_h * 3600.0))):
+            P[k] = D[k] + rng.normal(0.0, probe_noise_um, 3)
+    names = [f"{n}_degC" for n in sensor_names] + (list(PROBE_COLUMNS) if probe_every_h else [])
+    with dst.open("w") as fo:
+        fo.write(",".join(header + names) + "\n")
+        for (tt, f), m, p in zip(rows, M, P):
+            probe = [("" if math.isnan(v) else f"{v:.4f}") for v in p] if probe_every_h else []
+            fo.write(",".join(f + [("" if math.isnan(v) else f"{v:.4f}") for v in m] + probe) + "\n")
+    from hybridcomp.monitor.config import MonitorConfig
+
+    return {"time_s": times, "degC": M, "filtered_degC": low_pass(times, M, MonitorConfig.sensor_filter_s)}
+
+
+def at_times(times: np.ndarray, X: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Rows of ``X`` (at ``times``) at the times ``t``: the last sample at or before each."""
+    k = np.clip(np.searchsorted(times, np.asarray(t) + 1e-9, side="right") - 1, 0, len(times) - 1)
+    return X[k]
+
+
+def _write_recorded(trace: Path, dst: Path, res, sensor_names) -> None:
+    """The monitor's trace (without probe columns) plus the real machine's drift: a measuring campaign's file."""
+    with trace.open() as fi, dst.open("w") as fo:
+        header = fi.readline().strip().split(",")
+        keep = [i for i, h in enumerate(header) if h not in PROBE_COLUMNS]
+        ti = header.index("time_s")
+        fo.write(",".join([header[i] for i in keep] + list(DIRS)) + "\n")
+        lines = [line.strip().split(",") for line in fi]
+        times = np.array([float(f[ti]) for f in lines])
+        D = np.column_stack([np.interp(times, res.time_s, res.drift_um[:, j]) for j in range(3)])
+        for f, d in zip(lines, D):
+            fo.write(",".join([f[i] for i in keep] + [f"{v:.4f}" for v in d]) + "\n")
+
+
+def _plot(path: Path, t, truth, preds, events, title: str):
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        log.warning("matplotlib is missing (pip install 'hybridcomp[plot]'): no scenario plot")
+        return None
+    fig, axes = plt.subplots(3, 1, figsize=(10, 9), sharex=True)
+    h = t / 3600.0
+    for j, (ax, d) in enumerate(zip(axes, DIRS)):
+        for name, p in preds.items():
+            if name == "no compensation":
+                continue
+            ax.plot(h, truth[:, j] - p[:, j], label=name, lw=1.3 if name == "hybrid monitor" else 0.9)
+        ax.set_ylabel(f"residual {d.replace('_um', '')} [µm]")
+        ax.grid(alpha=0.3)
+        for e in events:
+            if e["kind"] == "activation" and e["machine_time_s"]:
+                ax.axvline(e["machine_time_s"] / 3600.0, color="k", lw=0.5, alpha=0.4)
+    axes[0].legend(ncol=3, fontsize=8)
+    axes[-1].set_xlabel("time [h] (vertical lines: CD set activations by the hybrid monitor)")
+    fig.suptitle(f"job-shop day on the FE real machine — {title}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
