@@ -28,9 +28,9 @@ import os
 import statistics
 import time
 
-from _table import table  # benchmarks/_table.py, beside this script
-
 from hybridcomp.models import jsonio
+
+from _table import table  # benchmarks/_table.py, beside this script
 
 
 @contextlib.contextmanager

@@ -27,9 +27,9 @@ import time
 
 import numpy as np
 
-from _table import table  # benchmarks/_table.py, beside this script
-
 from hybridcomp.models import jsonio
+
+from _table import table  # benchmarks/_table.py, beside this script
 
 
 def synthetic(n: int, d: int, seed: int = 0):

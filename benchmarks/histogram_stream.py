@@ -138,7 +138,8 @@ def main(argv=None) -> int:
         size_MB = path.stat().st_size / 1e6
         runs = []
         for _ in range(args.repeats):
-            cmd = [sys.executable, __file__, "--_process", str(path), "--machine", args.machine, "--increment", str(args.increment)]
+            cmd = [sys.executable, __file__, "--_process", str(path), "--machine", args.machine,
+                   "--increment", str(args.increment)]
             if args.chunk_rows:
                 cmd += ["--chunk-rows", str(args.chunk_rows)]
             res = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
@@ -146,9 +147,11 @@ def main(argv=None) -> int:
                 print(res.stderr, file=sys.stderr)
                 return 1
             runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
-        med = {k: float(np.median([r[k] for r in runs])) for k in ("read_and_integrate_s", "bcs_and_write_s", "processing_s", "peak_rss_MB")}
+        med = {k: float(np.median([r[k] for r in runs]))
+               for k in ("read_and_integrate_s", "bcs_and_write_s", "processing_s", "peak_rss_MB")}
         r0 = runs[0]
-        print(f"\nhistogram stream benchmark: {r0['rows']:,} rows ({size_MB:.0f} MB CSV), {args.days} days at {args.rate_hz:g} Hz, "
+        print(f"\nhistogram stream benchmark: {r0['rows']:,} rows ({size_MB:.0f} MB CSV), "
+              f"{args.days} days at {args.rate_hz:g} Hz, "
               f"{r0['increments']} increments of {args.increment:g} s; median of {len(runs)} fresh process(es)")
         print(f"{'stage':<34}{'value':>12}")
         print(f"{'generation (not timed) [s]':<34}{t_gen:>12.1f}")

@@ -1,4 +1,4 @@
-"""Benchmark: the Krylov reduced model against FE on the demonstrator.
+r"""Benchmark: the Krylov reduced model against FE on the demonstrator.
 
 Measures, on one machine in one run:
 
@@ -21,7 +21,8 @@ exactly from the full modal decomposition (``*_exact``).  Inputs are scaled by t
 the example day (``--pymor-input-scaling range``) or not at all (``unit``); outputs by 1/tolerance.
 ``--figure F.png`` plots the errors against order (``--plot-from`` replots an earlier run's output)::
 
-    python benchmarks/rom.py --pymor-only --pymor-orders 20,40,60,80 --irka-maxit 0 --figure benchmarks/figures/rom_h2_vs_order.png
+    python benchmarks/rom.py --pymor-only --pymor-orders 20,40,60,80 --irka-maxit 0 \
+        --figure benchmarks/figures/rom_h2_vs_order.png
 """
 
 from __future__ import annotations
@@ -39,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from _table import table  # benchmarks/_table.py, beside this script
-
 from hybridcomp.models import jsonio
+
+from _table import table  # benchmarks/_table.py, beside this script
 
 
 def max_err(a, b) -> float:
@@ -295,13 +296,20 @@ def main(argv=None) -> int:
     Y, _ = rom.integrate(t, U)
     s_rom, d_rom = split_outputs(rom, Y)
     acc = [
-        {"comparison": "FE CN 60 s vs FE CN fine (FE time error)", "sensor_K": max_err(fe_cn.sensors_degC, fine_s), "drift_um": max_err(fe_cn.drift_um, fine_d)},
-        {"comparison": "FE BE 60 s vs FE CN fine (FE time error)", "sensor_K": max_err(fe_be.sensors_degC, fine_s), "drift_um": max_err(fe_be.drift_um, fine_d)},
+        {"comparison": "FE CN 60 s vs FE CN fine (FE time error)",
+         "sensor_K": max_err(fe_cn.sensors_degC, fine_s), "drift_um": max_err(fe_cn.drift_um, fine_d)},
+        {"comparison": "FE BE 60 s vs FE CN fine (FE time error)",
+         "sensor_K": max_err(fe_be.sensors_degC, fine_s), "drift_um": max_err(fe_be.drift_um, fine_d)},
         {"comparison": "ROM (CN 60 s) vs FE CN 60 s (reduction error)",
-         **dict(zip(("sensor_K", "drift_um"), (max_err(a, b) for a, b in zip(split_outputs(rom, theta_outputs(rom, t, U, 0.5)), (fe_cn.sensors_degC, fe_cn.drift_um)))))},
-        {"comparison": "ROM exact vs FE CN 60 s", "sensor_K": max_err(s_rom, fe_cn.sensors_degC), "drift_um": max_err(d_rom, fe_cn.drift_um)},
-        {"comparison": f"ROM exact vs FE CN {args.fine_dt:g} s", "sensor_K": max_err(s_rom, fine_s), "drift_um": max_err(d_rom, fine_d)},
-        {"comparison": "ROM exact vs FE BE 60 s", "sensor_K": max_err(s_rom, fe_be.sensors_degC), "drift_um": max_err(d_rom, fe_be.drift_um)},
+         **dict(zip(("sensor_K", "drift_um"),
+                    (max_err(a, b) for a, b in zip(split_outputs(rom, theta_outputs(rom, t, U, 0.5)),
+                                                   (fe_cn.sensors_degC, fe_cn.drift_um)))))},
+        {"comparison": "ROM exact vs FE CN 60 s",
+         "sensor_K": max_err(s_rom, fe_cn.sensors_degC), "drift_um": max_err(d_rom, fe_cn.drift_um)},
+        {"comparison": f"ROM exact vs FE CN {args.fine_dt:g} s",
+         "sensor_K": max_err(s_rom, fine_s), "drift_um": max_err(d_rom, fine_d)},
+        {"comparison": "ROM exact vs FE BE 60 s",
+         "sensor_K": max_err(s_rom, fe_be.sensors_degC), "drift_um": max_err(d_rom, fe_be.drift_um)},
     ]
     for r in acc:
         r["sensor_K"] = round(r["sensor_K"], 5)

@@ -1,5 +1,6 @@
-"""Characteristic diagrams (CDs): training data from the FE model, input selection, regression, XML with a
-schema, the CD database and the CNC export.
+"""Characteristic diagrams (CDs) and what they need around them.
+
+Training data from the FE model, input selection, regression, XML with a schema, the CD database and the CNC export:
 
 * :mod:`hybridcomp.chardiag.cd` — :class:`CharDiagram` (evaluation, vectorised and single-point), :class:`CDSet`
 * :mod:`hybridcomp.chardiag.fit` — input selection and the sparse regularised least-squares fit

@@ -258,8 +258,11 @@ class CharDiagram:
 
     @cached_property
     def _fast(self) -> tuple[list, list]:
-        """Plans for evaluate_point: 1-D terms as (name, low, inverse spacing, last cell, values); other terms
-        as (names, lows, inverse spacings, last cells, strides, flat values)."""
+        """Plans for evaluate_point.
+
+        1-D terms as (name, low, inverse spacing, last cell, values); other terms as (names, lows, inverse spacings,
+        last cells, strides, flat values).
+        """
         one, plan = [], []
         for term in self.terms:
             inps = [self.inputs[j] for j in term.inputs]
@@ -337,8 +340,10 @@ def _cells(inp: CDInput, x: np.ndarray):
 
 
 def _term_values(inputs, term: Term, X):
-    """A term's interpolated values (n,) and outside flags: gather the 2^d cell corners, then interpolate
-    linearly along one input after the other."""
+    """A term's interpolated values (n,) and outside flags.
+
+    Gathers the 2^d cell corners, then interpolates linearly along one input after the other.
+    """
     d = len(term.inputs)
     shape = term.values.shape
     strides = [int(np.prod(shape[k + 1:])) for k in range(d)]

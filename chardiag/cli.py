@@ -1,5 +1,7 @@
 """``hybridcomp cd``: training data, CD fit, evaluation and CNC export, and the CD database.
 
+Commands::
+
     hybridcomp cd train-data --machine vmc800 --cases basic,simultaneous --out data.csv
     hybridcomp cd fit data.csv --cases basic_X,basic_Y,basic_Z,basic_spindle --out cds/ [--db cds.sqlite --activate]
     hybridcomp cd eval cds/ --data data.csv --cases simultaneous --out pred.csv
@@ -31,6 +33,7 @@ def _pose(text):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp cd`` actions and their options."""
     sub = p.add_subparsers(dest="cd_command", metavar="ACTION")
     sub.required = True
 
@@ -135,6 +138,7 @@ def _pairs(text: str, what: str) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run a ``hybridcomp cd`` action; returns the exit code (1: no stored set found, 2: bad input)."""
     from hybridcomp.chardiag.cd import CDError
     from hybridcomp.chardiag.db import CDDatabaseError
     from hybridcomp.chardiag.fit import CDFitError
@@ -268,7 +272,7 @@ def _plot_fit(path: Path, cds, data) -> None:
         return
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
     x = np.arange(len(data))
-    for ax, (d, cd) in zip(axes, cds.items()):
+    for ax, cd in zip(axes, cds.values()):
         pred, _ = cd.evaluate_table(data.columns)
         y = data.columns[cd.target]
         ax.plot(x, y, lw=1.2, label=f"FE {cd.target}")
@@ -324,7 +328,7 @@ def _eval(args) -> int:
                 offs, names, header=f"machine {machine.name}, pose {cds.pose_key}")
         else:
             rows = []
-            for d, cd in cd_map.items():
+            for cd in cd_map.values():
                 v, out = cd.evaluate_point(values)
                 rows.append(f"{cd.target} = {v:.4f} µm" + ("  (outside the trained range: clamped)" if out else ""))
             text = "\n".join(rows) + "\n"
@@ -340,7 +344,7 @@ def _eval(args) -> int:
     cols = {"load_case": data.load_case}
     if "time_s" in data.columns:
         cols["time_s"] = data.columns["time_s"]
-    for d, cd in cd_map.items():
+    for cd in cd_map.values():
         pred, outside = cd.evaluate_table(data.columns)
         cols[f"{cd.target[:-3]}_cd_um"] = pred
         cols[f"{cd.target[:-3]}_outside"] = outside.astype(int)

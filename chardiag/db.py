@@ -30,14 +30,14 @@ import time
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
-from hybridcomp.errors import HybridcompError
 from hybridcomp.chardiag.cd import DIRECTIONS, CDSet, CharDiagram, pose_key
 from hybridcomp.chardiag.xmlio import cd_from_bytes, cd_to_bytes
+from hybridcomp.errors import HybridcompError
 from hybridcomp.models import jsonio
 
 log = logging.getLogger(__name__)
@@ -63,7 +63,7 @@ def _sqlalchemy():
 
 def utc_now() -> str:
     """The current UTC time as ISO 8601 text with microseconds (the `created` columns)."""
-    return datetime.now(timezone.utc).isoformat(timespec="microseconds")
+    return datetime.now(UTC).isoformat(timespec="microseconds")
 
 
 def _url(url_or_path: str | Path) -> str:
@@ -205,8 +205,10 @@ class CDDatabase:
     # ------------------------------------------------------------------ plumbing
 
     def write(self, fn, what: str):
-        """Run ``fn(conn)`` in a write transaction, retrying a few times on lock or serialisation conflicts
-        (every writer of this database goes through here, the monitor's store too)."""
+        """Run ``fn(conn)`` in a write transaction, retrying a few times on lock or serialisation conflicts.
+
+        Every writer of this database goes through here, the monitor's store too.
+        """
         sa = self._sa
         delay = 0.05
         for attempt in range(8):
@@ -227,9 +229,11 @@ class CDDatabase:
             conn.execute(self._sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": key})
 
     def _init_schema(self) -> None:
-        """Create the tables, or bring an older schema up to :data:`SCHEMA_VERSION`, in one serialised
-        transaction: two processes opening an old database at once run each migration step once. Migration
-        steps alter existing tables; new tables come from the table definitions."""
+        """Create the tables, or bring an older schema up to :data:`SCHEMA_VERSION`, in one serialised transaction.
+
+        Two processes opening an old database at once run each migration step once. Migration steps alter existing
+        tables; new tables come from the table definitions.
+        """
         sa = self._sa
         meta = self.t["meta"]
 
@@ -400,9 +404,11 @@ class CDDatabase:
 
     def activate(self, machine: str, pose: str, ids: Mapping[str, int], reason: str = "",
                  machine_time_s: float | None = None, event_key: str | None = None) -> int | None:
-        """Make three stored CDs (X, Y, Z) the active set of a pose, atomically, and log an ``activation`` event
-        in the same transaction. Returns the event id (None when ``event_key`` was already logged: then nothing
-        changes)."""
+        """Make three stored CDs (X, Y, Z) the active set of a pose, atomically.
+
+        An ``activation`` event is logged in the same transaction. Returns the event id (None when ``event_key`` was
+        already logged: then nothing changes).
+        """
         sa = self._sa
         cds, act, ev = self.t["cds"], self.t["active"], self.t["events"]
         if set(ids) != set(DIRECTIONS):

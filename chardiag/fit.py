@@ -22,15 +22,15 @@ import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from hybridcomp.errors import HybridcompError
 from hybridcomp import __version__
 from hybridcomp.chardiag.cd import DIRECTIONS, TARGETS, CDError, CDInput, CharDiagram, Term, _term_weights
+from hybridcomp.errors import HybridcompError
 
 log = logging.getLogger(__name__)
 
@@ -90,10 +90,12 @@ class FitOptions:
 
 
 def candidate_inputs(columns: Sequence[str], positions: bool = False) -> list[tuple[str, str]]:
-    """Candidate inputs of a training table by the unit-suffix convention: ``T3_degC`` → ("T3", "degC"),
-    and with ``positions`` also ``x_mm`` → ("X", "mm"); drift (``*_um``), ``time_s`` and anything else are not
-    inputs. Positions are off by default: the FE training data are for one pose, where an axis position only
-    says where the load was, which the temperatures already carry."""
+    """Candidate inputs of a training table by the unit-suffix convention.
+
+    ``T3_degC`` → ("T3", "degC"), and with ``positions`` also ``x_mm`` → ("X", "mm"); drift (``*_um``),
+    ``time_s`` and anything else are not inputs. Positions are off by default: the FE training data are for one
+    pose, where an axis position only says where the load was, which the temperatures already carry.
+    """
     out = []
     for c in columns:
         if c.endswith("_degC"):
@@ -404,7 +406,7 @@ def fit_cd(
         load_case=load_case,
         signature=np.asarray(signature if signature is not None else np.zeros(0), float).copy(),
         t_reference_degC=tuple((k, float(x)) for k, x in t_reference_degC.items()),
-        created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        created=datetime.now(UTC).isoformat(timespec="seconds"),
         software_version=__version__,
     )
     pred, _ = cd.evaluate(X)

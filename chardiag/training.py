@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.fem.loads import Loads, in_model_order, read_loads
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.gcode import increments_from_motion, parse_gcode
@@ -38,6 +37,7 @@ from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S, Increments, inc
 from hybridcomp.histogram.scenarios import basic_programs, jobshop_ambient, jobshop_program
 from hybridcomp.histogram.signature import signatures
 from hybridcomp.histogram.trace import AMBIENT
+from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.models.machine import Machine
 
 log = logging.getLogger(__name__)
@@ -167,8 +167,11 @@ def standard_load_cases(machine: Machine, which: Sequence[str] = STANDARD_CASES,
 
 
 def load_case_from_file(machine: Machine, path: str | Path, increment_s: float = DEFAULT_INCREMENT_S) -> LoadCase:
-    """A load case from a file: G-code (``.nc``, ``.gcode``, ``.ngc``, ``.mpf``), a trace CSV (has ``x_mm`` ...)
-    or a loads CSV (``*_W`` / zone ``*_degC`` columns; positions and signature then unknown)."""
+    """A load case from a file.
+
+    G-code (``.nc``, ``.gcode``, ``.ngc``, ``.mpf``), a trace CSV (has ``x_mm`` ...) or a loads CSV (``*_W`` / zone
+    ``*_degC`` columns; positions and signature then unknown).
+    """
     p = Path(path)
     if not p.is_file():
         raise TrainingDataError(f"{p}: no such file")
@@ -311,8 +314,10 @@ SIGNATURE_PREFIX = "# signature "
 
 
 def write_training_csv(path: str | Path, data: TrainingData) -> Path:
-    """Write a training table as CSV (``load_case`` first); signatures go in ``# signature NAME v1 v2 ...`` lines
-    at the top so the file stays one self-contained table."""
+    """Write a training table as CSV (``load_case`` first).
+
+    Signatures go in ``# signature NAME v1 v2 ...`` lines at the top so the file stays one self-contained table.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     names = list(data.columns)
@@ -328,8 +333,10 @@ def write_training_csv(path: str | Path, data: TrainingData) -> Path:
 
 
 def read_training_csv(path: str | Path) -> TrainingData:
-    """Read a training table (as written by :func:`write_training_csv`, or any CSV with the unit-suffixed columns;
-    ``load_case`` is optional)."""
+    """Read a training table.
+
+    As written by :func:`write_training_csv`, or any CSV with the unit-suffixed columns (``load_case`` is optional).
+    """
     path = Path(path)
     if not path.is_file():
         raise TrainingDataError(f"{path}: no such file")

@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 from lxml import etree
 
-from hybridcomp.errors import HybridcompError
 from hybridcomp.chardiag.cd import CDError, CDInput, CharDiagram, Term
+from hybridcomp.errors import HybridcompError
 
 NS = "urn:hybridcomp:characteristic-diagram:1"
 FORMAT_VERSION = 1
 MAX_BYTES = 16 * 1024 * 1024
-_Q = "{%s}" % NS
+_Q = f"{{{NS}}}"
 
 
 class CDXmlError(HybridcompError, ValueError):
@@ -50,6 +50,7 @@ def _f(v: float) -> str:
 
 
 def cd_to_element(cd: CharDiagram) -> etree._Element:
+    """The CD as an XML element tree (not yet validated: see :func:`cd_to_bytes`)."""
     E = lambda tag, **attrs: etree.Element(_Q + tag, {k: str(v) for k, v in attrs.items()})  # noqa: E731
     root = etree.Element(_Q + "characteristicDiagram", {"formatVersion": str(FORMAT_VERSION)}, nsmap={None: NS})
     root.append(E("machine", name=cd.machine, sha256=cd.machine_sha256))

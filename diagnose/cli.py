@@ -14,6 +14,7 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp diagnose`` options."""
     p.description = (
         "Simulate a measured dataset with the machine's reduced model, analyse the residuals (RMS, P2P, fit %, "
         "E_P95(range), cross-correlation), fit a library of named physical effects by bounded least squares, select "
@@ -25,7 +26,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, type=Path, metavar="MEASURED.csv",
                    help="measured dataset: time_s, heat inputs <input>_W, zone air <zone>_degC (or Tamb_degC, Tws_degC), "
                    "measured sensors <sensor>_degC and dx_um, dy_um, dz_um (unit-suffix names; other names via --map); "
-                   "or a trace (time_s, x_mm ..., spindle_rpm, sensors, drift), turned into heat inputs by the histogram generator")
+                   "or a trace (time_s, x_mm ..., spindle_rpm, sensors, drift), turned into heat inputs by the histogram "
+                   "generator")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
     p.add_argument("--map", type=Path, metavar="MAP.toml",
                    help="column map: [columns] project_name = \"csv column\", optional [scale] project_name = factor")
@@ -51,6 +53,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``hybridcomp diagnose``; returns the exit code (2: bad input, named on stderr)."""
     from hybridcomp.diagnose.data import DatasetError, parse_split, read_dataset
     from hybridcomp.models.machine import MachineFileError
 

@@ -7,11 +7,11 @@ import time
 
 import numpy as np
 
-from hybridcomp.fem.blas import single_blas_thread
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, parse_split
 from hybridcomp.diagnose.effects import library
 from hybridcomp.diagnose.problem import body_drift_rows, build_problem, with_body_rows
 from hybridcomp.diagnose.selection import Diagnosis, select
+from hybridcomp.fem.blas import single_blas_thread
 
 log = logging.getLogger(__name__)
 
@@ -85,8 +85,10 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
 
 
 def dataset_from_trace(path, machine, increment_s: float = 60.0, raw: Dataset | None = None) -> Dataset:
-    """A measured trace (``time_s``, axis positions ``x_mm`` …, ``spindle_rpm``, measured ``Tamb_degC``, sensors
-    ``T1_degC`` …, drift ``dx_um`` …) turned into a diagnosis dataset.
+    """A measured trace turned into a diagnosis dataset.
+
+    The trace: ``time_s``, axis positions ``x_mm`` …, ``spindle_rpm``, measured ``Tamb_degC``, sensors
+    ``T1_degC`` …, drift ``dx_um`` ….
 
     The histogram generator makes the heat inputs and zone air per increment (its loads-CSV contract: values at
     the trace start and at every increment end); the measured channels are interpolated to those times.
@@ -98,9 +100,8 @@ def dataset_from_trace(path, machine, increment_s: float = 60.0, raw: Dataset | 
     increment_s : histogram increment [s]
     raw : the trace file already read as a dataset (its own column names), if the caller has it
     """
-    from hybridcomp.histogram import boundary_conditions, increments_from_trace
-
     from hybridcomp.diagnose.data import read_dataset
+    from hybridcomp.histogram import boundary_conditions, increments_from_trace
 
     inc = increments_from_trace(path, machine, increment_s)
     loads = boundary_conditions(machine, inc)
@@ -115,8 +116,11 @@ def dataset_from_trace(path, machine, increment_s: float = 60.0, raw: Dataset | 
 
 
 def read_measured(path, machine, column_map=None, increment_s: float = 60.0) -> Dataset:
-    """Read a measured dataset for the model mode: a loads-form CSV (heat inputs ``*_W``) as it is, a trace (axis
-    positions, no heat inputs) through the histogram generator (:func:`dataset_from_trace`)."""
+    """Read a measured dataset for the model mode.
+
+    A loads-form CSV (heat inputs ``*_W``) as it is, a trace (axis positions, no heat inputs) through the histogram
+    generator (:func:`dataset_from_trace`).
+    """
     from hybridcomp.diagnose.data import read_dataset
     from hybridcomp.histogram.trace import position_column
 
@@ -131,5 +135,6 @@ def read_measured(path, machine, column_map=None, increment_s: float = 60.0) -> 
 
 
 def channel_residuals(d: Diagnosis) -> dict[str, np.ndarray]:
+    """The residual per channel (measured minus the extended model), over all rows."""
     p = d.problem
     return {c: p.Y[:, k] - d.Y_after[:, k] for k, c in enumerate(p.channels)}

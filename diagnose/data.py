@@ -253,11 +253,13 @@ def parse_split(spec: str, time_s: np.ndarray) -> Split:
     train = (t >= lo) & (t < hi) if hi < t[-1] else (t >= lo)
     val = ~train
     if train.sum() < MIN_TRAINING_SAMPLES:
-        raise DatasetError(f"split {spec!r}: training part has {int(train.sum())} samples, at least {MIN_TRAINING_SAMPLES} needed")
+        raise DatasetError(f"split {spec!r}: training part has {int(train.sum())} samples, "
+                           f"at least {MIN_TRAINING_SAMPLES} needed")
     need = max(MIN_VALIDATION_SAMPLES, int(math.ceil(MIN_VALIDATION_FRACTION * t.size)))
     if val.sum() < need:
         raise DatasetError(
-            f"split {spec!r}: validation part has {int(val.sum())} samples ({(t[val][-1] - t[val][0]) / 3600 if val.sum() > 1 else 0:.3g} h); "
+            f"split {spec!r}: validation part has {int(val.sum())} samples "
+            f"({(t[val][-1] - t[val][0]) / 3600 if val.sum() > 1 else 0:.3g} h); "
             f"at least {need} samples ({MIN_VALIDATION_SAMPLES} and {MIN_VALIDATION_FRACTION:.0%} of the record) are needed "
             "to measure the gain on data the fit has not seen"
         )

@@ -23,7 +23,7 @@ its coefficient and the drop of the residual sum of squares), so a search of a f
 The validation part takes part in the selection, so its fit is an optimistic estimate of a fresh dataset's.
 The *selection check* says by how much: it repeats the whole selection on the first half of the validation
 part only and scores the result on the second half, which took no part in it.
-"""
+"""  # noqa: E501 - the rows of the table above do not wrap
 
 from __future__ import annotations
 
@@ -76,8 +76,11 @@ class ChannelModel:
 
 @dataclass(frozen=True)
 class DataOnlyDiagnosis:
-    """Per channel: the static regression of all temperatures (reference), the BIC-selected regression (the
-    model under test), and the extended model with its named extensions and gains."""
+    """Per channel: the reference, the model under test and the extended model.
+
+    The static regression of all temperatures is the reference, the BIC-selected regression the model under test;
+    the extended model comes with its named extensions and gains.
+    """
 
     time_s: np.ndarray
     Y: dict
@@ -149,14 +152,20 @@ def candidate_terms(ds: Dataset, temps: list[str]) -> list[Term]:
 
 
 def _bic_rss(rss, n: int, k: int):
-    """BIC of a least-squares fit on ``n`` rows with ``k`` parameters.  (Dividing ``n`` by the residual's
-    decorrelation length, tried on the spindle test, selected fewer inputs and predicted the validation part worse.)"""
+    """BIC of a least-squares fit on ``n`` rows with ``k`` parameters.
+
+    (Dividing ``n`` by the residual's decorrelation length, tried on the spindle test, selected fewer inputs and
+    predicted the validation part worse.)
+    """
     return n * np.log(np.maximum(rss, 1e-300) / n) + k * np.log(n)
 
 
 class _Library:
-    """The regressor columns a search draws from (sensors first, then the extension terms), and their
-    autoregressive versions (every column through one first-order lag), made once per lag and kept."""
+    """The regressor columns a search draws from, and their autoregressive versions.
+
+    Sensors first, then the extension terms; the autoregressive versions (every column through one first-order lag)
+    are made once per lag and kept.
+    """
 
     def __init__(self, time_s: np.ndarray, terms: list[Term]):
         self.time_s = time_s
@@ -191,9 +200,12 @@ class _State:
 
 
 class _Scorer:
-    """Training BIC and validation fit of models on one channel; :meth:`additions` scores every one-column
-    extension of a model at once (the new column's part orthogonal to the model's columns on the training rows
-    gives its least-squares coefficient and the drop of the residual sum of squares in closed form)."""
+    """Training BIC and validation fit of models on one channel.
+
+    :meth:`additions` scores every one-column extension of a model at once (the new column's part orthogonal to the
+    model's columns on the training rows gives its least-squares coefficient and the drop of the residual sum of
+    squares in closed form).
+    """
 
     def __init__(self, lib: _Library, y: np.ndarray, train: np.ndarray, validation: np.ndarray, channel: str = "channel"):
         self.lib, self.y, self.tr, self.va = lib, y, train, validation
@@ -241,8 +253,11 @@ class _Scorer:
 
 
 def forward_sensors(scorer: _Scorer, n_sensors: int) -> tuple[int, ...]:
-    """Forward selection of the sensor inputs (the first ``n_sensors`` library columns) by training BIC: the model
-    under test.  Each added input must lower the BIC by ``MIN_BIC_DROP``; at most ``MAX_INPUTS``."""
+    """Forward selection of the sensor inputs by training BIC: the model under test.
+
+    The sensor inputs are the first ``n_sensors`` library columns. Each added input must lower the BIC by
+    ``MIN_BIC_DROP``; at most ``MAX_INPUTS``.
+    """
     idx: tuple[int, ...] = ()
     best = scorer.score(idx, None)[0]
     while len(idx) < MAX_INPUTS:
@@ -257,10 +272,13 @@ def forward_sensors(scorer: _Scorer, n_sensors: int) -> tuple[int, ...]:
 
 def beam_search(scorer: _Scorer, start: tuple[int, ...], droppable: set[int], beam_width: int = BEAM_WIDTH,
                 max_steps: int = 16, min_fit_gain: float = MIN_FIT_GAIN, min_bic_drop: float = MIN_BIC_DROP) -> _State:
-    """Extend the model ``start`` one step at a time (add a library column, drop a ``droppable`` one, or put every
-    regressor through an AR lag); a step is allowed when the training BIC drops by ``min_bic_drop`` and the validation
-    fit rises by ``min_fit_gain`` points.  The ``beam_width`` best models (by validation fit) of each step are extended
-    further; the best model seen is returned.  ``beam_width = 1`` is greedy forward selection."""
+    """Extend the model ``start`` one step at a time, by a beam search.
+
+    A step adds a library column, drops a ``droppable`` one, or puts every regressor through an AR lag; it is allowed
+    when the training BIC drops by ``min_bic_drop`` and the validation fit rises by ``min_fit_gain`` points.  The
+    ``beam_width`` best models (by validation fit) of each step are extended further; the best model seen is returned.
+    ``beam_width = 1`` is greedy forward selection.
+    """
     b0, f0 = scorer.score(start, None)
     best = root = _State(tuple(start), None, b0, f0)
     frontier = [root]
@@ -401,6 +419,7 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
 
 
 def summary(d: DataOnlyDiagnosis) -> dict:
+    """The JSON-ready summary of a data-only diagnosis (validation metrics per channel and the extensions)."""
     va = d.split.validation
     ch = {}
     for c, m in d.extended.items():

@@ -20,8 +20,8 @@ an ``apply`` function that changes a :class:`~hybridcomp.diagnose.problem.Setup`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -125,7 +125,7 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
             continue
         if "power_scale" in kinds:
 
-            def apply(s: Setup, p, cols=list(si.columns)):
+            def apply(s: Setup, p, cols=list(si.columns)):  # noqa: B006 - binds this source's columns, never mutated
                 s.U[:, cols] *= p[0]
 
             out.append(Candidate("power_scale", si.name, f"mis-scaled power of {si.name}", ("factor [-]",), (0.0,), (5.0,),
@@ -133,7 +133,7 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
         if "exponent" in kinds and si.exponent is not None and _varies(si.factor):
             n0 = si.exponent
 
-            def apply(s: Setup, p, cols=list(si.columns), f=si.factor, n0=n0):
+            def apply(s: Setup, p, cols=list(si.columns), f=si.factor, n0=n0):  # noqa: B006 - binds, never mutated
                 old = f**n0
                 ratio = np.where(old > 1e-12, f ** p[0] / np.where(old > 1e-12, old, 1.0), 0.0)
                 s.U[:, cols] *= ratio[:, None]
@@ -180,12 +180,13 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
                 s.out_ops.append(lambda Yc, k=k, a=p[0], b=p[1]: Yc.__setitem__(
                     (slice(None), k), Yc[:, k] + a + b * (problem.time_s - t0) / 3600.0))
 
-            out.append(Candidate("sensor_offset", c, f"offset and drift of channel {c}", (f"offset [{unit}]", f"drift [{unit}/h]"),
+            out.append(Candidate("sensor_offset", c, f"offset and drift of channel {c}",
+                                 (f"offset [{unit}]", f"drift [{unit}/h]"),
                                  (-big, -big / 10), (big, big / 10), (0.0, 0.0), (0.0, 0.0), True, "out", apply))
 
     if "workspace_offset" in kinds and problem.zone_columns("workspace"):
 
-        def apply(s: Setup, p, cols=problem.zone_columns("workspace")):
+        def apply(s: Setup, p, cols=problem.zone_columns("workspace")):  # noqa: B008 - binds the columns once
             s.U[:, cols] += p[0]
 
         out.append(Candidate("workspace_offset", "", "workspace (enclosure) air temperature offset", ("dT [K]",), (-15.0,),

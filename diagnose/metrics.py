@@ -100,8 +100,10 @@ def cross_correlation(res: np.ndarray, sig: np.ndarray, max_lag: int) -> tuple[n
 
 
 def lag_grid(time_s, max_lag_s: float = 4 * 3600.0) -> tuple[float, int]:
-    """Sample interval [s] of a series and the largest lag [samples] its cross-correlations look at: ``max_lag_s``,
-    at most a third of the series."""
+    """Sample interval [s] of a series and the largest lag [samples] its cross-correlations look at.
+
+    The largest lag is ``max_lag_s``, at most a third of the series.
+    """
     t = np.asarray(time_s, float)
     dt = float(np.median(np.diff(t)))
     return dt, max(1, min(int(max_lag_s / dt), t.size // 3))
@@ -140,6 +142,7 @@ def noise_level(y: np.ndarray) -> float:
 
 
 def lag1_autocorrelation(r: np.ndarray) -> float:
+    """Lag-1 autocorrelation of a series about its mean (0 for a constant series)."""
     a = np.asarray(r, float) - np.mean(r)
     den = float(a @ a)
     return float(a[1:] @ a[:-1] / den) if den > 0 else 0.0

@@ -126,7 +126,7 @@ class Problem:
 
 
 def first_order_lag(time_s: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
-    """y' = (u − y)/τ, exact for u linear between samples, starting at y = u[0] (steady) [unit of u]."""
+    """First-order lag y' = (u − y)/τ, exact for u linear between samples, starting at y = u[0] (steady) [unit of u]."""
     u = np.asarray(u, float)
     if tau_s <= 0:
         return u.copy()
@@ -340,4 +340,5 @@ def channel_outputs(problem: Problem, Yraw: np.ndarray) -> np.ndarray:
 
 
 def new_setup(problem: Problem) -> Setup:
+    """An empty :class:`Setup` on a copy of the problem's inputs."""
     return Setup(U=problem.U.copy(), h={})

@@ -79,7 +79,7 @@ def _plots(d: Diagnosis, out: Path, ep: dict, corr: list) -> list[str]:
     plt.close(fig)
     files.append("residuals.png")
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for k, c in enumerate(p.channels):
+    for c in p.channels:
         e = ep[c]
         ax = axes[0 if c.endswith("_degC") else 1]
         line, = ax.loglog(np.array(e["window_s"]) / 3600, np.maximum(e["before"], 1e-6), lw=1, label=f"{c}")

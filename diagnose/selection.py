@@ -67,6 +67,7 @@ def _weighted(problem: Problem, Yhat: np.ndarray) -> np.ndarray:
 
 
 def evaluate(problem: Problem, effects, k: int) -> tuple[Evaluation, np.ndarray]:
+    """Weighted residual energies of the model with ``effects`` (``k`` parameters), and its channels."""
     Yhat = simulate(problem, effects)
     R = _weighted(problem, Yhat)
     tr, va = problem.split.train, problem.split.validation
@@ -146,8 +147,11 @@ def at_bound(c: Candidate, p: np.ndarray, rel: float = 0.01) -> bool:
 
 
 def at_noise_level(problem: Problem, Yhat: np.ndarray, factor: float = NOISE_FACTOR) -> np.ndarray:
-    """Per channel: is the validation residual within ``factor`` × the channel's noise level (or within the model's
-    own accuracy ``problem.tolerance``, whichever is larger)?"""
+    """Per channel, whether the validation residual is at the noise level.
+
+    At the noise level: within ``factor`` × the channel's noise level, or within the model's own accuracy
+    ``problem.tolerance``, whichever is larger.
+    """
     va = problem.split.validation
     r = problem.Y[va] - Yhat[va]
     return np.sqrt(np.mean(r**2, axis=0)) <= np.maximum(factor * problem.sigma, problem.tolerance)
@@ -208,6 +212,7 @@ class Diagnosis:
 
 
 def validation_metrics(problem: Problem, Yhat: np.ndarray) -> dict:
+    """RMS, P2P and fit % per channel on the validation rows."""
     va = problem.split.validation
     return {c: channel_metrics(problem.Y[va, k], Yhat[va, k]) for k, c in enumerate(problem.channels)}
 
@@ -361,5 +366,6 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
 
 
 def residual_rms(problem: Problem, Yhat: np.ndarray) -> dict:
+    """RMS of the residual per channel on the validation rows."""
     va = problem.split.validation
     return {c: rms(problem.Y[va, k] - Yhat[va, k]) for k, c in enumerate(problem.channels)}

@@ -64,8 +64,8 @@ import numpy as np
 from hybridcomp.errors import HybridcompError
 from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.loads import Loads, LoadsFileError, in_model_order, input_columns, read_loads, write_outputs
-from hybridcomp.models.machine import Machine
 from hybridcomp.models.layout import LoadsColumnError
+from hybridcomp.models.machine import Machine
 
 log = logging.getLogger(__name__)
 
@@ -259,8 +259,11 @@ def read_loads_dir(directory: str | Path, machine: Machine) -> dict[str, Loads]:
 
 
 def prepare_cases(cases: Mapping[str, Loads], machine: Machine) -> dict[str, Loads]:
-    """The cases checked and in the machine's input order: names usable as file names, known columns only
-    (a missing heat input is zero power, a missing zone the reference temperature), at least two rows each."""
+    """The cases checked and in the machine's input order.
+
+    Names usable as file names, known columns only (a missing heat input is zero power, a missing zone the reference
+    temperature), at least two rows each.
+    """
     expected = input_columns(machine)
     if not cases:
         raise ValueError("the batch has no load cases")
@@ -602,7 +605,7 @@ def run_batch(
             for name, case in todo.items():
                 try:
                     r = run_case(spec, options, name, case)
-                except Exception as exc:  # noqa: BLE001 - named like the pool's and Dask's failures
+                except Exception as exc:  # named like the pool's and Dask's failures
                     raise BatchError(f"load case {name!r} failed: {exc}") from exc
                 done(r)
         elif executor == "process":

@@ -21,6 +21,7 @@ from hybridcomp.models.machine import MachineFileError, load_machine
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp batch`` actions and their options."""
     sub = p.add_subparsers(dest="batch_command", metavar="ACTION", required=True)
     r = sub.add_parser(
         "run",
@@ -51,6 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run a ``hybridcomp batch`` action; returns the exit code (1: a failed batch, 2: bad input)."""
     from hybridcomp.fem.batch import BatchError, read_loads_dir, run_batch
 
     if args.serial and args.scheduler:

@@ -7,11 +7,12 @@ import sys
 from pathlib import Path
 
 from hybridcomp.fem.loads import example_loads, write_loads
-from hybridcomp.models.machine import MachineFileError, load_machine
 from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models.machine import MachineFileError, load_machine
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp example-loads`` options."""
     add_machine_argument(p)
     p.add_argument("--hours", type=float, default=16.0, help="duration [h] (default 16)")
     p.add_argument("--dt", type=float, default=60.0, help="row spacing [s] (default 60)")
@@ -20,6 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``hybridcomp example-loads``; returns the exit code (2: bad input, named on stderr)."""
     try:
         machine = load_machine(args.machine)
         if not args.hours > 0 or not args.dt > 0:

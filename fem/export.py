@@ -9,11 +9,15 @@ from __future__ import annotations
 import contextlib
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hybridcomp.fem import assembly
 from hybridcomp.fem.model import ThermoElasticModel, _material_arrays
+
+if TYPE_CHECKING:
+    import meshio
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +38,7 @@ def displacement_fields(model: ThermoElasticModel, states_K: list[np.ndarray]) -
     return out
 
 
-def _meshio(model: ThermoElasticModel, point_data: dict) -> "meshio.Mesh":  # noqa: F821
+def _meshio(model: ThermoElasticModel, point_data: dict) -> meshio.Mesh:
     from skfem.io.meshio import to_meshio
 
     m = to_meshio(model.mesh.mesh, point_data=point_data, cell_data={"body": [model.mesh.body_of_element.astype(np.int32)]},

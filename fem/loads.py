@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from hybridcomp.models.layout import (  # noqa: F401 - Loads and in_model_order re-exported for fem's callers
+from hybridcomp.models.layout import (  # Loads and in_model_order re-exported for fem's callers
     DRIFT_COLUMNS,
     Loads,
     LoadsColumnError,
@@ -36,8 +35,10 @@ def input_columns(machine: Machine) -> tuple[str, ...]:
 
 
 def full_power_inputs(machine: Machine) -> np.ndarray:
-    """Model inputs with every source at its full power [W] (a moving source spread evenly over its
-    rail segments) and every air temperature at the reference (rise 0 K), in ``input_columns`` order."""
+    """Model inputs with every source at its full power [W] and every air temperature at the reference.
+
+    A moving source is spread evenly over its rail segments; the air rises are 0 K; in ``input_columns`` order.
+    """
     layout = machine.layout()
     u = np.zeros(layout.n_inputs)
     for s in machine.heat_sources:
@@ -111,6 +112,7 @@ def _is_float(s: str) -> bool:
 
 
 def write_loads(path: str | Path, loads: Loads) -> None:
+    """Write loads as a loads CSV (the contract of ``hybridcomp simulate --loads``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as fh:

@@ -312,7 +312,7 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
     path: Path = machine.mesh.file
     try:
         m = meshio.read(path)
-    except Exception as exc:  # meshio raises many kinds
+    except Exception as exc:  # noqa: BLE001 - meshio raises many kinds
         raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} could not be read: {exc}") from None
     moved = {k: v for k, v in pose.items() if abs(v) > 1e-12}
     if moved:
@@ -346,10 +346,12 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
         taken = body_of_element[idx]
         if (taken >= 0).any():
             other = machine.bodies[int(taken[taken >= 0][0])].name
-            raise MachineFileError(f"{where} shares {(taken >= 0).sum()} tetrahedra with the group of body {other!r} in {path.name}")
+            raise MachineFileError(f"{where} shares {(taken >= 0).sum()} tetrahedra with the group of body {other!r} "
+                                   f"in {path.name}")
         body_of_element[idx] = bi
     if (body_of_element < 0).any():
-        raise MachineFileError(f"{machine.source}: field 'mesh.file' has {(body_of_element < 0).sum()} tetrahedra in no body group")
+        raise MachineFileError(f"{machine.source}: field 'mesh.file' has {(body_of_element < 0).sum()} tetrahedra "
+                               "in no body group")
     # boundary facets per surface group: match triangles by their sorted node triples
     bf = mesh.boundary_facets()
     key = {tuple(sorted(mesh.facets[:, f])): f for f in bf}
@@ -366,9 +368,11 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
         fs = []
         for s in z.surfaces:
             if s.group is None:
-                raise MachineFileError(f"{machine.source}: field 'zones' zone {z.name!r} needs 'group' surfaces with an imported mesh")
+                raise MachineFileError(f"{machine.source}: field 'zones' zone {z.name!r} needs 'group' surfaces "
+                                       "with an imported mesh")
             if s.group not in sets:
-                raise MachineFileError(f"{machine.source}: field 'zones' group {s.group!r} is not in {path.name} (groups: {sorted(sets)})")
+                raise MachineFileError(f"{machine.source}: field 'zones' group {s.group!r} is not in {path.name} "
+                                       f"(groups: {sorted(sets)})")
             rows = tri_local[sets[s.group]]
             rows = rows[rows >= 0]
             if rows.size == 0:
@@ -396,7 +400,8 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
             zones[z.name] = np.asarray([f for f in bf if f not in claimed], dtype=int)
             if zones[z.name].size == 0:
                 raise MachineFileError(
-                    f"{machine.source}: field 'zones' zone {z.name!r} has no exposed surface: other zones claim every boundary facet"
+                    f"{machine.source}: field 'zones' zone {z.name!r} has no exposed surface: "
+                    "other zones claim every boundary facet"
                 )
     names = tuple(b.name for b in machine.bodies)
     return MachineMesh(mesh, body_of_element, names, zones, pose)

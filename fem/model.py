@@ -33,8 +33,8 @@ from hybridcomp.models.layout import (
     power_column,
     temperature_column,
 )
-from hybridcomp.models.simulation import SimulationResult
 from hybridcomp.models.machine import HeatSource, Machine, MachineFileError
+from hybridcomp.models.simulation import SimulationResult
 
 log = logging.getLogger(__name__)
 
@@ -103,9 +103,10 @@ class ThermoElasticModel:
         return self._cache[key]
 
     def disturbance_columns(self) -> tuple[np.ndarray, tuple[str, ...]]:
-        """Heat the model does not know, as shapes for a state observer: per body, 1 W spread uniformly over it
-        and 1 W varying linearly along x, y and z across it (n × 4·bodies), and their names (``column``,
-        ``column:x`` ...).
+        """Heat the model does not know, as shapes for a state observer, and their names.
+
+        Per body, 1 W spread uniformly over it and 1 W varying linearly along x, y and z across it
+        (n × 4·bodies); names ``column``, ``column:x`` ...
 
         A source the machine file lacks (a pump, a cabinet, a misplaced loss) heats some body; its first moments
         over that body are these four shapes.  The uniform column sums to 1 W; a linear one to 0 W, its magnitudes
@@ -118,8 +119,11 @@ class ThermoElasticModel:
         return self._cache[key]
 
     def layout(self) -> InputLayout:
-        """This model's inputs and outputs (its own heat inputs and zones: a model built from an extended or
-        planted machine may have more than the machine it was given)."""
+        """The model's inputs and outputs.
+
+        Its own heat inputs and zones: a model built from an extended or planted machine may have more than the
+        machine it was given.
+        """
         layout = self.machine.layout()
         if layout.columns == self.input_names and layout.sensors == self.sensor_names:
             return layout
@@ -235,8 +239,10 @@ def heat_input_matrix(machine: Machine, mm: MachineMesh, basis) -> tuple[np.ndar
 
 
 def disturbance_heat_columns(machine: Machine, mm: MachineMesh) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Per body: 1 W uniformly over its volume and 1 W varying linearly along x, y, z (see
-    :meth:`ThermoElasticModel.disturbance_columns`); sampled like a heat source's patch."""
+    """Per body: 1 W uniformly over its volume and 1 W varying linearly along x, y, z.
+
+    See :meth:`ThermoElasticModel.disturbance_columns`; sampled like a heat source's patch.
+    """
     basis = assembly.cell_basis(mm.mesh)
     h_mm = machine.mesh.element_size_mm
     cols, names = [], []
@@ -263,7 +269,8 @@ def _point_rows(machine: Machine, mm: MachineMesh, basis, points) -> sp.csr_matr
         x = (np.asarray(p.position_mm) + machine.body_offset_mm(p.body, mm.pose_mm)) * MM
         c = mm.find_elements(x[:, None], body=p.body)[0]
         if c < 0:
-            raise MachineFileError(f"{machine.source}: point {p.name!r} at {list(p.position_mm)} mm is not in the mesh of body {p.body!r}")
+            raise MachineFileError(f"{machine.source}: point {p.name!r} at {list(p.position_mm)} mm "
+                                   f"is not in the mesh of body {p.body!r}")
         pts.append(x)
         cells.append(c)
     if not pts:

@@ -38,7 +38,6 @@ reference temperature.
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from hybridcomp.fem.loads import write_loads
@@ -79,7 +78,8 @@ def heat_powers(machine: Machine, inc: Increments, power: str = "mean") -> tuple
     column names ``<source>_W`` / ``<source>[k]_W`` in model order, and the powers (nk × n_inputs)
     """
     if inc.axis_names != tuple(a.name for a in machine.axes):
-        raise ValueError(f"increments are for axes {inc.axis_names}, machine {machine.name!r} has {[a.name for a in machine.axes]}")
+        raise ValueError(f"increments are for axes {inc.axis_names}, "
+                         f"machine {machine.name!r} has {[a.name for a in machine.axes]}")
     if power not in ("factor", "mean"):
         raise ValueError(f"power must be 'factor' or 'mean', got {power!r}")
     layout = machine.layout()

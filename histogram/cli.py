@@ -28,13 +28,14 @@ from hybridcomp.histogram.increments import (
 )
 from hybridcomp.histogram.signature import SignatureLayout, write_signatures
 from hybridcomp.histogram.trace import TraceFileError, TraceWarning
-from hybridcomp.models.machine import MachineFileError, load_machine
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
+from hybridcomp.models.machine import MachineFileError, load_machine
 
 log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp histogram`` options."""
     p.add_argument("input", type=Path, metavar="TRACE_OR_GCODE",
                    help="trace CSV (time_s, x_mm, ..., spindle_rpm, optional Tamb_degC) or G-code programme "
                    f"(by suffix: .csv is a trace, {', '.join(GCODE_SUFFIXES)} G-code; see --format)")
@@ -70,6 +71,7 @@ def _fail(exc: Exception) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``hybridcomp histogram``; returns the exit code (2: bad input, named on stderr)."""
     try:
         machine = load_machine(args.machine)
         if not args.increment > 0:
@@ -81,9 +83,11 @@ def run(args: argparse.Namespace) -> int:
                                  f"{args.increment:g} s")
         fmt = args.format
         if fmt == "auto":
-            fmt = "trace" if args.input.suffix.lower() == ".csv" else "gcode" if args.input.suffix.lower() in GCODE_SUFFIXES else None
+            suffix = args.input.suffix.lower()
+            fmt = "trace" if suffix == ".csv" else "gcode" if suffix in GCODE_SUFFIXES else None
             if fmt is None:
-                raise ValueError(f"{args.input}: cannot tell a trace from G-code by the suffix {args.input.suffix!r}; give --format")
+                raise ValueError(f"{args.input}: cannot tell a trace from G-code by the suffix {args.input.suffix!r}; "
+                                 "give --format")
         bad = refuse_unused(args, [
             ("max_gap", fmt == "gcode", "applies to a trace only, not to G-code"),
             ("feed_tolerance", fmt == "gcode", "applies to a trace only, not to G-code"),

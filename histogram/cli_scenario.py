@@ -9,11 +9,12 @@ from pathlib import Path
 from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S
 from hybridcomp.histogram.scenarios import SCENARIOS, write_scenario
 from hybridcomp.histogram.trace import TraceFileError
-from hybridcomp.models.machine import MachineFileError, load_machine
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
+from hybridcomp.models.machine import MachineFileError, load_machine
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp scenario`` options."""
     p.add_argument("name", choices=SCENARIOS,
                    help="basic: each axis alone at max feed over its full travel, and the spindle alone at max speed; "
                    "jobshop: a 16 h day of eight workpieces with pauses")
@@ -28,6 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``hybridcomp scenario``; returns the exit code (2: bad input, named on stderr)."""
     try:
         bad = refuse_unused(args, [("hours", args.name != "basic", "applies to the basic scenario only "
                                     "(the job-shop day is always 16 h)")])

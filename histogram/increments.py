@@ -153,9 +153,9 @@ def _time_in_bins(x0: np.ndarray, x1: np.ndarray, dt: np.ndarray, edges: np.ndar
     w = [dt[one]]
     multi = np.flatnonzero(~one)
     if multi.size:
-        l, h, d = lo[multi, None], hi[multi, None], dt[multi, None]
-        ov = np.clip(np.minimum(h, edges[None, 1:]) - np.maximum(l, edges[None, :-1]), 0.0, None)
-        share = ov / (h - l) * d  # h > l here: the interval crosses an edge
+        a, b, d = lo[multi, None], hi[multi, None], dt[multi, None]
+        ov = np.clip(np.minimum(b, edges[None, 1:]) - np.maximum(a, edges[None, :-1]), 0.0, None)
+        share = ov / (b - a) * d  # b > a here: the interval crosses an edge
         r, c = np.nonzero(share)
         idx.append(multi[r])
         bins.append(c)
@@ -587,7 +587,8 @@ def increments_from_trace(
                 f"{path}: {stats.dropped} of {stats.rows} rows have NaN or empty fields (first at line "
                 f"{stats.first_dropped_line}), more than {100 * max_dropped_fraction:g} %"
             )
-        msg = f"{path}: dropped {stats.dropped} of {stats.rows} rows with NaN or empty fields (first at line {stats.first_dropped_line})"
+        msg = (f"{path}: dropped {stats.dropped} of {stats.rows} rows with NaN or empty fields "
+               f"(first at line {stats.first_dropped_line})")
         log.warning(msg)
         warnings.warn(msg, TraceWarning, stacklevel=2)
     return inc

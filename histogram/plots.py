@@ -46,7 +46,8 @@ def plot_increment(inc: Increments, k: int, path: str | Path) -> Path:
         ax = axs[j, 0]
         seg = inc.segment_edges_mm(name)
         frac = inc.segment_fraction(name)[k]
-        ax.bar(seg[:-1], frac, width=np.diff(seg), align="edge", color="#9ecae1", edgecolor="#3182bd", label="time in rail segment")
+        ax.bar(seg[:-1], frac, width=np.diff(seg), align="edge", color="#9ecae1", edgecolor="#3182bd",
+               label="time in rail segment")
         e = inc.bin_edges_mm[j]
         fine = inc.histogram(name)[k] * inc.bins_per_segment  # on the scale of a segment bar
         ax.stairs(fine, e, color="#08519c", label=f"positions ({inc.bins_per_segment} bins per segment, same scale)")
@@ -66,7 +67,8 @@ def plot_increment(inc: Increments, k: int, path: str | Path) -> Path:
         fx.set_title(f"f = {f:.3f}", fontsize=9)
     axs[-1, 0].set_xlabel("axis position [mm]")
     fig.suptitle(
-        f"increment {k}: {inc.start_s[k] / 3600:.3f} h to {inc.end_s[k] / 3600:.3f} h, spindle factor {inc.spindle_factor[k]:.3f}",
+        f"increment {k}: {inc.start_s[k] / 3600:.3f} h to {inc.end_s[k] / 3600:.3f} h, "
+        f"spindle factor {inc.spindle_factor[k]:.3f}",
         fontsize=10,
     )
     fig.tight_layout()
@@ -92,7 +94,8 @@ def plot_factors(inc: Increments, path: str | Path) -> Path:
     ax.set_ylim(0, 1.02)
     ax.set_xlabel("time [h]")
     ax.set_ylabel("load factor [-]")
-    ax.set_title(f"load factors per {inc.increment_s:g} s increment" + (" (grey: recording gaps)" if gaps.size else ""), fontsize=10)
+    ax.set_title(f"load factors per {inc.increment_s:g} s increment" + (" (grey: recording gaps)" if gaps.size else ""),
+                 fontsize=10)
     ax.legend(fontsize=8, ncol=len(inc.axis_names) + 1, loc="upper right")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

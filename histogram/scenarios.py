@@ -336,8 +336,8 @@ def write_scenario(
 
     Returns
     -------
-    written files by role, e.g. ``{"X.nc": ..., "X_trace.csv": ..., "X_loads.csv": ...}``:
-    for ``basic`` one triple per case (``X``, ``Y``, ``Z``, ``spindle``), for ``jobshop``
+    written files by name, e.g. ``{"basic_X.nc": ..., "basic_X_trace.csv": ..., "basic_X_loads.csv": ...}``:
+    for ``basic`` one triple per case (``basic_X``, ``basic_Y``, ``basic_Z``, ``basic_spindle``), for ``jobshop``
     ``jobshop.nc``, ``jobshop_trace.csv``, ``jobshop_loads.csv``.
     """
     if name not in SCENARIOS:

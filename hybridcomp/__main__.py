@@ -1,3 +1,5 @@
+"""``python -m hybridcomp``: the ``hybridcomp`` command."""
+
 import sys
 
 from hybridcomp.cli import main

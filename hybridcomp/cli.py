@@ -14,16 +14,19 @@ SUBCOMMANDS = {
     "example-loads": ("hybridcomp.fem.cli_example_loads", "write a reproducible example loads CSV for a machine"),
     "machine": ("hybridcomp.models.cli", "check a machine file and print its inputs, sensors and mesh size"),
     "histogram": ("hybridcomp.histogram.cli", "turn a trace CSV or G-code into load factors, histograms and a loads CSV"),
-    "scenario": ("hybridcomp.histogram.cli_scenario", "write a bundled scenario (basic load cases, job-shop day): G-code, trace, loads"),
+    "scenario": ("hybridcomp.histogram.cli_scenario",
+                 "write a bundled scenario (basic load cases, job-shop day): G-code, trace, loads"),
     "cd": ("hybridcomp.chardiag.cli", "characteristic diagrams: training data, fit, evaluation, CNC export, database"),
     "reduce": ("hybridcomp.rom.cli_reduce", "reduce a machine's FE model (or exported matrices) to a real-time ROM.npz"),
-    "diagnose": ("hybridcomp.diagnose.cli", "diagnose measured data: residuals, named physical causes, extended machine file, gain"),
+    "diagnose": ("hybridcomp.diagnose.cli",
+                 "diagnose measured data: residuals, named physical causes, extended machine file, gain"),
     "batch": ("hybridcomp.fem.cli_batch", "run a directory of load cases on the FE model: local process pool or Dask cluster"),
     "monitor": ("hybridcomp.monitor.cli", "the monitoring daemon: run, status, example-config, and the hybrid scenario"),
 }
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``hybridcomp`` parser with every subcommand's options."""
     p = argparse.ArgumentParser(
         prog="hybridcomp",
         description="Hybrid thermal error compensation for machine tools: FE model, reduced structure model, "
@@ -58,6 +61,7 @@ def _given_options(argv: list[str] | None) -> set[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the ``hybridcomp`` command line (``argv`` without the program name); returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
     args._given = _given_options(argv)

@@ -1,5 +1,8 @@
-"""Machine definitions: the TOML machine-file format and its validating loader, and the one vocabulary of a
-machine model's inputs and outputs (:mod:`hybridcomp.models.layout`) and results (:mod:`hybridcomp.models.simulation`)."""
+"""Machine definitions and the one vocabulary of a machine model's inputs, outputs and results.
+
+The TOML machine-file format and its validating loader, the inputs and outputs (:mod:`hybridcomp.models.layout`)
+and the results (:mod:`hybridcomp.models.simulation`).
+"""
 
 from hybridcomp._lazy import lazy_exports
 

@@ -32,12 +32,14 @@ def refuse_unused(args: argparse.Namespace, rules) -> str | None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp machine`` options."""
     p.add_argument("machine", nargs="?", help="bundled machine name or path to a machine TOML; none: list bundled machines")
     p.add_argument("--mesh", action="store_true", help="also mesh it at mid travel and report nodes and elements")
     p.add_argument("--element-size-mm", type=float, help="element size for --mesh [mm]")
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``hybridcomp machine``; returns the exit code (2: bad input, named on stderr)."""
     bad = refuse_unused(args, [("element_size_mm", not args.mesh, "applies with --mesh only")])
     if bad:
         print(f"error: {bad}", file=sys.stderr)

@@ -20,8 +20,10 @@ import numpy as np
 
 
 def jsonable(obj: Any) -> Any:
-    """``obj`` with every non-finite float as None, NumPy scalars and arrays as Python numbers and lists,
-    tuples as lists, recursively; anything else unchanged."""
+    """``obj`` with every non-finite float as None, recursively.
+
+    NumPy scalars and arrays become Python numbers and lists, tuples lists; anything else is unchanged.
+    """
     if isinstance(obj, bool) or obj is None or isinstance(obj, (str, int)):
         return obj
     if isinstance(obj, (float, np.floating)):
@@ -41,8 +43,11 @@ def jsonable(obj: Any) -> Any:
 
 
 def dumps(obj: Any, **kwargs) -> str:
-    """Strict JSON text of ``obj`` (non-finite numbers as null); ``kwargs`` as for :func:`json.dumps`
-    (``default`` handles types JSON does not know, e.g. ``default=str`` for paths)."""
+    """Strict JSON text of ``obj`` (non-finite numbers as null).
+
+    ``kwargs`` as for :func:`json.dumps` (``default`` handles types JSON does not know, e.g. ``default=str`` for
+    paths).
+    """
     return json.dumps(jsonable(obj), allow_nan=False, **kwargs)
 
 

@@ -233,8 +233,10 @@ class Loads:
 
 
 def in_model_order(loads: Loads, layout: InputLayout | Machine, source: str = "loads") -> Loads:
-    """The same loads with every input column of ``layout`` (or of a machine's layout), in its order: a missing
-    heat input is zero power, a missing zone the reference temperature; an unknown column is an error."""
+    """The same loads with every input column of ``layout`` (or of a machine's layout), in its order.
+
+    A missing heat input is zero power, a missing zone the reference temperature; an unknown column is an error.
+    """
     if not isinstance(layout, InputLayout):
         layout = layout.layout()
     return Loads(loads.time_s, layout.complete(loads.names, loads.values, source), layout.columns)

@@ -354,7 +354,7 @@ class _Reader(StrictTable):
             raise self.err(key, f"must be [[x0, y0, z0], [x1, y1, z1]] in mm, got {v!r}")
         sub = _Reader(self.src, self._name(key), {"lo": v[0], "hi": v[1]}, "box")
         lo, hi = sub.vec3("lo"), sub.vec3("hi")
-        if any(h < l or (h == l and not flat_ok) for l, h in zip(lo, hi)):
+        if any(b < a or (b == a and not flat_ok) for a, b in zip(lo, hi)):
             raise self.err(key, f"must have its second corner above the first in x, y and z, got {v!r}")
         return lo, hi
 
@@ -478,7 +478,8 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
     axis_names = {a.name for a in axes}
     for i, a in enumerate(axes):
         if bodies_by(bodies)[a.moves].mounted_on is None:
-            raise MachineFileError(f"{source}: field 'axes[{i}].moves' names {a.moves!r}, a body on the ground, which cannot move")
+            raise MachineFileError(f"{source}: field 'axes[{i}].moves' names {a.moves!r}, a body on the ground, "
+                                   "which cannot move")
 
     sources: list[HeatSource] = []
     for where, t in top.tables("heat_sources", required=False):
@@ -500,7 +501,8 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
             carrier = bodies_by(bodies)[[a for a in axes if a.name == axis][0].moves].mounted_on
             body = r.get("body", carrier, str)
             if body != carrier:
-                raise r.err("body", f"of a moving source must be the body carrying the rail of axis {axis} ({carrier!r}), got {body!r}")
+                raise r.err("body", f"of a moving source must be the body carrying the rail of axis {axis} "
+                                    f"({carrier!r}), got {body!r}")
         else:
             body = r.get("body", kind=str)
         if body not in body_names:
@@ -513,8 +515,10 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         if table is not None:
             ok = all(isinstance(p, list) and len(p) == 2 and all(_is_number(x) for x in p) for p in table)
             xs = [p[0] for p in table] if ok else []
-            if not ok or len(table) < 2 or xs[0] != 0 or xs[-1] != 1 or any(b <= a for a, b in zip(xs, xs[1:])) or any(p[1] < 0 for p in table):
-                raise r.err("power_table", f"must be [[0, p0], ..., [1, p1]] with ascending factors and fractions >= 0, got {table!r}")
+            if (not ok or len(table) < 2 or xs[0] != 0 or xs[-1] != 1 or any(b <= a for a, b in zip(xs, xs[1:]))
+                    or any(p[1] < 0 for p in table)):
+                raise r.err("power_table", "must be [[0, p0], ..., [1, p1]] with ascending factors and fractions >= 0, "
+                                           f"got {table!r}")
             table = tuple((float(a), float(b)) for a, b in table)
         sources.append(
             HeatSource(
@@ -616,6 +620,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
 
 
 def bodies_by(bodies) -> dict[str, Body]:
+    """Bodies by name."""
     return {b.name: b for b in bodies}
 
 
@@ -654,6 +659,7 @@ def _overlap(a: tuple[Vec3, Vec3], b: tuple[Vec3, Vec3]) -> np.ndarray:
 
 
 def box_at_pose(machine: Machine, body: Body, pose_mm: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """A body's box corners [mm] at a pose."""
     off = machine.body_offset_mm(body.name, pose_mm)
     return np.asarray(body.box_mm[0]) + off, np.asarray(body.box_mm[1]) + off
 
@@ -704,7 +710,8 @@ def _locate(machine: Machine, where: str, p: Point | Support | HeatSource, box_o
     pos = p.position_mm
     if p.body:
         if not box_ok(machine.body(p.body), pos):
-            raise MachineFileError(f"{machine.source}: field {where + '.position_mm'!r} = {list(pos)} mm is outside its body {p.body!r}")
+            raise MachineFileError(f"{machine.source}: field {where + '.position_mm'!r} = {list(pos)} mm "
+                                   f"is outside its body {p.body!r}")
         return p.body
     for b in machine.bodies:
         if box_ok(b, pos):
@@ -726,7 +733,8 @@ def _validate_geometry(machine: Machine) -> Machine:
             dataclasses.replace(s, body=_locate(machine, f"sensors[{i}]", s, box_ok)) for i, s in enumerate(machine.sensors)
         )
         tcp = dataclasses.replace(machine.tcp, body=_locate(machine, "tcp", machine.tcp, box_ok))
-        tref = dataclasses.replace(machine.table_reference, body=_locate(machine, "table_reference", machine.table_reference, box_ok))
+        tref = dataclasses.replace(machine.table_reference,
+                                   body=_locate(machine, "table_reference", machine.table_reference, box_ok))
         supports = tuple(
             dataclasses.replace(s, body=_locate(machine, f"supports[{i}]", s, box_ok)) for i, s in enumerate(machine.supports)
         )

@@ -54,8 +54,10 @@ class SimulationResult:
 
 
 def initial_state(initial: str | np.ndarray, n: int, steady: Callable[[], np.ndarray]) -> np.ndarray:
-    """The initial state of a run: ``"steady"`` (``steady()``, the steady state of the first inputs),
-    ``"reference"`` (zero rise) or a state vector of ``n`` entries [K or reduced coordinates].
+    """The initial state of a run.
+
+    ``"steady"`` (``steady()``, the steady state of the first inputs), ``"reference"`` (zero rise) or a state
+    vector of ``n`` entries [K or reduced coordinates].
 
     Raises
     ------

@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 
 from hybridcomp.models import jsonio
-from hybridcomp.models.machine import MachineFileError, load_machine
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
+from hybridcomp.models.machine import MachineFileError, load_machine
 
 
 def _h_range(text: str) -> tuple[float, float]:
@@ -25,6 +25,7 @@ def _h_range(text: str) -> tuple[float, float]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp reduce`` options."""
     add_machine_argument(p)
     p.add_argument("--matrices", type=Path, metavar="FILE",
                    help="reduce an exported system E x' = A x + B u, y = C x instead: a .mat file (variables E, A, B, C) "
@@ -47,10 +48,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--h2-maxiter", type=int, metavar="N",
                    help="with --basis h2: L-BFGS iterations per basis (default 1500); more iterations, smaller H2 error "
                    "(150 mm mesh, --order 80: about 30 s per 1,000 iterations)")
-    p.add_argument("--no-basis", action="store_true", help="do not store the basis V (smaller file, no full-field reconstruction)")
+    p.add_argument("--no-basis", action="store_true",
+                   help="do not store the basis V (smaller file, no full-field reconstruction)")
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``hybridcomp reduce``; returns the exit code (2: bad input, named on stderr)."""
     from hybridcomp.fem.cli_simulate import parse_pose
     from hybridcomp.fem.loads import LoadsFileError, read_loads
     from hybridcomp.rom.external import MatrixFileError

@@ -174,8 +174,11 @@ def balanced_truncation(form: ModalForm, r: int) -> tuple[np.ndarray, np.ndarray
 
 
 def initial_basis(form: ModalForm, r: int) -> np.ndarray:
-    """A start for the optimisation: the best (smallest Galerkin H2 error) of the balanced-truncation right
-    basis and the dominant eigenvectors of the controllability and of the observability Gramian."""
+    """A start for the optimisation: the candidate basis with the smallest Galerkin H2 error.
+
+    The candidates are the balanced-truncation right basis and the dominant eigenvectors of the controllability and
+    of the observability Gramian.
+    """
     P, Q = gramians(form)
     cands = [balanced_truncation(form, r)[4], la.eigh(P)[1][:, ::-1][:, :r], la.eigh(Q)[1][:, ::-1][:, :r]]
     cands = [np.linalg.qr(c)[0] for c in cands]
@@ -183,8 +186,11 @@ def initial_basis(form: ModalForm, r: int) -> np.ndarray:
 
 
 def _reduced_scaled(form: ModalForm, Q: np.ndarray) -> np.ndarray:
-    """``Q`` (orthonormal, modal coordinates of ``form``) in the reduced model's modal frame, each column scaled
-    by the square root of its share of the reduced Gramians (diagonal of ``P_r / tr P_r + Q_r / tr Q_r``)."""
+    """``Q`` (orthonormal, modal coordinates of ``form``) in the reduced model's modal frame, columns scaled.
+
+    Each column is scaled by the square root of its share of the reduced Gramians (diagonal of
+    ``P_r / tr P_r + Q_r / tr Q_r``).
+    """
     Ar = Q.T @ (form.lam[:, None] * Q)
     mu, U = la.eigh(0.5 * (Ar + Ar.T))
     Qu = Q @ U

@@ -57,8 +57,11 @@ def h_samples(h_nominal: np.ndarray, h_range: tuple[float, float], n_random: int
 
 def to_reduced(system: ThermalSystem, red: Reduction, meta: dict, keep_basis: bool = True,
                disturbances: tuple[np.ndarray, tuple[str, ...]] | None = None) -> ReducedModel:
-    """The reduced model of a projection basis; ``disturbances``: FE disturbance heat columns (n × d) and their
-    names, projected with the basis (:attr:`ReducedModel.D`)."""
+    """The reduced model of a projection basis.
+
+    ``disturbances``: FE disturbance heat columns (n × d) and their names, projected with the basis
+    (:attr:`ReducedModel.D`).
+    """
     P = project(system, red.V)
     D, names = (None, ()) if disturbances is None else (red.V.T @ disturbances[0], tuple(disturbances[1]))
     return ReducedModel(
@@ -155,8 +158,9 @@ def compare(rom: ReducedModel, time_s, inputs, fe: tuple[np.ndarray, np.ndarray]
 
 def gramian_directions(system: ThermalSystem, V: np.ndarray, h_list, input_scale: np.ndarray,
                        output_tol: np.ndarray) -> np.ndarray:
-    """Directions of ``span(V)`` (n × k), most important first: eigenvectors of the controllability and
-    observability Gramians of the projected system, interleaved.
+    """Directions of ``span(V)`` (n × k), most important first.
+
+    Eigenvectors of the controllability and observability Gramians of the projected system, interleaved.
 
     The Gramians are summed over ``h_list``; inputs are scaled by ``input_scale``, outputs by
     ``1/output_tol``, so both are measured against the tolerances.  Any prefix of the result spans a
@@ -325,7 +329,8 @@ def reduce_model(
 
     def accept(V):
         res = checks(V)
-        log.info("order %d: FE check %s", V.shape[1], [(round(c.max_sensor_error_K, 4), round(c.max_drift_error_um, 4)) for c in res])
+        log.info("order %d: FE check %s", V.shape[1],
+                 [(round(c.max_sensor_error_K, 4), round(c.max_drift_error_um, 4)) for c in res])
         return all(c.max_sensor_error_K <= safety * tol_K and c.max_drift_error_um <= safety * tol_um for c in res)
 
     if basis == "h2":
@@ -348,7 +353,8 @@ def reduce_model(
             if accept(V):
                 # only the first block's point is still interpolated exactly
                 red = Reduction(V, big.points[:1], red.estimate, red.history)
-                method = f"Krylov order {big.V.shape[1]} compressed to the first block + {V.shape[1] - n_first} Gramian directions"
+                method = (f"Krylov order {big.V.shape[1]} compressed to the first block + {V.shape[1] - n_first} "
+                          "Gramian directions")
                 break
     res = checks(red.V)
     exact = checks(red.V, None)
@@ -356,7 +362,8 @@ def reduce_model(
         **base_meta,
         "order": red.V.shape[1],
         "method": method,
-        "expansion_points": [{"s_1_s": p.s, "h_W_m2K": list(p.h), "moments": p.moments, "complete": p.complete} for p in red.points],
+        "expansion_points": [{"s_1_s": p.s, "h_W_m2K": list(p.h), "moments": p.moments, "complete": p.complete}
+                             for p in red.points],
         "estimate": red.estimate if np.isfinite(red.estimate) else None,
         "history": [list(h) for h in red.history],
         "check": {

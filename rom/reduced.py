@@ -97,7 +97,7 @@ class RomState:
 
 
 def _g_coefficients(lam: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """a = e^{-λΔt}, g0 = ∫_0^Δt e^{-λ(Δt-τ)} dτ, g1 = ∫_0^Δt e^{-λ(Δt-τ)} τ/Δt dτ, stable for small λΔt."""
+    """Step coefficients a = e^{-λΔt}, g0 = ∫_0^Δt e^{-λ(Δt-τ)} dτ, g1 = ∫_0^Δt e^{-λ(Δt-τ)} τ/Δt dτ, stable for small λΔt."""
     x = lam * dt
     # e^{-x} below 1e-22 is flushed to zero: its contribution is below round-off, and products with
     # subnormal numbers (e^{-x} < 2e-308 and what it multiplies) are ~100x slower on x86
@@ -267,7 +267,8 @@ class ReducedModel:
         """The reduced coordinates of a saved state; an error if it belongs to another model."""
         if state.rom_id != self.rom_id or state.x.shape != (self.order,):
             raise RomInputError(
-                f"state belongs to reduced model {state.rom_id} of order {state.x.size}, not to {self.rom_id} of order {self.order}"
+                f"state belongs to reduced model {state.rom_id} of order {state.x.size}, "
+                f"not to {self.rom_id} of order {self.order}"
             )
         return state.x.copy()
 
@@ -447,17 +448,20 @@ def load_rom(path: str | Path, machine=None) -> ReducedModel:
         D=data.get("D"), disturbance_names=tuple(meta.get("disturbance_names", ())) if "D" in data else (), meta=meta,
     )
     if rom.rom_id != meta.get("rom_id"):
-        raise RomFileError(f"{path}: field 'rom_id' is {meta.get('rom_id')!r} but the arrays hash to {rom.rom_id!r}: file corrupted")
+        raise RomFileError(f"{path}: field 'rom_id' is {meta.get('rom_id')!r} but the arrays hash to {rom.rom_id!r}: "
+                           "file corrupted")
     return rom
 
 
 def save_state(path: str | Path, state: RomState) -> Path:
+    """Write a reduced state as JSON; returns the path."""
     path = Path(path)
     path.write_text(state.to_json())
     return path
 
 
 def load_state(path: str | Path) -> RomState:
+    """Read a reduced state written by :func:`save_state`."""
     try:
         return RomState.from_json(Path(path).read_text())
     except (OSError, ValueError, KeyError) as exc:

@@ -107,7 +107,7 @@ class PostgresServer:
                       "--no-sync")
         if r.returncode != 0:
             raise RuntimeError(f"initdb failed ({r.returncode}): {r.stderr.strip()[-2000:]}")
-        for attempt in range(3):  # the free port may be taken between the probe and the bind
+        for _attempt in range(3):  # the free port may be taken between the probe and the bind
             self.port = _free_port()
             opts = (f"-p {self.port} -c listen_addresses=127.0.0.1 -c unix_socket_directories='{self.dir}' "
                     "-c fsync=off -c synchronous_commit=off -c full_page_writes=off -c max_connections=60")

@@ -57,6 +57,7 @@ def test_layout_names_maps_and_refuses(machine):
         hc.in_model_order(hc.Loads(np.zeros(1), np.zeros((1, 1)), ("nonsense_W",)), layout)
 
 
+@pytest.mark.slow
 def test_one_simulate_for_fe_and_reduced_models(machine):
     model = hc.build_model(machine, element_size_mm=200)
     # reduced to its default tolerance (0.05 K / 0.2 µm) on another load case than the one compared below

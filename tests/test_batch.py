@@ -105,6 +105,7 @@ def assert_files_once(out: Path, reference, sensor_names, tmp_path: Path):
     assert sorted(info["cases"]) == sorted(reference) and info["complete"] is True
 
 
+@pytest.mark.slow
 def test_process_pool_matches_serial_builds_once_per_worker(machine, cases, reference, tmp_path):
     out = tmp_path / "out"
     res = run_batch(machine, cases, element_size_mm=ELEMENT_SIZE_MM, executor="process", workers=2, out_dir=out)
@@ -116,6 +117,7 @@ def test_process_pool_matches_serial_builds_once_per_worker(machine, cases, refe
     assert sorted(builders) == sorted(workers)  # each built the operators exactly once and reused them
 
 
+@pytest.mark.slow
 def test_serial_in_this_process_agrees_to_round_off(machine, cases, reference):
     res = run_batch(machine, dict(list(cases.items())[:2]), element_size_mm=ELEMENT_SIZE_MM, executor="serial")
     for name, r in res.items():
@@ -126,6 +128,7 @@ def test_serial_in_this_process_agrees_to_round_off(machine, cases, reference):
     assert [r.built_model for r in res.values()].count(True) <= 1
 
 
+@pytest.mark.slow
 def test_process_pool_worker_killed_mid_batch_loses_and_duplicates_nothing(machine, cases, reference, tmp_path, caplog):
     killed = []
 
@@ -146,6 +149,7 @@ def test_process_pool_worker_killed_mid_batch_loses_and_duplicates_nothing(machi
     assert 1 <= sum(int(r.worker.rsplit(":", 1)[1]) in killed for r in res.values()) <= 2
 
 
+@pytest.mark.slow
 def test_process_pool_without_restarts_reports_the_unfinished_cases(machine, cases):
     killed = []
 
@@ -159,6 +163,7 @@ def test_process_pool_without_restarts_reports_the_unfinished_cases(machine, cas
                   on_result=kill_busy_worker)
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_matches_serial(machine, cases, reference, tmp_path):
     pytest.importorskip("distributed", reason="needs dask.distributed (extra 'dask')")
     out = tmp_path / "out"
@@ -170,6 +175,7 @@ def test_dask_local_cluster_matches_serial(machine, cases, reference, tmp_path):
     assert not any(r.built_model for r in res.values())
 
 
+@pytest.mark.slow
 def test_local_cluster_workers_run_one_blas_thread_without_malloc_trim():
     pytest.importorskip("distributed", reason="needs dask.distributed (extra 'dask')")
     from hybridcomp.fem.batch import dask_client
@@ -239,6 +245,7 @@ def dask_cli_cluster(tmp_path_factory):
             log.close()
 
 
+@pytest.mark.slow
 def test_dask_scheduler_and_two_workers_match_serial_bitwise(machine, cases, reference, dask_cli_cluster, tmp_path):
     from distributed import Client
 
@@ -253,6 +260,7 @@ def test_dask_scheduler_and_two_workers_match_serial_bitwise(machine, cases, ref
     assert len({r.worker for r in res.values()}) == 2
 
 
+@pytest.mark.slow
 def test_cli_batch_run_on_a_dask_scheduler_address_and_on_the_pool(machine, cases, dask_cli_cluster, tmp_path, capsys):
     loads_dir = tmp_path / "loads"
     for name, loads in list(cases.items())[:3]:
@@ -267,6 +275,7 @@ def test_cli_batch_run_on_a_dask_scheduler_address_and_on_the_pool(machine, case
     assert info["executor"] == dask_cli_cluster and sorted(info["cases"]) == ["case00", "case01", "case02"]
 
 
+@pytest.mark.slow
 def test_dask_worker_killed_mid_batch_is_retried_without_duplicates(machine, cases, reference, dask_cli_cluster,
                                                                     tmp_path):
     from distributed import Client
@@ -298,6 +307,7 @@ def test_dask_worker_killed_mid_batch_is_retried_without_duplicates(machine, cas
         assert int(res[name].worker.rsplit(":", 1)[1]) != killed["pid"], name
 
 
+@pytest.mark.slow
 def test_dask_batch_survives_all_workers_killed_and_restarted(machine, cases, reference, dask_cli_cluster, tmp_path):
     from distributed import Client
 
@@ -368,6 +378,7 @@ class BrokenLoads(Loads):
         raise ValueError("planted failure")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("executor", ["serial", "process"])
 def test_a_failing_case_names_itself(machine, cases, executor):
     c = cases["case00"]
@@ -377,6 +388,7 @@ def test_a_failing_case_names_itself(machine, cases, executor):
                   workers=1)
 
 
+@pytest.mark.slow
 def test_loads_in_another_column_order_or_with_columns_missing_give_the_same_results(machine, cases):
     c = cases["case00"]
     values = c.values.copy()
@@ -393,6 +405,7 @@ def test_loads_in_another_column_order_or_with_columns_missing_give_the_same_res
         np.testing.assert_array_equal(res[name].sensors_degC, res["a"].sensors_degC)
 
 
+@pytest.mark.slow
 def test_a_machine_changed_in_memory_does_not_reuse_the_cached_model(machine, cases):
     import dataclasses
 
@@ -409,6 +422,7 @@ def test_a_machine_changed_in_memory_does_not_reuse_the_cached_model(machine, ca
     assert np.abs(changed.sensors_degC - first.sensors_degC).max() > 1e-3
 
 
+@pytest.mark.slow
 def test_resume_computes_only_the_missing_cases_and_refuses_other_settings(machine, cases, tmp_path):
     three = dict(list(cases.items())[:3])
     out = tmp_path / "out"

@@ -10,11 +10,11 @@ import pytest
 
 pytest.importorskip("sqlalchemy", reason="the CD database needs SQLAlchemy (pip install 'hybridcomp[db]')")
 
-from hybridcomp.chardiag.cd import CDSet  # noqa: E402
-from hybridcomp.chardiag.db import SCHEMA_VERSION, CDDatabase, CDDatabaseError  # noqa: E402
-from hybridcomp.chardiag.fit import FitOptions, fit_cd_set  # noqa: E402
-from hybridcomp.histogram.signature import SignatureLayout  # noqa: E402
-from hybridcomp.monitor.store import MonitorStore  # noqa: E402
+from hybridcomp.chardiag.cd import CDSet
+from hybridcomp.chardiag.db import SCHEMA_VERSION, CDDatabase, CDDatabaseError
+from hybridcomp.chardiag.fit import FitOptions, fit_cd_set
+from hybridcomp.histogram.signature import SignatureLayout
+from hybridcomp.monitor.store import MonitorStore
 
 POSE = {"X": 0.0, "Y": 0.0, "Z": 0.0}
 LAYOUT = SignatureLayout(("X", "Y", "Z"), (1, 1, 1))  # 3 factors + 3 single-segment fractions + spindle

@@ -18,6 +18,9 @@ from hybridcomp.chardiag.training import (
 from hybridcomp.cli import main
 from hybridcomp.histogram.signature import SignatureLayout
 
+# FE runs of whole load-case groups: the module's training table, the command line, a process pool
+pytestmark = pytest.mark.slow
+
 ELEMENT_MM = 150.0  # 4,081 nodes
 
 

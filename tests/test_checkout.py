@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import hybridcomp
 import hybridcomp.fem
 
@@ -21,6 +23,7 @@ def test_this_checkout_is_imported():
     assert Path(hybridcomp.fem.__file__).resolve().parent == ROOT / "fem"
 
 
+@pytest.mark.slow
 def test_a_second_checkout_imports_its_own_code(tmp_path):
     """A copy of the checkout (packages, symlinks, root conftest) runs a test that asserts where its imports come
     from; whatever this checkout installed (an editable install points here) must not leak into it."""

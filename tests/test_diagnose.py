@@ -18,6 +18,9 @@ from hybridcomp.fem.model import build_model, heat_input_matrix
 from hybridcomp.fem.transient import simulate as fe_simulate
 from hybridcomp.models.machine import HeatSource, Material
 
+# every test but one needs the module's FE model and reduced model (the longest module setup of the suite)
+pytestmark = pytest.mark.slow
+
 H_MM = 150.0
 SIGMA_K, SIGMA_UM = 0.03, 0.3
 DT_S = 120.0

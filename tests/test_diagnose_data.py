@@ -94,7 +94,8 @@ def test_map_naming_a_missing_column(tmp_path):
     data = _csv(tmp_path / "d.csv", ["Time", "Temp"], [[0, 20], [60, 21]])
     mp = tmp_path / "map.toml"
     mp.write_text('[columns]\ntime_s = "Time"\nT1_degC = "Spindle temp"\n')
-    with pytest.raises(DatasetError, match=r"column 'Spindle temp' named by .*map.toml field 'columns.T1_degC' is not in the dataset"):
+    with pytest.raises(DatasetError,
+                       match=r"column 'Spindle temp' named by .*map.toml field 'columns.T1_degC' is not in the dataset"):
         read_dataset(data, mp)
 
 
@@ -261,7 +262,9 @@ def test_long_dataset_is_thinned_and_still_diagnosed(monkeypatch, tmp_path):
     assert "every 4. row" in (tmp_path / "report.md").read_text() and s["timings_s"]["row_stride"] == 4
 
 
-@pytest.mark.skipif(not REAL.is_file(), reason="real spindle data (shared/data/caiviac-spindle) not present next to the repository")
+@pytest.mark.slow
+@pytest.mark.skipif(not REAL.is_file(),
+                    reason="real spindle data (shared/data/caiviac-spindle) not present next to the repository")
 def test_real_spindle_data_reaches_85_percent_on_every_channel():
     """Train on the first half, validate on the second: the static regression's fits are reproduced exactly; the
     searched extensions reach a validation fit of 85 % on every channel, each extension named and each adding fit."""

@@ -23,6 +23,7 @@ def test_every_example_is_tested():
     assert {p.stem for p in EXAMPLES.glob("*.py")} == tested
 
 
+@pytest.mark.slow
 def test_trace_to_fe(tmp_path, capsys):
     res = load("trace_to_fe").main(["--out", str(tmp_path / "out")])
     assert (tmp_path / "out" / "outputs.csv").is_file() and (tmp_path / "out" / "loads.csv").is_file()
@@ -34,6 +35,7 @@ def test_trace_to_fe(tmp_path, capsys):
     assert "largest |dz|" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_reduce_and_replay(tmp_path):
     pytest.importorskip("sqlalchemy", reason="the CD database needs SQLAlchemy (pip install 'hybridcomp[db]')")
     r = load("reduce_and_replay").main(["--out", str(tmp_path / "out")])
@@ -43,6 +45,7 @@ def test_reduce_and_replay(tmp_path):
     assert r["residual_rms_um"] < 0.5 * drift_rms
 
 
+@pytest.mark.slow
 def test_diagnose_csv(tmp_path):
     summary = load("diagnose_csv").main(["--out", str(tmp_path / "out")])
     # the planted cause (front spindle bearing at 1.5 x its power) is named with its factor

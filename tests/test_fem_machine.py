@@ -12,10 +12,14 @@ import dataclasses
 
 import numpy as np
 import pytest
+
 from hybridcomp.fem.export import displacement_fields
 from hybridcomp.fem.loads import full_power_inputs, input_columns
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.transient import simulate, steady_state
+
+# every test builds the demonstrator's FE model (at two poses, or the module's own)
+pytestmark = pytest.mark.slow
 
 H_MM = 150.0  # coarse: ~2,000 nodes
 

@@ -210,13 +210,17 @@ HEADER = ["time_s", "x_mm", "y_mm", "z_mm", "spindle_rpm"]
 @pytest.mark.parametrize(
     "header,rows,match",
     [
-        (HEADER, [[0, 0, 0, 0, 0], [1, 0, 0, 0, 0], [0.5, 0, 0, 0, 0]], r"t\.csv: line 4: time_s 0\.5 does not increase after 1 \(line 3\)"),
+        (HEADER, [[0, 0, 0, 0, 0], [1, 0, 0, 0, 0], [0.5, 0, 0, 0, 0]],
+         r"t\.csv: line 4: time_s 0\.5 does not increase after 1 \(line 3\)"),
         (HEADER, [[0, 0, 0, 0, 0], [1, 0, 0, 0, 0], [1, 0, 0, 0, 0]], r"t\.csv: line 4: time_s 1 does not increase after 1"),
-        (HEADER, [[0, 0, 0, 0, 0], [1, 412.5, 0, 0, 0]], r"t\.csv: line 3: x_mm = 412\.5 mm is outside the travel \[-400\.0, 400\.0\] mm of axis X"),
+        (HEADER, [[0, 0, 0, 0, 0], [1, 412.5, 0, 0, 0]],
+         r"t\.csv: line 3: x_mm = 412\.5 mm is outside the travel \[-400\.0, 400\.0\] mm of axis X"),
         (HEADER, [[0, 0, 0, 0, 0], [0.1, 0, 80, 0, 0]],
          r"t\.csv: line 3: axis Y moves 80 mm in 0\.1 s since line 2, 48000 mm/min, above its max_feed_mm_min 40000"),
-        (HEADER, [[0, 0, 0, 0, 0], [1, 0, 0, 0, 13000]], r"t\.csv: line 3: spindle_rpm = 13000 is above \[spindle\] max_speed_rpm 12000"),
-        ([*HEADER, "vx_mm_min"], [[0, 0, 0, 0, 0, 41000]], r"t\.csv: line 2: vx_mm_min = 41000 mm/min is above the max_feed_mm_min 40000"),
+        (HEADER, [[0, 0, 0, 0, 0], [1, 0, 0, 0, 13000]],
+         r"t\.csv: line 3: spindle_rpm = 13000 is above \[spindle\] max_speed_rpm 12000"),
+        ([*HEADER, "vx_mm_min"], [[0, 0, 0, 0, 0, 41000]],
+         r"t\.csv: line 2: vx_mm_min = 41000 mm/min is above the max_feed_mm_min 40000"),
         (HEADER, [[0, 0, 0, 0, 0], [1, 0, "abc", 0, 0]], r"t\.csv: line 3, column 'y_mm': value 'abc' is not a number"),
         (HEADER, [[0, 0, 0, 0, 0], [1, 0, 0, 0]], r"t\.csv: line 3 has 4 fields, the header has 5"),
         (["time_s", "x_mm", "y_mm", "z_mm"], [[0, 0, 0, 0]], r"t\.csv: column 'spindle_rpm' is missing"),
@@ -243,7 +247,8 @@ def test_a_few_nan_rows_are_dropped_with_a_counted_warning(machine, tmp_path, wr
     rows[5][3] = "nan"
     rows[6][3] = "nan"
     p = write_csv(tmp_path / "t.csv", HEADER, rows[:100])
-    with pytest.raises(TraceFileError, match=r"t\.csv: 2 of 100 rows have NaN or empty fields \(first at line 7\), more than 1 %"):
+    with pytest.raises(TraceFileError,
+                       match=r"t\.csv: 2 of 100 rows have NaN or empty fields \(first at line 7\), more than 1 %"):
         increments_from_trace(p, machine)
 
 

@@ -7,10 +7,9 @@ import csv
 import numpy as np
 import pytest
 
+from hybridcomp.cli import main
 from hybridcomp.fem.loads import input_columns, read_loads
 from hybridcomp.histogram.scenarios import jobshop_program
-
-from hybridcomp.cli import main
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -85,6 +84,7 @@ def test_scenario_basic_writes_gcode_trace_and_loads(machine, tmp_path, capsys):
     np.testing.assert_allclose(sp.values[1:, sp.names.index("spindle_motor_W")], 220.0, rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_jobshop_piece_gcode_histogram_simulate_end_to_end(machine, tmp_path, capsys):
     """The first 2 h block of the job-shop day: G-code → histogram → loads CSV → simulate (coarse mesh)."""
     lines = jobshop_program(machine).splitlines()

@@ -27,7 +27,8 @@ from hybridcomp.histogram.scenarios import (
 def jobshop(machine):
     """The job-shop day's motion, and its 5 min increments from the exact motion and from the 10 Hz trace."""
     motion = parse_gcode(jobshop_program(machine), machine)
-    return motion, increments_from_motion(machine, motion, 300), increments_from_samples(machine, sample_motion(motion, 10.0), 300)
+    return (motion, increments_from_motion(machine, motion, 300),
+            increments_from_samples(machine, sample_motion(motion, 10.0), 300))
 
 
 SQUARE = """%
@@ -161,7 +162,8 @@ def test_jobshop_day_is_16_h_of_eight_blocks(machine, jobshop):
     busy = inc.spindle_factor > 0
     assert 0.4 < busy.mean() < 0.95  # pauses: set-up, load/unload, lunch
     # every block works a different region of the table: the X/Y position histograms of the blocks differ
-    per_block = np.array([np.concatenate([inc.segment_fraction(a)[b * 24 : (b + 1) * 24].mean(0) for a in "XY"]) for b in range(8)])
+    per_block = np.array([np.concatenate([inc.segment_fraction(a)[b * 24 : (b + 1) * 24].mean(0) for a in "XY"])
+                          for b in range(8)])
     d = np.abs(per_block[:, None, :] - per_block[None, :, :]).sum(axis=2)
     assert d[~np.eye(8, dtype=bool)].min() > 0.05
 
@@ -174,7 +176,8 @@ def worst_source_deviation(machine, names, P1, P2) -> float:
         idx = [i for i, n in enumerate(source) if n == s.name]
         peak = P1[:, idx].sum(axis=1).max()
         assert peak > 0, s.name  # every source works
-        worst = max(worst, np.abs(P1[:, idx].sum(1) - P2[:, idx].sum(1)).max() / peak, np.abs(P1[:, idx] - P2[:, idx]).max() / peak)
+        worst = max(worst, np.abs(P1[:, idx].sum(1) - P2[:, idx].sum(1)).max() / peak,
+                    np.abs(P1[:, idx] - P2[:, idx]).max() / peak)
     return worst
 
 

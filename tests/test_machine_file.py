@@ -282,7 +282,8 @@ BAD_CASES = {
         ["field 'zones'", "only one zone with rest = true"],
     ),
     "surfaces_on_rest_zone": (
-        edit("h_W_m2K = 6.0\nair = \"ambient\"\nrest = true", "h_W_m2K = 6.0\nair = \"ambient\"\nrest = true\nsurfaces = [{ body = \"bed\" }]"),
+        edit("h_W_m2K = 6.0\nair = \"ambient\"\nrest = true",
+             "h_W_m2K = 6.0\nair = \"ambient\"\nrest = true\nsurfaces = [{ body = \"bed\" }]"),
         ["field 'zones[3].surfaces'", "cannot be combined with rest = true"],
     ),
     # points outside bodies
@@ -375,7 +376,8 @@ BAD_CASES = {
         ["field 'axes[1].moves'", "'bed'", "cannot move"],
     ),
     "both_segment_keys": (
-        edit("segments = 4\n\n[[axes]]\nname = \"Y\"", "segments = 4\nsegment_bounds_mm = [-400.0, 400.0]\n\n[[axes]]\nname = \"Y\""),
+        edit("segments = 4\n\n[[axes]]\nname = \"Y\"",
+             "segments = 4\nsegment_bounds_mm = [-400.0, 400.0]\n\n[[axes]]\nname = \"Y\""),
         ["field 'axes[0].segments'", "exactly one"],
     ),
     "segment_bounds_not_spanning_travel": (

@@ -178,6 +178,7 @@ def test_machine_file_names_groups_not_boxes(files):
     assert machine.sensors == files["machine"].sensors
 
 
+@pytest.mark.slow
 def test_imported_bodies_and_zones_match_the_boxes(files, models):
     box, imp = models
     mm = imp.mesh
@@ -202,6 +203,7 @@ def test_imported_bodies_and_zones_match_the_boxes(files, models):
 # --------------------------------------------------------------------------- the models
 
 
+@pytest.mark.slow
 def test_uniform_air_rise_lifts_every_sensor_by_one_kelvin(models):
     for model in models:
         x = steady_state(model, _uniform_air(model))
@@ -209,6 +211,7 @@ def test_uniform_air_rise_lifts_every_sensor_by_one_kelvin(models):
         np.testing.assert_allclose(x, 1.0, rtol=0, atol=1e-8)
 
 
+@pytest.mark.slow
 def test_uniform_drift_exact_with_equal_expansion(models):
     """With the spindle's expansion coefficient set to the cast iron's (its E and nu stay steel's)
     a uniform rise is a stress-free, linear displacement field, which hexahedra and tetrahedra
@@ -227,6 +230,7 @@ def test_uniform_drift_exact_with_equal_expansion(models):
     np.testing.assert_allclose(drifts[1], drifts[0], rtol=0, atol=1e-9 * np.linalg.norm(drifts[0]))
 
 
+@pytest.mark.slow
 def test_uniform_drift_with_steel_spindle(models):
     """The real vmc800: a steel spindle (alpha 11.5e-6 1/K) bonded to cast iron (10.5e-6).
 
@@ -253,6 +257,7 @@ def test_uniform_drift_with_steel_spindle(models):
     assert steel_imp == pytest.approx(steel_box, rel=0.05)
 
 
+@pytest.mark.slow
 def test_full_power_sensor_temperatures_agree(models):
     """All sources at full power, steady state.
 
@@ -300,7 +305,8 @@ def test_missing_body_group_names_file_field_and_group(files):
     "old, new, message",
     [
         ('group = "bed"', 'group = "floor"', "field 'bodies[0].group' 'floor' holds no tetrahedra"),
-        ('group = "column"', 'group = "bed"', "field 'bodies[1].group' 'bed' shares 12312 tetrahedra with the group of body 'bed'"),
+        ('group = "column"', 'group = "bed"',
+         "field 'bodies[1].group' 'bed' shares 12312 tetrahedra with the group of body 'bed'"),
         (
             'surfaces = [{ group = "floor" }]',
             'surfaces = [{ group = "table" }]',
@@ -348,6 +354,7 @@ def test_msh22_file_gives_the_same_mesh(files):
         ("headstock", "column", ("y", 500.0), ([-250.0, 1000.0], [250.0, 1600.0])),
     ],
 )
+@pytest.mark.slow
 def test_points_on_body_joints_get_an_element_of_their_body(models, body_a, body_b, plane_mm, span_mm):
     """A point on the face between two bodies: the element found for either body holds it
     (no extrapolation from a neighbouring element, no point lost)."""

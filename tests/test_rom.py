@@ -16,6 +16,8 @@ import pytest
 import scipy.io
 import scipy.linalg as la
 import scipy.sparse as sp
+
+from hybridcomp.cli import main
 from hybridcomp.fem.loads import (
     example_loads,
     full_power_inputs,
@@ -44,8 +46,6 @@ from hybridcomp.rom.machine import (
     reduce_model,
     system_from_model,
 )
-
-from hybridcomp.cli import main
 
 H_MM = 150.0
 TOL_K, TOL_UM = 0.05, 0.2
@@ -81,6 +81,7 @@ def rel(a, b) -> float:
 
 
 # -- reduction ----------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_rom_meets_tolerance_on_check_case_and_reports_it(rom):
     c = rom.meta["check"]
     assert c["passed"]
@@ -90,6 +91,7 @@ def test_rom_meets_tolerance_on_check_case_and_reports_it(rom):
     assert rom.meta["history"][0][1] > 1.0
 
 
+@pytest.mark.slow
 def test_transfer_function_and_derivative_match_at_expansion_points(model):
     """Hermite interpolation: H_r(s_j) = H(s_j) and H_r'(s_j) = H'(s_j) at every complete expansion point."""
     system = system_from_model(model)
@@ -120,10 +122,12 @@ def _reduced_tf(P, s, h):
     return P["C"] @ la.solve(Ar, np.hstack([P["B"], P["Hb"] * h]))
 
 
+@pytest.mark.slow
 def test_basis_is_orthonormal(rom):
     np.testing.assert_allclose(rom.V.T @ rom.V, np.eye(rom.order), atol=1e-10)
 
 
+@pytest.mark.slow
 def test_steady_state_equals_fe(model, rom):
     for u in (full_power(model), np.r_[np.zeros(36), [1.0, 2.0, -0.5, 3.0]]):
         x_fe = steady_state(model, u)
@@ -134,6 +138,7 @@ def test_steady_state_equals_fe(model, rom):
     assert np.abs(model.C @ steady_state(model, full_power(model))).max() > 1.0  # not vacuous
 
 
+@pytest.mark.slow
 def test_uniform_air_rise_is_exact_for_any_h(rom):
     """All zones +1 K heat the whole machine by 1 K whatever h is: the ROM keeps that exactly, even far outside the range."""
     u = np.r_[np.zeros(36), np.ones(4)]
@@ -142,6 +147,7 @@ def test_uniform_air_rise_is_exact_for_any_h(rom):
         np.testing.assert_allclose(r.outputs(r.steady_state(u))[:8], 1.0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_stable_for_h_across_the_range_and_beyond(rom):
     h0 = dict(zip(rom.zone_names, rom.h_W_m2K))
     rng = np.random.default_rng(1)
@@ -152,6 +158,7 @@ def test_stable_for_h_across_the_range_and_beyond(rom):
     assert np.all(mixed.poles() < 0)
 
 
+@pytest.mark.slow
 def test_changed_h_within_range_stays_within_tolerance(model, rom, loads):
     """h not among the sampled values (each zone differently): ROM vs FE without a new reduction."""
     h = {"ws_table": 0.6, "ws_spindle": 1.8, "floor": 1.3, "ambient": 0.7}
@@ -196,6 +203,7 @@ def test_exact_stepping_matches_the_analytic_ramp_response_at_any_step():
     np.testing.assert_allclose(x1, x, rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_step_size_does_not_change_the_rom_solution(rom, loads):
     """Exact discretisation: 60 s and 20 s steps of the same piecewise-linear inputs agree at common times."""
     U = loads.as_inputs(20.0)
@@ -207,6 +215,7 @@ def test_step_size_does_not_change_the_rom_solution(rom, loads):
     np.testing.assert_allclose(x20, x60, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_state_save_and_restore_continues_exactly(rom, loads, tmp_path):
     U = loads.as_inputs(20.0)
     t = loads.time_s
@@ -223,6 +232,7 @@ def test_state_save_and_restore_continues_exactly(rom, loads, tmp_path):
 
 
 # -- files and bad input ------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_save_load_round_trip(rom, machine, loads, tmp_path):
     path = save_rom(tmp_path / "rom.npz", rom)
     back = load_rom(path, machine)
@@ -233,6 +243,7 @@ def test_save_load_round_trip(rom, machine, loads, tmp_path):
     assert back.meta["machine"]["sha256"] == machine.sha256
 
 
+@pytest.mark.slow
 def test_rom_from_changed_machine_file_or_other_version_is_refused(rom, tmp_path):
     path = save_rom(tmp_path / "rom.npz", rom)
     changed = tmp_path / "vmc800.toml"
@@ -252,6 +263,7 @@ def test_rom_from_changed_machine_file_or_other_version_is_refused(rom, tmp_path
         load_rom(tmp_path / "junk.npz")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dt", [0.0, -60.0, float("nan")])
 def test_step_size_must_be_positive(rom, dt):
     x = np.zeros(rom.order)
@@ -260,6 +272,7 @@ def test_step_size_must_be_positive(rom, dt):
         rom.step(x, u, u, dt)
 
 
+@pytest.mark.slow
 def test_bad_time_grid_inputs_and_columns_are_named(rom):
     U = np.zeros((3, rom.n_inputs))
     with pytest.raises(RomInputError, match="step 2 goes from 60.0 s to 60.0 s"):
@@ -274,6 +287,7 @@ def test_bad_time_grid_inputs_and_columns_are_named(rom):
 
 
 # -- command line -----------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_reduce_and_simulate_cli_against_fe(machine, loads, tmp_path, capsys):
     short = dataclasses.replace(loads, time_s=loads.time_s[::5], values=loads.values[::5])
     write_loads(tmp_path / "loads.csv", short)
@@ -307,6 +321,7 @@ def test_reduce_and_simulate_cli_against_fe(machine, loads, tmp_path, capsys):
         (["--dt", "0"], "--dt must be positive"),
     ],
 )
+@pytest.mark.slow
 def test_simulate_with_bad_rom_input_writes_nothing(rom, tmp_path, capsys, extra, match):
     rom_path = save_rom(tmp_path / "rom.npz", rom)
     changed = tmp_path / "changed.toml"
@@ -327,6 +342,7 @@ def exported(model):
     return {"E": system.M, "A": -system.stiffness(h), "B": system.input_matrix(h), "C": system.C}
 
 
+@pytest.mark.slow
 def test_mat_and_matrix_market_reduce_with_moments_matched(model, tmp_path, capsys):
     mats = exported(model)
     scipy.io.savemat(tmp_path / "sys.mat", mats)
@@ -345,6 +361,7 @@ def test_mat_and_matrix_market_reduce_with_moments_matched(model, tmp_path, caps
     assert load_rom(tmp_path / "m.npz").meta["matrices"]["file"] == "sys.mat"
 
 
+@pytest.mark.slow
 def test_bad_exported_matrices_are_named(model, tmp_path):
     mats = exported(model)
     scipy.io.savemat(tmp_path / "noc.mat", {k: v for k, v in mats.items() if k != "C"})
@@ -423,6 +440,7 @@ def _bt_dense(As, Bs, Cs, r):
     return W.T @ As @ V, W.T @ Bs, Cs @ V
 
 
+@pytest.mark.slow
 def test_h2_error_formulas_match_scipy_lyapunov(small):
     from hybridcomp.rom import h2
 
@@ -439,6 +457,7 @@ def test_h2_error_formulas_match_scipy_lyapunov(small):
     assert 0.01 < ref < 1.0  # a random basis is measurably wrong: the formulas are not compared at zero
 
 
+@pytest.mark.slow
 def test_h2_gradient_matches_finite_differences(small):
     from hybridcomp.rom import h2
 
@@ -451,12 +470,14 @@ def test_h2_gradient_matches_finite_differences(small):
     D -= Q @ (Q.T @ D)
     J, g = h2.galerkin_error(form, Q, gradient=True)
     eps = 1e-6
-    fd = (h2.galerkin_error(form, np.linalg.qr(Q + eps * D)[0]) - h2.galerkin_error(form, np.linalg.qr(Q - eps * D)[0])) / (2 * eps)
+    fd = (h2.galerkin_error(form, np.linalg.qr(Q + eps * D)[0])
+          - h2.galerkin_error(form, np.linalg.qr(Q - eps * D)[0])) / (2 * eps)
     assert np.sum(g * D) == pytest.approx(fd, rel=1e-5)
     assert abs(fd) > 1e-6 * J  # not compared at a stationary point
     np.testing.assert_allclose(Q.T @ g, 0.0, atol=1e-10 * np.abs(g).max())  # tangent to the Grassmann manifold
 
 
+@pytest.mark.slow
 def test_h2_optimal_one_sided_basis_within_twice_balanced_truncation(small):
     """The goal of the pyMOR cross-check, on a small system with a dense scipy reference: the one-sided
     (symmetric, stable) H2-optimal basis is within 2x of balanced truncation's H2 error at equal order,
@@ -480,6 +501,7 @@ def test_h2_optimal_one_sided_basis_within_twice_balanced_truncation(small):
         assert e_greedy > 2 * e_bt, (r, e_greedy, e_bt)  # the bar is not trivially met
 
 
+@pytest.mark.slow
 def test_h2_basis_keeps_the_steady_state_block_exact(small):
     """With the s = 0 block fixed, steady states stay exact (as the Krylov basis) whatever the other directions."""
     from hybridcomp.rom import h2
@@ -494,9 +516,11 @@ def test_h2_basis_keeps_the_steady_state_block_exact(small):
     np.testing.assert_allclose(V.T @ V, np.eye(V.shape[1]), atol=1e-10)
     np.testing.assert_allclose(s0 - V @ (V.T @ s0), 0.0, atol=1e-10)
     P = project(small, V)
-    np.testing.assert_allclose(_reduced_tf(P, 0.0, small.h), small.transfer(0.0), rtol=1e-8, atol=1e-12 * np.abs(small.transfer(0.0)).max())
+    np.testing.assert_allclose(_reduced_tf(P, 0.0, small.h), small.transfer(0.0), rtol=1e-8,
+                               atol=1e-12 * np.abs(small.transfer(0.0)).max())
 
 
+@pytest.mark.slow
 def test_reduce_model_with_h2_basis_keeps_structure_and_steady_state(model, loads):
     rom = reduce_model(model, order=56, check_loads=loads, basis="h2", h2_maxiter=20)
     assert rom.order == 56 and rom.meta["method"] == "H2-optimal one-sided basis"

@@ -171,6 +171,7 @@ def reference(coarse_model, short_day):
     return fine_reference(coarse_model, short_day)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tolerance", [DEFAULT_TOLERANCE, TimeTolerance(sensor_K=2e-4, drift_um=1e-3)])
 def test_estimate_bounds_the_true_error_on_the_fe_model(coarse_model, short_day, reference, tolerance):
     res, est = simulate_controlled(coarse_model, short_day.time_s, short_day.as_inputs(20.0), tolerance)
@@ -185,6 +186,7 @@ def test_estimate_bounds_the_true_error_on_the_fe_model(coarse_model, short_day,
         assert est.runs > 2  # the tight tolerance needed refinement
 
 
+@pytest.mark.slow
 def test_a_tolerance_out_of_reach_is_reported_not_met(coarse_model, short_day, caplog):
     _, est = simulate_controlled(coarse_model, short_day.time_s, short_day.as_inputs(20.0),
                                  TimeTolerance(sensor_K=1e-12, drift_um=1e-12), max_substeps=4)
@@ -192,6 +194,7 @@ def test_a_tolerance_out_of_reach_is_reported_not_met(coarse_model, short_day, c
     assert "did not meet the time tolerance" in caplog.text
 
 
+@pytest.mark.slow
 def test_cli_default_meets_its_tolerance_and_reports_it(machine, coarse_model, short_day, tmp_path):
     write_loads(tmp_path / "loads.csv", short_day)
     reference = fine_reference(coarse_model, read_loads(tmp_path / "loads.csv", machine))  # the CSV rounds to 6 digits
