@@ -6,7 +6,9 @@ with the default two, and the H2 tests 10 s against 266 s (threads spinning afte
 product starve each other; the FE time loop avoids dense BLAS for the same reason). numpy and
 scipy wheels bundle OpenBLAS under ``numpy.libs`` / ``scipy.libs``; their ``*_set_num_threads``
 entry points are called through ctypes (what threadpoolctl does), and the previous count is
-restored afterwards.
+restored afterwards.  cvxopt's wheel bundles a third OpenBLAS under ``cvxopt.libs`` (used by its
+CHOLMOD, the sparse solver of the ``fast`` extra); it is built single-threaded, so limiting it
+changes nothing today, but it is included once cvxopt has been imported (never imported here).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import functools
 import glob
 import logging
 import os
+import sys
 
 log = logging.getLogger(__name__)
 
@@ -26,21 +29,27 @@ _GET = ("scipy_openblas_get_num_threads64_", "scipy_openblas_get_num_threads", "
         "openblas_get_num_threads")
 
 
-@functools.lru_cache(maxsize=1)
-def _libraries() -> tuple:
+@functools.cache
+def _package_libraries(pkg: str) -> tuple:
+    """The OpenBLAS libraries a wheel bundles under ``<pkg>.libs`` (loaded once per package)."""
+    try:
+        mod = __import__(pkg)
+    except ImportError:  # pragma: no cover
+        return ()
     libs = []
-    for pkg in ("numpy", "scipy"):
+    root = os.path.join(os.path.dirname(mod.__file__), os.pardir, f"{pkg}.libs")
+    for path in glob.glob(os.path.join(root, "*openblas*")):
         try:
-            mod = __import__(pkg)
-        except ImportError:  # pragma: no cover
+            libs.append(ctypes.CDLL(path))
+        except OSError:
             continue
-        root = os.path.join(os.path.dirname(mod.__file__), os.pardir, f"{pkg}.libs")
-        for path in glob.glob(os.path.join(root, "*openblas*")):
-            try:
-                libs.append(ctypes.CDLL(path))
-            except OSError:
-                continue
     return tuple(libs)
+
+
+def _libraries() -> tuple:
+    """The OpenBLAS of numpy and scipy, and cvxopt's when cvxopt is already imported."""
+    pkgs = ["numpy", "scipy"] + (["cvxopt"] if "cvxopt" in sys.modules else [])
+    return tuple(lib for pkg in pkgs for lib in _package_libraries(pkg))
 
 
 def _calls(lib):
@@ -60,7 +69,7 @@ def single_blas_thread():
         try:
             restore.append((s, int(g())))
             s(1)
-        except Exception as exc:  # pragma: no cover - a foreign BLAS build
+        except Exception as exc:  # noqa: BLE001 - a foreign BLAS build may fail in any way; limiting threads is optional
             log.debug("could not limit BLAS threads: %s", exc)
     try:
         yield

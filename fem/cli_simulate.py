@@ -71,6 +71,7 @@ def time_tolerance(args: argparse.Namespace) -> TimeTolerance | None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp simulate`` options."""
     add_machine_argument(p)
     p.add_argument("--loads", required=True, type=Path,
                    help="BC time series CSV: time_s, <source>[<segment>]_W, <zone>_degC; a missing column is zero power "
@@ -99,7 +100,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fields", type=int, default=0, metavar="N",
                    help="also write the full temperature and displacement field at N evenly spaced steps")
     p.add_argument("--field-format", choices=("vtu", "xdmf"), default="vtu", help="field file format (xdmf needs h5py)")
-    p.add_argument("--png", action="store_true", help="render temperature on the deformed machine at the last step (needs pyvista)")
+    p.add_argument("--png", action="store_true",
+                   help="render temperature on the deformed machine at the last step (needs pyvista)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--rom", type=Path, metavar="ROM.npz",
                    help="simulate with this reduced model (from 'hybridcomp reduce') instead of FE: exact stepping, "
@@ -107,6 +109,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``hybridcomp simulate``; returns the exit code (2: bad input, named on stderr)."""
     bad = refuse_unused(args, [("field_format", args.fields <= 0, "applies with --fields N only")])
     if bad:
         print(f"error: {bad}", file=sys.stderr)
@@ -135,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         return run_rom(args, machine, pose, loads)
 
     from hybridcomp.fem.model import build_model
-    from hybridcomp.fem.transient import simulate
+    from hybridcomp.fem.transient import simulate, solver_backends
 
     t0 = time.perf_counter()
     progress = not args.no_progress
@@ -201,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
         "steps": time_info["steps"],
         "time": time_info,
         "timings_s": {**model.timings_s, **res.timings_s, "total": time.perf_counter() - t0},
+        "solvers": solver_backends(model),
         "files": files,
     }
     (out / "run.json").write_text(jsonio.dumps(info, indent=2))

@@ -135,14 +135,49 @@ def step_sizes_s(time_s: np.ndarray, substeps: int) -> tuple[float, ...]:
     return tuple(sorted(set(np.round(h, 9).tolist())))
 
 
-def _output_product(O):
-    """``v ↦ O v`` without dense BLAS: a sparse product, or einsum for a dense ``O``."""
+def _output_product(C):
+    """``v ↦ C v`` without dense BLAS: a sparse product, or einsum for a dense ``C``."""
     import scipy.sparse as sp
 
-    if sp.issparse(O):
-        return lambda v: O @ v
-    O = np.asarray(O)
-    return lambda v: np.einsum("ij,j->i", O, v)
+    if sp.issparse(C):
+        return lambda v: C @ v
+    C = np.asarray(C)
+    return lambda v: np.einsum("ij,j->i", C, v)
+
+
+@dataclass
+class _LoopStart:
+    """What both time loops set up before their first step: output products, state, caches, result arrays."""
+
+    products: list
+    x: np.ndarray
+    cache: dict
+    store: set
+    ys: list
+    fields: dict
+
+
+def _loop_start(n: int, nt: int, outputs, x0, cache, store_steps) -> _LoopStart:
+    """The initial state (zero or ``x0``, checked), the outputs at the first time and the stored fields."""
+    products = [_output_product(C) for C in outputs]
+    x = np.zeros(n) if x0 is None else np.asarray(x0, float).copy()
+    if x.shape != (n,):
+        raise ValueError(f"initial state must have {n} entries, got {x.shape}")
+    store = set(store_steps or ())
+    ys = [np.empty((nt, C.shape[0])) for C in outputs]
+    for y, prod in zip(ys, products):
+        y[0] = prod(x)
+    fields: dict[int, np.ndarray] = {0: x.copy()} if 0 in store else {}
+    return _LoopStart(products, x, {} if cache is None else cache, store, ys, fields)
+
+
+def _progress_bar(show: bool, total: int, desc: str):
+    """A tqdm bar over the steps, or None."""
+    if not show:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="step", desc=desc, leave=False)
 
 
 def integrate_trbdf2(
@@ -187,24 +222,12 @@ def integrate_trbdf2(
     n = M.shape[0]
     Bu = sp.csr_matrix(Bu)
     M = sp.csr_matrix(M)
-    products = [_output_product(O) for O in outputs]
-    x = np.zeros(n) if x0 is None else np.asarray(x0, float).copy()
-    if x.shape != (n,):
-        raise ValueError(f"initial state must have {n} entries, got {x.shape}")
-    cache = {} if cache is None else cache
-    store = set(store_steps or ())
     nt = t.size
-    ys = [np.empty((nt, O.shape[0])) for O in outputs]
-    for y, prod in zip(ys, products):
-        y[0] = prod(x)
-    fields: dict[int, np.ndarray] = {0: x.copy()} if 0 in store else {}
+    st = _loop_start(n, nt, outputs, x0, cache, store_steps)
+    products, x, cache, store, ys, fields = st.products, st.x, st.cache, st.store, st.ys, st.fields
     t_factor = t_solve = 0.0
     t0_all = time.perf_counter()
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=(nt - 1) * substeps, unit="step", desc="transient TR-BDF2", leave=False)
+    bar = _progress_bar(progress, (nt - 1) * substeps, "transient TR-BDF2")
     s_gamma = np.arange(substeps) + GAMMA  # stage points in sub-step units
     for k in range(1, nt):
         h = float(t[k] - t[k - 1]) / substeps

@@ -18,6 +18,7 @@ import scipy.sparse as sp
 
 from hybridcomp.fem.model import ThermoElasticModel
 from hybridcomp.fem.solvers import Factor, factorize_spd
+from hybridcomp.fem.timestep import _loop_start, _progress_bar
 from hybridcomp.models.simulation import SimulationResult, initial_state
 
 log = logging.getLogger(__name__)
@@ -83,31 +84,18 @@ def integrate(
     # the sparse solver's own BLAS threads (measured 8x slower steps on 2 cores).  Sparse products
     # and einsum do not touch BLAS.
     Bu = sp.csr_matrix(Bu)
-    products = [(lambda v, O=O: O @ v) if sp.issparse(O) else (lambda v, O=np.asarray(O): np.einsum("ij,j->i", O, v))
-                for O in outputs]
-    x = np.zeros(n) if x0 is None else np.asarray(x0, float).copy()
-    if x.shape != (n,):
-        raise ValueError(f"initial state must have {n} entries, got {x.shape}")
-    cache = {} if cache is None else cache
-    store = set(store_steps or ())
     nt = t.size
-    ys = [np.empty((nt, O.shape[0])) for O in outputs]
-    for y, prod in zip(ys, products):
-        y[0] = prod(x)
-    fields: dict[int, np.ndarray] = {0: x.copy()} if 0 in store else {}
+    st = _loop_start(n, nt, outputs, x0, cache, store_steps)
+    products, x, cache, store, ys, fields = st.products, st.x, st.cache, st.store, st.ys, st.fields
     t_factor = t_solve = 0.0
     t0_all = time.perf_counter()
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=nt - 1, unit="step", desc="transient", leave=False)
+    bar = _progress_bar(progress, nt - 1, "transient")
     dts = np.diff(t)
     for k in range(1, nt):
         dt = float(dts[k - 1])
         key = ("step", round(dt, 9), float(theta))
         tf = time.perf_counter()
-        f = _cached_factor(cache, key, lambda: M / dt + theta * A, coords)
+        f = _cached_factor(cache, key, lambda: M / dt + theta * A, coords)  # noqa: B023 - called at once, in this step
         if ("Mdt", key[1]) not in cache:
             cache[("Mdt", key[1])] = (M / dt).tocsr()
         Mdt = cache[("Mdt", key[1])]
@@ -175,6 +163,17 @@ def simulate(
         timings_s=timings,
         sensor_names=model.sensor_names,
     )
+
+
+def solver_backends(model: ThermoElasticModel) -> dict[str, str]:
+    """The sparse solvers a model used so far: ``{"heat": ..., "elastic": ...}``.
+
+    ``heat`` names the backends of the cached factorisations (comma-separated when
+    they differ, empty before the first solve); ``elastic`` the backend of the
+    adjoint solves for the drift rows.
+    """
+    heat = sorted({f.backend for f in model._cache.values() if isinstance(f, Factor)})
+    return {"heat": ", ".join(heat), "elastic": str(model.timings_s.get("elastic_backend", ""))}
 
 
 def step_factor_for_benchmark(model: ThermoElasticModel, dt_s: float, theta: float) -> Factor:

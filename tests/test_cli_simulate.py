@@ -48,11 +48,13 @@ def test_bad_loads_are_named(machine, tmp_path, header, rows, match, write_csv):
         read_loads(p, machine)
 
 
+@pytest.mark.slow
 def test_simulate_cli_writes_the_output_contract(machine, tmp_path):
     loads = example_loads(machine, duration_h=2.0, dt_s=300.0)
     write_loads(tmp_path / "loads.csv", loads)
     out = tmp_path / "run"
-    rc = main(["simulate", "--machine", "vmc800", "--loads", str(tmp_path / "loads.csv"), "--out", str(out), "--fields", "2", *COARSE])
+    rc = main(["simulate", "--machine", "vmc800", "--loads", str(tmp_path / "loads.csv"), "--out", str(out),
+               "--fields", "2", *COARSE])
     assert rc == 0
     with (out / "outputs.csv").open() as fh:
         rows = list(csv.reader(fh))
@@ -72,6 +74,7 @@ def test_simulate_cli_writes_the_output_contract(machine, tmp_path):
     assert np.ptp(m.points, axis=0).max() > 1000  # written in mm
 
 
+@pytest.mark.slow
 def test_simulate_cli_resamples_with_dt(machine, tmp_path, write_csv):
     write_csv(tmp_path / "l.csv", ["time_s", "spindle_motor_W"], [[0, 0], [3600, 100]])
     out = tmp_path / "o"
@@ -81,6 +84,13 @@ def test_simulate_cli_resamples_with_dt(machine, tmp_path, write_csv):
     info = json.loads((out / "run.json").read_text())["time"]  # a chosen --dt: backward Euler, no error estimate
     assert info["scheme"] == "theta-method" and info["theta"] == 1.0 and info["step_sizes_s"] == [600.0]
     assert info["estimate_sensor_K"] is None and info["estimate"].startswith("none")
+    # run.json names the solvers that ran: the fastest installed (cvxopt's CHOLMOD with the fast extra)
+    from hybridcomp.fem import solvers
+
+    run = json.loads((out / "run.json").read_text())
+    names = {"cholmod": "cholmod", "cvxopt": "cvxopt-cholmod", "pyamg": "pyamg-cg", "superlu": "superlu-nd"}
+    assert run["solvers"] == {"heat": names[solvers.factor_backend()],
+                              "elastic": names[solvers.few_backend(3 * run["nodes"])]}
 
 
 @pytest.mark.parametrize(
