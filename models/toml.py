@@ -48,6 +48,11 @@ def _is_number(x: Any) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
+def nonnegative_number(x: Any, strict: bool = False) -> bool:
+    """Whether ``x`` is a finite int or float (a bool is not) that is ≥ 0 (> 0 with ``strict``)."""
+    return _is_number(x) and math.isfinite(x) and (x > 0 if strict else x >= 0)
+
+
 class StrictTable:
     """One TOML table of a known shape; an unknown key is an error before anything else.
 
@@ -81,14 +86,20 @@ class StrictTable:
     def __contains__(self, key: str) -> bool:
         return key in self.t
 
-    def get(self, key: str, default: Any = ..., kind: type | tuple = object) -> Any:
-        """The raw value of ``key`` checked against ``kind``; ``default`` when absent (``...``: required)."""
+    def _lookup(self, key: str, default: Any) -> tuple[bool, Any]:
+        """(True, the value) when ``key`` is in the table, else (False, ``default``); ``...`` means required."""
         assert key in self.known, key
         if key not in self.t:
             if default is ...:
                 raise self.err(key, "is required")
-            return default
-        v = self.t[key]
+            return False, default
+        return True, self.t[key]
+
+    def get(self, key: str, default: Any = ..., kind: type | tuple = object) -> Any:
+        """The raw value of ``key`` checked against ``kind``; ``default`` when absent (``...``: required)."""
+        present, v = self._lookup(key, default)
+        if not present:
+            return v
         wants_bool = kind is bool or (isinstance(kind, tuple) and bool in kind)
         if (kind is not object and not isinstance(v, kind)) or (isinstance(v, bool) and not wants_bool):
             raise self.err(key, f"has the wrong type: {v!r}")
@@ -97,12 +108,9 @@ class StrictTable:
     def number(self, key: str, default: Any = ..., *, positive: bool = False, nonneg: bool = False,
                integer: bool = False) -> Any:
         """A finite number (float, or int with ``integer``); the default is returned unchecked."""
-        assert key in self.known, key
-        if key not in self.t:
-            if default is ...:
-                raise self.err(key, "is required")
-            return default
-        v = self.t[key]
+        present, v = self._lookup(key, default)
+        if not present:
+            return v
         if not _is_number(v):
             raise self.err(key, f"must be a number, got {v!r}")
         if not math.isfinite(v):

@@ -14,8 +14,8 @@ from dataclasses import fields as dataclass_fields
 from pathlib import Path
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.histogram.increments import DEFAULT_MAX_GAP_S
+from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.models.toml import StrictTable, did_you_mean, read_toml
 from hybridcomp.monitor.decisions import Backoff, SensorRules, Validity
 from hybridcomp.rom.observer import ObserverError, ObserverSettings
@@ -218,9 +218,11 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
     inc = m.number("increment_s", MonitorConfig.increment_s, positive=True)
     ratio = mon / inc
     if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
-        raise ConfigError(f"{source}: monitor.monitoring_interval_s {mon:g} must be a whole multiple of monitor.increment_s {inc:g}")
+        raise ConfigError(f"{source}: monitor.monitoring_interval_s {mon:g} must be a whole multiple of "
+                          f"monitor.increment_s {inc:g}")
     if comp > mon:
-        raise ConfigError(f"{source}: monitor.compensation_interval_s {comp:g} is longer than monitor.monitoring_interval_s {mon:g}")
+        raise ConfigError(f"{source}: monitor.compensation_interval_s {comp:g} is longer than "
+                          f"monitor.monitoring_interval_s {mon:g}")
     pose = m.mapping("pose_mm", float) or None
 
     c = _Reader(source, "compensation", data.get("compensation", {}))

@@ -6,7 +6,7 @@
 * every ``compensation_interval_s`` (5 s): offsets — the active CD set on the low-passed sensors (strategy
   ``hybrid``) or the corrected structure model's drift (strategy ``observer``, the CDs standing in while the
   observer is flagged), clamped and rate limited;
-* every ``increment_s`` (60 s, a model step): the histogram of the step's samples gives the loads; the
+* every ``increment_s`` (20 s, a model step): the histogram of the step's samples gives the loads; the
   observer (:mod:`hybridcomp.rom.observer`) steps the structure model and corrects it with the sensors and,
   when there is one, a probed drift;
 * every ``monitoring_interval_s`` (15 min, and at the first sample): the active set's predicted compensation
@@ -39,6 +39,7 @@ import random
 import signal
 import time
 import warnings
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -50,33 +51,42 @@ from hybridcomp.histogram.signature import SignatureLayout, signatures
 from hybridcomp.histogram.trace import Samples, TraceFileError
 from hybridcomp.models import jsonio
 from hybridcomp.models.layout import DIRECTIONS, DRIFT_COLUMNS
+from hybridcomp.monitor import decisions
 from hybridcomp.monitor.config import MonitorConfig
-from hybridcomp.monitor.decisions import (
-    Candidate,
-    Decision,
-    SensorState,
-    SetError,
-    accept_time,
-    backoff_delay,
-    blend_offsets,
-    check_sensor,
-    compensation_error_um,
-    decide,
-    limit_offsets,
-    model_drift,
-    substitute,
-    temperature_deviation,
-)
+from hybridcomp.monitor.decisions import Candidate, Decision, SensorState, SetError
 from hybridcomp.monitor.regeneration import FORECAST_STEP_S, RegenerationRequest
 from hybridcomp.monitor.sinks import Offset
 from hybridcomp.monitor.sources import Reading, SourceDisconnected, WallClock
-from hybridcomp.monitor.state import STATE_VERSION, ZERO_OFFSETS, MonitorState
+from hybridcomp.monitor.state import STATE_VERSION, MonitorState
 from hybridcomp.monitor.store import MonitorStore
 from hybridcomp.rom.observer import build_observer
 
 log = logging.getLogger(__name__)
 
 HISTORY_STEP_S = 300.0  # one history row (sensors, estimated drift, mean loads) per this much machine time
+SNAPSHOT_STEPS = 6  # the rewind log keeps the observer's estimate before every this many model steps
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """What one model step fed the observer, for re-filtering it when a sensor turns out to have been faulty.
+
+    Attributes
+    ----------
+    end_s : end of the step [s]
+    dt_s : its length [s]
+    u : its model inputs (powers [W], air rises [K])
+    y_degC : the sensors' means over it [°C] (NaN: not measured)
+    probe_um : a probed drift at its end [µm], or None
+    before : the observer's estimate before the step (every ``SNAPSHOT_STEPS`` steps), or None
+    """
+
+    end_s: float
+    dt_s: float
+    u: np.ndarray
+    y_degC: np.ndarray
+    probe_um: tuple | None
+    before: object | None
 
 
 def state_key(machine: str, pose_key: str) -> str:
@@ -165,6 +175,7 @@ class Monitor:
         self._outbox: list[dict] = []
         self._eval_failed_logged = False
         self._snap: dict | None = None
+        self.rewind: deque[StepRecord] = deque()  # the recent model steps (not persisted: a restart cannot rewind)
         self.restore()
         self.reload_active()
 
@@ -225,7 +236,7 @@ class Monitor:
     def process(self, r: Reading) -> list[Offset]:
         """Handle one reading; returns the offsets of the compensation cycles it completes (0 or 1)."""
         s = self.s
-        verdict = accept_time(s.last_time_s, r.time_s)
+        verdict = decisions.accept_time(s.last_time_s, r.time_s)
         if verdict != "ok":
             s.interval_drops[verdict] += 1
             setattr(self.counters, f"dropped_{verdict}", getattr(self.counters, f"dropped_{verdict}") + 1)
@@ -301,8 +312,8 @@ class Monitor:
             if raw is None:
                 raw = math.nan
             st = s.sensors[name]
-            ref = substitute(est.get(name, math.nan), s.bias_K.get(name, math.nan))
-            v = check_sensor(st, r.time_s, float(raw), self.cfg.sensors, ref)
+            ref = decisions.substitute(est.get(name, math.nan), s.bias_K.get(name, math.nan))
+            v = decisions.check_sensor(st, r.time_s, float(raw), self.cfg.sensors, ref)
             s.sensors[name] = v.state
             if v.event is not None:
                 self.event("sensor", r.time_s, {
@@ -312,6 +323,10 @@ class Monitor:
                 }, f"{name}@{v.event}@{_t(r.time_s)}")
                 (log.warning if v.event == "degraded" else log.info)(
                     "sensor %s %s at %.0f s (%s)", name, v.event, r.time_s, v.state.reason)
+                if v.event == "degraded":
+                    st = v.state
+                    onset = st.raw_since_s if st.reason == "frozen" else st.bad_since_s
+                    self._refilter(name, onset, r.time_s)
             measured[name] = v.value_degC if v.state.status != "degraded" else math.nan
             temps[name] = v.value_degC if math.isfinite(v.value_degC) else ref
         self.temps, self.measured = temps, measured
@@ -332,8 +347,10 @@ class Monitor:
 
     # ------------------------------------------------------------------ the structure model and its observer
     def _first_estimate(self, t: float) -> None:
-        """The observer's prior at the first sample (steady in its air, no load), corrected by its sensors;
-        then the first monitoring decision."""
+        """The observer's prior at the first sample, corrected by its sensors; then the first monitoring decision.
+
+        The prior is the steady state in the first sample's air, with no load.
+        """
         s = self.s
         u = self._standstill_inputs(self.buffer[-1])
         s.observer = self.observer.initial(u, t)
@@ -389,6 +406,7 @@ class Monitor:
         s = self.s
         u, sig = self._step_inputs(end_s)
         dt = end_s - s.observer.time_s
+        before = s.observer
         if dt > 0:
             s.observer = self.observer.predict(s.observer, u, dt)
         # the sensors' mean over the step (their noise averages out; the thermal state moves little in a step)
@@ -396,6 +414,7 @@ class Monitor:
             y = np.where(self.step_n > 0, self.step_sum / self.step_n, math.nan)
         self.step_sum[:] = 0.0
         self.step_n[:] = 0.0
+        self._log_step(end_s, dt, u, y, s.probe_um, before)
         s.observer, inn = self.observer.update_sensors(s.observer, y)
         for name in inn.rejected:
             s.rejected[name] = s.rejected.get(name, 0) + 1
@@ -420,6 +439,59 @@ class Monitor:
         s.next_step_s = end_s + self.cfg.increment_s
         if end_s >= s.next_mon_s:
             self._close_interval(end_s)
+
+    def _log_step(self, end_s: float, dt: float, u: np.ndarray, y: np.ndarray, probe, before) -> None:
+        """Keep the step for a rewind: as far back as a faulty sensor can go unnoticed (frozen, then held)."""
+        snap = before if len(self.rewind) % SNAPSHOT_STEPS == 0 else None
+        self.rewind.append(StepRecord(end_s, dt, np.array(u, float), np.array(y, float),
+                                      None if probe is None else tuple(probe), snap))
+        keep = self.cfg.sensors.frozen_s + self.cfg.sensors.hold_s + (SNAPSHOT_STEPS + 2) * self.cfg.increment_s
+        while len(self.rewind) > SNAPSHOT_STEPS and self.rewind[SNAPSHOT_STEPS].end_s < end_s - keep:
+            for _ in range(SNAPSHOT_STEPS):  # drop whole snapshot groups: the first record keeps its snapshot
+                self.rewind.popleft()
+
+    def _refilter(self, sensor: str, onset_s: float, t: float) -> None:
+        """A sensor found faulty now has been wrong since ``onset_s``: filter the steps since then again without it.
+
+        A frozen sensor is recognised only ``frozen_s`` after it froze; meanwhile the observer took its stuck
+        value for the machine's and moved its disturbance estimates (a heat source's scale, the air) to explain
+        it, and those would stay wrong. The observer goes back to its estimate before the onset and runs the
+        logged steps again with the sensor masked.
+        """
+        s = self.s
+        j = self.sensor_names.index(sensor)
+        recs = list(self.rewind)
+        starts = [k for k, rec in enumerate(recs) if rec.before is not None and rec.end_s - rec.dt_s <= onset_s]
+        if not math.isfinite(onset_s) or not starts or s.observer is None:
+            self.event("observer", t, {"status": "not rewound", "sensor": sensor, "onset_s": _finite(onset_s),
+                                       "reason": "the steps since the onset are not in the rewind log"},
+                       f"rewind@{sensor}@{_t(t)}")
+            return
+        k0 = starts[-1]
+        state = recs[k0].before
+        masked = 0
+        for rec in recs[k0:]:
+            if rec.dt_s > 0:
+                state = self.observer.predict(state, rec.u, rec.dt_s)
+            y = rec.y_degC.copy()
+            if rec.end_s > onset_s:
+                y[j] = math.nan
+                masked += 1
+            state, _ = self.observer.update_sensors(state, y)
+            if rec.probe_um is not None:
+                state = self.observer.update_probe(state, rec.probe_um)
+        was = self.observer.drift_um(s.observer)
+        s.observer = state
+        self.step_sum[j] = 0.0
+        self.step_n[j] = 0.0
+        if s.step_inputs is not None:
+            self._after_update(s.step_time_s, np.asarray(s.step_inputs, float))
+        self.event("observer", t, {
+            "status": "rewound", "sensor": sensor, "onset_s": onset_s, "steps_masked": masked,
+            "drift_change_um": dict(zip(DRIFT_COLUMNS, map(float, self.observer.drift_um(state) - was))),
+        }, f"rewind@{sensor}@{_t(t)}")
+        log.warning("observer rewound to %.0f s and %d steps filtered again without %s", recs[k0].end_s - recs[k0].dt_s,
+                    masked, sensor)
 
     def _after_update(self, t: float, u: np.ndarray) -> None:
         """Estimates after an observer update: drift now and one step ahead, stand-in biases."""
@@ -485,11 +557,11 @@ class Monitor:
                     s.blend_time_s = r.time_s
                     s.blend_pending = False
                 dt = 0.0 if s.blend_time_s is None else r.time_s - s.blend_time_s
-                target, s.blend_um = blend_offsets(target, s.blend_um, dt, self.cfg.blend_s)
+                target, s.blend_um = decisions.blend_offsets(target, s.blend_um, dt, self.cfg.blend_s)
                 s.blend_time_s = r.time_s
         # the first offsets of a fresh state have nothing to continue: only clamped (a restart continues its own)
         step = self.cfg.max_step_um if s.written else math.inf
-        applied, clamped, limited = limit_offsets(target, s.offsets_um, self.cfg.max_offset_um, step)
+        applied, clamped, limited = decisions.limit_offsets(target, s.offsets_um, self.cfg.max_offset_um, step)
         s.offsets_um, s.written = applied, True
         ids = s.active_ids or {}
         return Offset(r.time_s, applied["dx_um"], applied["dy_um"], applied["dz_um"],
@@ -529,9 +601,9 @@ class Monitor:
 
     def _set_error(self, cds, rows: np.ndarray, forecasts) -> SetError:
         ns = len(self.sensor_names)
-        interval = compensation_error_um(set_predictions(cds, rows[:, 1:1 + ns], self.sensor_names, self.pose_mm),
-                                         rows[:, 1 + ns:])
-        fc = max(compensation_error_um(set_predictions(cds, T, self.sensor_names, self.pose_mm), d) for T, d in forecasts)
+        error = decisions.compensation_error_um
+        interval = error(set_predictions(cds, rows[:, 1:1 + ns], self.sensor_names, self.pose_mm), rows[:, 1 + ns:])
+        fc = max(error(set_predictions(cds, T, self.sensor_names, self.pose_mm), d) for T, d in forecasts)
         return SetError(interval, fc)
 
     def _monitor(self, boundary: float) -> None:
@@ -539,7 +611,7 @@ class Monitor:
         rows = np.asarray(s.interval, float)
         est = self._estimate_degC()
         measured = {n: v for n, v in self.measured.items() if math.isfinite(v) and s.sensors[n].status == "ok"}
-        drifted, drift_K, drift_sensor = model_drift(est, measured, self.cfg.model_drift_K)
+        drifted, drift_K, drift_sensor = decisions.model_drift(est, measured, self.cfg.model_drift_K)
         s.max_residual_K = _finite(drift_K)
         self._flag(boundary, drifted, drift_K, drift_sensor)
         if drifted or s.rejected:
@@ -556,18 +628,18 @@ class Monitor:
             except (KeyError, ValueError) as exc:
                 log.warning("the active set cannot be assessed: %s", exc)
         t_ref = self.active.t_reference_degC if self.active is not None else {}
-        dT, dT_sensor = temperature_deviation(est, t_ref) if self.active is not None else (math.inf, None)
+        dT, dT_sensor = decisions.temperature_deviation(est, t_ref) if self.active is not None else (math.inf, None)
         v = self.cfg.validity
         enabled = self.cfg.regeneration.enabled and boundary >= s.regen_blocked_until_s
         why = ("regeneration is disabled" if not self.cfg.regeneration.enabled else
                f"no generation before {s.regen_blocked_until_s:.0f} s after a failed one")
         running = self.regeneration_running or s.pending is not None
         since = boundary - s.activated_s
-        d = decide(s.active_ids, error, since, v, [], enabled, running, why)
+        d = decisions.decide(s.active_ids, error, since, v, [], enabled, running, why)
         candidates: list[Candidate] = []
         if d.action != "keep" and v.max_candidates:
             candidates = self._candidates(rows, forecasts, est)
-            d = decide(s.active_ids, error, since, v, candidates, enabled, running, why)
+            d = decisions.decide(s.active_ids, error, since, v, candidates, enabled, running, why)
         sig = None if s.signature_sum is None else [float(x) / s.signature_s for x in s.signature_sum]
         payload = {
             "action": d.action, "reason": d.reason, "error_um": None if error is None else error.as_dict(),
@@ -873,7 +945,7 @@ async def run_monitor(
                 if getattr(source, "finished", True):
                     return "end of data"
             except SourceDisconnected as exc:
-                delay = backoff_delay(attempt, cfg.reconnect, rng.random())
+                delay = decisions.backoff_delay(attempt, cfg.reconnect, rng.random())
                 log.warning("data source: %s; reconnecting in %.2f s (attempt %d)", exc, delay, attempt + 1)
                 if attempt == 0:
                     monitor.store.log_event("source", monitor.s.last_time_s, {"status": "disconnected", "error": str(exc)})

@@ -26,6 +26,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from hybridcomp.models.toml import nonnegative_number
+
 # --------------------------------------------------------------------------- compensation offsets
 
 
@@ -134,7 +136,7 @@ class SensorRules:
     def __post_init__(self):
         for name in ("hold_s", "frozen_s", "spike_K", "spike_rate_K_s"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            if not nonnegative_number(v):
                 raise ValueError(f"sensor rule {name} must be a non-negative number, got {v!r}")
         if not self.min_degC < self.max_degC:
             raise ValueError(f"sensor rule min_degC {self.min_degC!r} must be below max_degC {self.max_degC!r}")
@@ -308,11 +310,11 @@ class Validity:
     def __post_init__(self):
         for name in ("keep_um", "forecast_um", "hard_um", "forecast_h"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            if not nonnegative_number(v, strict=True):
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
         for name in ("dwell_s", "bump_um"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            if not nonnegative_number(v):
                 raise ValueError(f"{name} must be a number ≥ 0, got {v!r}")
         if int(self.max_candidates) != self.max_candidates or self.max_candidates < 0:
             raise ValueError(f"max_candidates must be a whole number ≥ 0, got {self.max_candidates!r}")
@@ -338,7 +340,7 @@ class SetError:
 
 
 def compensation_error_um(predicted_um, reference_um) -> float:
-    """max |predicted − reference| over all finite entries [µm] (inf when there is none: no evidence)."""
+    """Max |predicted − reference| over all finite entries [µm] (inf when there is none: no evidence)."""
     d = np.abs(np.asarray(predicted_um, float) - np.asarray(reference_um, float))
     d = d[np.isfinite(d)]
     return float(d.max()) if d.size else math.inf
@@ -436,7 +438,8 @@ def decide(
     return Decision("warn", f"{what}; no stored set fits and {not_enabled_because}", error)
 
 
-def model_drift(model_degC: Mapping[str, float], measured_degC: Mapping[str, float], threshold_K: float) -> tuple[bool, float, str | None]:
+def model_drift(model_degC: Mapping[str, float], measured_degC: Mapping[str, float],
+                threshold_K: float) -> tuple[bool, float, str | None]:
     """Whether the structure model has drifted from the measured sensors.
 
     Returns

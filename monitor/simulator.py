@@ -89,6 +89,7 @@ async def serve_trace(trace: Path, port: int, speed: float = 1.0, start_s: float
 
 
 def main(argv=None) -> int:
+    """The simulator's command line (see the module docstring); returns the exit code."""
     p = argparse.ArgumentParser(prog="python -m hybridcomp.monitor.simulator", description=__doc__.split("\n\n")[0])
     p.add_argument("--trace", required=True, type=Path, help="trace CSV to play")
     p.add_argument("--port", type=int, default=4840, help="TCP port on 127.0.0.1 (default 4840)")

@@ -69,9 +69,27 @@ class MemorySink:
         pass
 
 
-class JsonlSink:
-    """Appends one JSON object per cycle to a file, flushed every ``flush_every`` rows (default: each, as a control
-    reading the file expects) and on close."""
+class _FileSink:
+    """What the file sinks share: a flush every ``flush_every`` rows, and close."""
+
+    _fh = None
+    _n = 0
+    flush_every = 1
+
+    def _wrote(self) -> None:
+        self._n += 1
+        if self._n % self.flush_every == 0:
+            self._fh.flush()
+
+    async def close(self) -> None:
+        self._fh.close()
+
+
+class JsonlSink(_FileSink):
+    """Appends one JSON object per cycle to a file.
+
+    Flushed every ``flush_every`` rows (default: each, as a control reading the file expects) and on close.
+    """
 
     def __init__(self, path: str | Path, flush_every: int = 1):
         self.path = Path(path)
@@ -82,15 +100,10 @@ class JsonlSink:
 
     async def write(self, offset: Offset) -> None:
         self._fh.write(json.dumps(asdict(offset), allow_nan=False) + "\n")
-        self._n += 1
-        if self._n % self.flush_every == 0:
-            self._fh.flush()
-
-    async def close(self) -> None:
-        self._fh.close()
+        self._wrote()
 
 
-class CsvSink:
+class CsvSink(_FileSink):
     """Appends one CSV row per cycle (header written when the file is new)."""
 
     FIELDS = ("time_s", *DIRECTIONS, "active", "clamped", "limited", "outside", "degraded", "by")
@@ -110,12 +123,7 @@ class CsvSink:
         d = asdict(offset)
         self._w.writerow([f"{d[k]:.6f}" if isinstance(d[k], float) else int(d[k]) if isinstance(d[k], bool) else d[k]
                           for k in self.FIELDS])
-        self._n += 1
-        if self._n % self.flush_every == 0:
-            self._fh.flush()
-
-    async def close(self) -> None:
-        self._fh.close()
+        self._wrote()
 
 
 class OpcUaSink:

@@ -153,7 +153,8 @@ def read_replay(path: str | Path, machine: Machine) -> Iterable[Reading]:
                 )
             except ValueError:
                 bad = next(h for h, x in zip(header, f) if not _is_number(x))
-                raise SourceFileError(f"{path}: line {lineno}: column {bad!r} is not a number: {f[header.index(bad)]!r}") from None
+                raise SourceFileError(f"{path}: line {lineno}: column {bad!r} is not a number: "
+                                      f"{f[header.index(bad)]!r}") from None
 
 
 def _probe(values: tuple[float, ...]) -> tuple[float, ...] | None:
@@ -312,7 +313,8 @@ class OpcUaSource:
                     try:
                         await asyncio.wait_for(client.nodes.server_state.read_value(), self.timeout_s)
                     except Exception as exc:  # noqa: BLE001 - any failure of the probe means the link is gone
-                        raise SourceDisconnected(f"{self.url}: no data for {self.stale_s:g} s and the server does not answer: {exc!r}") from None
+                        raise SourceDisconnected(f"{self.url}: no data for {self.stale_s:g} s and the server does not "
+                                                 f"answer: {exc!r}") from None
                     continue
                 batch = [ev]
                 while True:  # the rest of the same publish batch is already queued

@@ -42,8 +42,10 @@ class MonitorStore:
         self.db = db
 
     def log_event(self, kind: str, machine_time_s: float | None, payload: Mapping, key: str | None = None) -> int | None:
-        """Append an event (payload as strict JSON: non-finite numbers as null); with a ``key`` that is already
-        logged nothing is written and None is returned."""
+        """Append an event (payload as strict JSON: non-finite numbers as null).
+
+        With a ``key`` that is already logged nothing is written and None is returned.
+        """
         db, sa = self.db, self.db.sa
         ev = db.t["events"]
         text = jsonio.dumps(dict(payload))

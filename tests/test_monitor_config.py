@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+
+from hybridcomp.metrics import drift_metrics, window_ranges
 from hybridcomp.monitor.config import (
     ConfigError,
     example_config,
@@ -13,13 +15,8 @@ from hybridcomp.monitor.config import (
     parse_config,
 )
 from hybridcomp.monitor.regeneration import RegenerationRequest, request_loads
-from hybridcomp.monitor.scenario import (
-    drift_metrics,
-    fit_mlr,
-    predict_mlr,
-    window_ranges,
-)
 from hybridcomp.monitor.sources import SourceFileError, read_replay
+from hybridcomp.scenario import fit_mlr, predict_mlr
 
 BASE = {"monitor": {"machine": "vmc800", "database": "cd.db", "rom": "r.npz"}, "source": {"path": "t.csv"},
         "sink": {"path": "o.jsonl"}}
@@ -60,7 +57,7 @@ def test_unknown_section_and_bad_values():
     with pytest.raises(ConfigError, match="must be a number, got True"):
         cfg(monitor={"threshold_K": True})
     with pytest.raises(ConfigError, match="whole multiple of monitor.increment_s"):
-        cfg(monitor={"monitoring_interval_s": 1000})
+        cfg(monitor={"monitoring_interval_s": 1010})  # 50.5 model steps of 20 s
     with pytest.raises(ConfigError, match="field 'source.kind' is 'mqtt', must be one of replay, opcua"):
         cfg(source={"kind": "mqtt"})
     with pytest.raises(ConfigError, match="source.nodes.time_s is missing"):
@@ -70,7 +67,8 @@ def test_unknown_section_and_bad_values():
     with pytest.raises(ConfigError, match="sink.nodes.dq_um is not an offset"):
         cfg(sink={"kind": "opcua", "url": "opc.tcp://x", "nodes": {"dq_um": "ns=2;s=a"}})
     with pytest.raises(ConfigError, match="monitor.rom is missing"):
-        parse_config({"monitor": {"machine": "vmc800", "database": "x"}, "source": {"path": "t"}, "sink": {"path": "o"}}, "m.toml")
+        parse_config({"monitor": {"machine": "vmc800", "database": "x"}, "source": {"path": "t"}, "sink": {"path": "o"}},
+                     "m.toml")
 
 
 def test_database_url_passes_through_and_paths_are_relative_to_the_file(tmp_path):
@@ -141,8 +139,12 @@ def test_mlr_recovers_a_planted_linear_law():
 
 def test_request_loads_keep_each_increments_heat():
     names = ["a_W", "ws_degC"]
-    req = RegenerationRequest("vmc800", "X=0", {}, "db", 900.0, {}, None, names, [300.0, 600.0, 900.0],
-                              [[10.0, 1.0], [20.0, 2.0], [0.0, -1.0]], 20.0, 80.0)
+    req = RegenerationRequest(
+        machine="vmc800", pose_key="X=0", pose_mm={}, database="db", machine_time_s=900.0, t_reference_degC={},
+        signature=None, rom="rom.npz", observer={}, observer_x=[], history_time_s=[], history_degC=[],
+        history_drift_um=[], loads_names=names, loads_time_s=[300.0, 600.0, 900.0],
+        loads_inputs=[[10.0, 1.0], [20.0, 2.0], [0.0, -1.0]], anchor_degC={}, anchor_um={}, forecast_h=3.0,
+        bump_um=1.0, reference_temperature_degC=20.0, element_size_mm=80.0)
     L = request_loads(req, dt_s=60.0)
     assert L.time_s[0] == 0.0 and L.time_s[-1] == 900.0 and np.allclose(np.diff(L.time_s), 60.0)
     # piecewise constant: a grid time in increment (t_k-1, t_k] holds that increment's mean (the start holds the first)

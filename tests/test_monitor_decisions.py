@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
+
 from hybridcomp.monitor.decisions import (
     Backoff,
     Candidate,

@@ -97,12 +97,17 @@ def test_planted_air_and_power_are_recovered_and_the_drift_follows(machine, rom)
     assert max(scale, key=lambda k: abs(scale[k])) == "spindle_bearing_front"
 
 
-def test_a_spiking_sensor_is_rejected_by_the_gate_and_named(machine, rom):
-    obs = build_observer(rom, machine)
-    loads = example_loads(machine, 4.0, 60.0)
+def rom_day(machine, rom, hours: float):
+    """Inputs, outputs and sensor temperatures [°C] of the example loads on the ROM, per 60 s with loads held."""
+    loads = example_loads(machine, hours, 60.0)
     U = machine.layout().inputs(loads.names, loads.values)
     Y, _ = rom.integrate(loads.time_s, U, hold="step")
-    T = Y[:, :8] + 20.0
+    return U, Y, Y[:, :8] + 20.0
+
+
+def test_a_spiking_sensor_is_rejected_by_the_gate_and_named(machine, rom):
+    obs = build_observer(rom, machine)
+    U, Y, T = rom_day(machine, rom, 4.0)
     s = obs.initial(U[0])
     for k in range(1, 120):
         s = obs.predict(s, U[k], 60.0)
@@ -122,10 +127,7 @@ def test_a_spiking_sensor_is_rejected_by_the_gate_and_named(machine, rom):
 
 def test_a_probe_corrects_a_drift_the_sensors_cannot_see(machine, rom):
     obs = build_observer(rom, machine)
-    loads = example_loads(machine, 6.0, 60.0)
-    U = machine.layout().inputs(loads.names, loads.values)
-    Y, _ = rom.integrate(loads.time_s, U, hold="step")
-    T = Y[:, :8] + 20.0
+    U, Y, T = rom_day(machine, rom, 6.0)
     truth = Y[:, 8:11] * 1e6 + np.array([0.0, 0.0, 3.0])  # the fixture sags 3 µm in z: no sensor sees it
     s, est = run_filter(obs, U, T, 60.0, probes={120: truth[120]})
     assert abs(est[119, 2] - truth[119, 2]) > 2.5  # before the probe
