@@ -34,10 +34,11 @@ from pathlib import Path
 from hybridcomp.models import jsonio
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _table import table  # noqa: E402
+from _table import table
 
 WINDOWS = {"E15min": 900.0, "E1h": 3600.0, "E4h": 14400.0, "E15h": 54000.0}
-STRATEGY_ROWS = ("no compensation", "static default CDs", "hybrid monitor", "observer", "ROM direct", "MLR on sensors")
+STRATEGY_ROWS = ("no compensation", "static default CDs", "hybrid monitor", "observer", "ROM direct", "MLR on sensors",
+                 "best sensor map (bound)")
 
 
 def row(case: str, name: str, m: dict) -> dict:
@@ -54,16 +55,21 @@ def targets(case: str, metrics: dict) -> list[dict]:
     m3 = {k: v["3d"] for k, v in metrics.items()}
     out = []
 
-    def add(what, value, limit, ok=None):
+    def add(what, value, limit, ok=None, bound=None):
         out.append({"case": case, "target": what, "value": round(value, 3), "limit": round(limit, 3),
-                    "met": bool(value <= limit + 1e-9) if ok is None else ok})
+                    "met": bool(value <= limit + 1e-9) if ok is None else ok,
+                    "bound": None if bound is None else round(bound, 3)})
 
-    hyb, obs = m3["hybrid monitor"], m3["observer"]
+    hyb, obs, bound = m3["hybrid monitor"], m3["observer"], m3.get("best sensor map (bound)")
+    # bound: what the best linear map of the day's own sensors reaches in sample; no static CD of the sensors
+    # does better, so a hybrid target below it is out of reach of a sensor-based compensation
     add("hybrid RMS <= min(static, ROM direct)", hyb["rms_um"], min(m3["static default CDs"]["rms_um"],
-                                                                     m3["ROM direct"]["rms_um"]))
+                                                                     m3["ROM direct"]["rms_um"]),
+        bound=None if bound is None else bound["rms_um"])
     for k, w in WINDOWS.items():
         add(f"hybrid {k} <= min(static, ROM direct)", hyb["p95_range_um"][w],
-            min(m3["static default CDs"]["p95_range_um"][w], m3["ROM direct"]["p95_range_um"][w]))
+            min(m3["static default CDs"]["p95_range_um"][w], m3["ROM direct"]["p95_range_um"][w]),
+            bound=None if bound is None else bound["p95_range_um"][w])
     if m3["ROM direct"]["rms_um"] > 1.0:
         add("observer RMS <= 0.5 ROM direct", obs["rms_um"], 0.5 * m3["ROM direct"]["rms_um"])
     add("observer P2P <= 10 % uncompensated", obs["p2p_um"], 0.1 * m3["no compensation"]["p2p_um"])
@@ -116,7 +122,8 @@ def main(argv=None) -> dict:
                                "met": bool(later <= limit + 1e-9)})
     print(table(rows, ["case", "strategy", "RMS", "P2P", *WINDOWS, "act/16h", "max step"]))
     print()
-    print(table([{**c, "met": "yes" if c["met"] else "NO"} for c in checks], ["case", "target", "value", "limit", "met"]))
+    print(table([{**c, "met": "yes" if c["met"] else "NO", "bound": "" if c.get("bound") is None else f"{c['bound']:.3f}"}
+                 for c in checks], ["case", "target", "value", "limit", "met", "bound"]))
     summary = {
         "benchmark": "compensation", "element_size_mm": args.element_size_mm, "day_hours": args.day_hours,
         "machine": platform.processor() or platform.machine(), "wall_s": time.perf_counter() - t_all,
@@ -145,7 +152,9 @@ def _after_diagnosis(out: Path, res, models, common):
 
     machine = models.machine
     rom = prepare_model(machine, rom=models.rom, element_size_mm=common["element_size_mm"])
-    d = diagnose(machine, read_measured(res.files["recorded"], machine), rom=rom)
+    # heat inputs at the real machine's own load step: a coarser histogram leaves its short-term response in the
+    # residual, where it is no model error
+    d = diagnose(machine, read_measured(res.files["recorded"], machine, increment_s=res.summary["real_dt_s"]), rom=rom)
     write_report(d, out / "diagnosis")
     extended = out / "diagnosis" / "machine_extended.toml"
     real = load_machine(res.summary["real_machine"])

@@ -12,7 +12,8 @@ The daemon runs in a fresh process (``python benchmarks/monitor_soak.py
 --child ...``): replay at ``--speed`` (0: as fast as possible), JSON-lines
 sink, SQLite database, regeneration off. Measured: wall time and the replay
 factor (machine time / wall time), the time of every monitoring decision
-(histogram → ROM → ΔT → search → decision → events → state), and the resident
+(the active set's predicted error over the interval and the forecasts → search → decision → events →
+state; the observer's model steps run between decisions), and the resident
 memory (``VmRSS``) at every decision; the growth is the last value minus the
 value after the first simulated day. Targets: factor ≥ 1000, growth ≤ 10 MB,
 every decision ≤ 1 s.
@@ -61,8 +62,8 @@ def generate(out: Path, days: int, rate_hz: float, element_size_mm: float) -> di
     from hybridcomp.histogram.trace import Samples
     from hybridcomp.models import load_machine
     from hybridcomp.rom import save_rom
-    from hybridcomp.monitor.scenario import rom_sensor_temperatures
     from hybridcomp.rom.machine import reduce_model
+    from hybridcomp.scenario import rom_sensor_temperatures
 
     machine = load_machine("vmc800")
     t0 = time.perf_counter()
@@ -119,12 +120,12 @@ def child(args) -> None:
     """One soak run in this (fresh) process; prints one JSON line."""
     from hybridcomp.chardiag.cd import pose_key
     from hybridcomp.chardiag.db import CDDatabase
-    from hybridcomp.monitor.store import MonitorStore
     from hybridcomp.models import load_machine
     from hybridcomp.monitor.config import parse_config
     from hybridcomp.monitor.daemon import Monitor, run_monitor
     from hybridcomp.monitor.sinks import JsonlSink
     from hybridcomp.monitor.sources import ReplaySource
+    from hybridcomp.monitor.store import MonitorStore
     from hybridcomp.rom import load_rom
 
     work = Path(args.work)
@@ -152,7 +153,7 @@ def child(args) -> None:
         close(now_s)
         times.append(time.perf_counter() - t0)
         rss.append(rss_mb())
-        machine_t.append(mon.last_time_s)
+        machine_t.append(mon.s.last_time_s)
 
     mon._close_interval = timed
     rss0 = rss_mb()
@@ -212,19 +213,22 @@ def main() -> int:
     worst_decision = max(r["decision_max_s"] for r in runs)
     worst_growth = max(r["growth_MB"] for r in runs)
     rows = [
-        ("machine time replayed", f"{runs[0]['machine_s'] / 86400:.2f} days, {runs[0]['readings']:,} samples at {args.rate_hz:g} Hz", ""),
+        ("machine time replayed",
+         f"{runs[0]['machine_s'] / 86400:.2f} days, {runs[0]['readings']:,} samples at {args.rate_hz:g} Hz", ""),
         ("wall time (median)", f"{med['wall_s']:.1f} s", ""),
         ("replay factor (median)", f"{med['factor']:.0f}x", "≥ 1000x"),
         ("compensation cycles", f"{runs[0]['compensations']:,}", ""),
         ("monitoring decisions", f"{runs[0]['decisions']} ({runs[0]['actions']})", ""),
         ("decision time median / p99 / max (median of runs)",
-         f"{med['decision_median_s'] * 1e3:.1f} / {med['decision_p99_s'] * 1e3:.1f} / {med['decision_max_s'] * 1e3:.1f} ms", "≤ 1 s"),
+         f"{med['decision_median_s'] * 1e3:.1f} / {med['decision_p99_s'] * 1e3:.1f} / "
+         f"{med['decision_max_s'] * 1e3:.1f} ms", "≤ 1 s"),
         ("slowest decision of all runs", f"{worst_decision * 1e3:.1f} ms", "≤ 1 s"),
         ("resident memory after day 1 → end (run 1)", f"{runs[0]['rss_after_day1_MB']:.1f} → {runs[0]['rss_end_MB']:.1f} MB", ""),
         ("memory growth (median / worst)", f"{med['growth_MB']:+.2f} / {worst_growth:+.2f} MB", "≤ 10 MB"),
     ]
     w = max(len(r[0]) for r in rows)
-    print(f"\nmonitor soak, {args.repeats} run(s), {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    print(f"\nmonitor soak, {args.repeats} run(s), {platform.machine()}, {os.cpu_count()} cores, "
+          f"Python {platform.python_version()}")
     for a, b, c in rows:
         print(f"{a:<{w}}  {b:<44} {c}")
     ok = med["factor"] >= 1000 and worst_growth <= 10 and worst_decision <= 1.0

@@ -27,7 +27,6 @@ from pathlib import Path
 
 from hybridcomp.models import jsonio
 
-
 log = logging.getLogger(__name__)
 
 DEFAULT_EFFECT = ("spindle_bearing_front", 1.6)
@@ -57,25 +56,6 @@ class DemoOptions:
     pictures: bool = True
 
 
-def planted_machine_file(machine, source: str, factor: float, path: Path) -> Path:
-    """Write the real machine: the machine file with one source's power scaled by ``factor``."""
-    from hybridcomp.models.toml import dumps_toml, read_toml
-
-    data, _ = read_toml(machine.source)
-    sources = {s["name"]: s for s in data.get("heat_sources", [])}
-    if source not in sources:
-        raise ValueError(f"--plant-source: machine {machine.name!r} has no heat source {source!r} "
-                         f"(sources: {', '.join(sources)})")
-    if not factor > 0:
-        raise ValueError(f"--plant-factor must be positive, got {factor}")
-    sources[source]["power_W"] = float(sources[source]["power_W"]) * factor
-    data["machine"]["name"] = f"{machine.name}_real"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(f"# the 'real machine' of the demo: {machine.name} with {source} at {factor:g} x its power\n\n"
-                    + dumps_toml(data))
-    return path
-
-
 class _Stages:
     """A progress display over the demo's stages (one line per stage on stderr, with its time)."""
 
@@ -99,8 +79,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     """Run the demo (see the module docstring) into ``out_dir``; returns the summary written to summary.json."""
     from hybridcomp.diagnose import diagnose, prepare_model, read_measured, write_report
     from hybridcomp.models import load_machine
-    from hybridcomp.monitor.scenario import run_scenario
-    from hybridcomp.rom import load_rom
+    from hybridcomp.scenario import Disturbance, build_models, real_machine_file, run_scenario
 
     out = Path(out_dir).resolve()  # once, against the caller's working directory
     out.mkdir(parents=True, exist_ok=True)
@@ -114,23 +93,30 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     pictures = _pictures(machine, out, options) if options.pictures else {}
 
     stages.next()
-    real_path = planted_machine_file(machine, options.source, options.factor, out / "real_machine.toml")
-    real = load_machine(real_path)
+    planted = Disturbance("demo", f"{options.source} dissipates {options.factor:g} × its nominal power",
+                          source_factor=(options.source, options.factor))
+    real = load_machine(real_machine_file(machine, planted, out / "real_machine.toml"))
 
     stages.next()
-    common = dict(element_size_mm=options.element_size_mm, disturbance_K=0.0, basic_hours=options.basic_hours,
-                  day_hours=options.day_hours, real_machine=real, rom_order=options.rom_order, keep_basis=True)
-    nominal = run_scenario(out / "hybrid_nominal", machine_name=str(machine.source), **common)
+    build = dict(element_size_mm=options.element_size_mm, rom_order=options.rom_order, basic_hours=options.basic_hours,
+                 keep_basis=True)
+    common = dict(disturbance=planted, real_machine=real, element_size_mm=options.element_size_mm,
+                  day_hours=options.day_hours)
+    models = build_models(out / "models_nominal", str(machine.source), **build)
+    nominal = run_scenario(out / "hybrid_nominal", models=models, **common)
 
     stages.next()
-    rom = prepare_model(machine, rom=load_rom(nominal.files["rom"], machine), element_size_mm=options.element_size_mm)
-    dataset = read_measured(nominal.files["recorded"], machine)
+    rom = prepare_model(machine, rom=models.rom, element_size_mm=options.element_size_mm)
+    # the recorded day's heat inputs at the real machine's own load step (a coarser histogram would leave its
+    # short-term response in the residual, where it is no model error)
+    dataset = read_measured(nominal.files["recorded"], machine, increment_s=nominal.summary["real_dt_s"])
     diag = diagnose(machine, dataset, rom=rom)
     diag_summary = write_report(diag, out / "diagnosis")
     extended = out / "diagnosis" / "machine_extended.toml"
 
     stages.next()
-    after = run_scenario(out / "hybrid_extended", machine_name=str(extended), **common)
+    after = run_scenario(out / "hybrid_extended", models=build_models(out / "models_extended", str(extended), **build),
+                         **common)
 
     stages.next()
     day_plots = _day_plots(machine, nominal.files["controller"], out / "day")
@@ -183,12 +169,16 @@ def _summary(options, nominal, after, diag_summary: dict, total_s: float, stage_
         "static default CDs": m0["static default CDs"],
         "hybrid monitor": m0["hybrid monitor"],
         "hybrid after diagnosis": m1["hybrid monitor"],
+        "observer": m0["observer"],
+        "observer after diagnosis": m1["observer"],
         "ROM direct": m0["ROM direct"],
         "ROM direct after diagnosis": m1["ROM direct"],
         "MLR on sensors": m0["MLR on sensors"],
     }
     d = diag_summary
     planted = f"power of {options.source}"
+    per_day = {k: {s: nominal.metrics[k].get(s) for s in ("activations", "activations_per_16h", "largest_step_um")}
+               for k in ("hybrid monitor", "observer")}
     return {
         "planted": {"source": options.source, "factor": options.factor},
         "element_size_mm": options.element_size_mm,
@@ -197,12 +187,13 @@ def _summary(options, nominal, after, diag_summary: dict, total_s: float, stage_
         "hybrid_beats_static": rows["hybrid monitor"]["rms_um"] < rows["static default CDs"]["rms_um"],
         "diagnosis": {"verdict": d.get("verdict"), "causes": d.get("causes", []),
                       "planted_cause_named": any(c.get("name") == "power_scale" and c.get("target") == options.source
-                                                     for c in d.get("causes", [])),
+                                                 for c in d.get("causes", [])),
                       "planted": planted},
         "after_beats_before": rows["hybrid after diagnosis"]["rms_um"] < rows["hybrid monitor"]["rms_um"],
         "switches": nominal.summary.get("switches"),
         "generations": nominal.summary.get("generations"),
-        "events": nominal.events,
+        "activations": per_day,
+        "events": [e for e in nominal.events if e.get("strategy") == "hybrid"],
         "timings_s": {**stage_s, "total": total_s},
     }
 
@@ -245,7 +236,7 @@ def _cd_table(db_path: Path) -> list[str]:
     sensors = [k for k, _ in cds["X"].t_reference_degC]
     lines = ["| CD | load case | active inputs | values | RMS fit residual [µm] | " + " | ".join(
         f"T_ref {s} [°C]" for s in sensors) + " |", "|---" * (5 + len(sensors)) + "|"]
-    for d, cd in cds.items():
+    for cd in cds.values():
         st = cd.fit_stats()
         tref = cd.t_reference()
         lines.append(f"| {cd.target} | {cd.load_case} | {', '.join(i.name for i in cd.active_inputs)} | {cd.n_values} | "
@@ -293,7 +284,7 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
         if res.files.get("plot"):
             rel = Path(res.files["plot"]).relative_to(out)
             lines += [f"![residuals, {label}]({rel})", ""]
-    cd_lines = _cd_table(out / "hybrid_nominal" / "cd.db")
+    cd_lines = _cd_table(out / "hybrid_nominal" / "cd_hybrid.db")
     if cd_lines:
         lines += ["## The default CDs and their reference temperatures", "",
                   "Fitted on FE runs of the basic load cases (each axis alone, the spindle alone, then cooling); "
@@ -312,7 +303,8 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
         par = ", ".join(f"{k} = {v:.4g} ± {c.get('uncertainty', {}).get(k, float('nan')):.2g}"
                         for k, v in c.get("parameters", {}).items())
         gain = c.get("gain", {}).get("validation_rss_reduction")
-        lines.append(f"* **{c.get('label', c['name'])}**: {par}" + (f"; validation gain {100 * gain:.1f} %" if gain is not None else ""))
+        said = f"; validation gain {100 * gain:.1f} %" if gain is not None else ""
+        lines.append(f"* **{c.get('label', c['name'])}**: {par}{said}")
     lines += ["", "Full diagnosis report: [diagnosis/report.md](diagnosis/report.md); extended machine file: "
               "[diagnosis/machine_extended.toml](diagnosis/machine_extended.toml).", ""]
     t = summary["timings_s"]
@@ -323,6 +315,7 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp demo`` options."""
     p.add_argument("--out", required=True, type=Path, help="output directory (report.md, summary.json, databases, plots)")
     p.add_argument("--element-size-mm", type=float, default=DemoOptions.element_size_mm,
                    help="FE element size of the real machine and the models [mm] (default %(default)s)")
@@ -339,10 +332,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``hybridcomp demo``; returns the exit code (2: bad option, named on stderr)."""
     from hybridcomp.histogram.scenarios import JOBSHOP_HOURS
 
     if not 0 < args.day_hours <= JOBSHOP_HOURS:
         print(f"error: --day-hours must be in (0, {JOBSHOP_HOURS:g}], got {args.day_hours}", file=sys.stderr)
+        return 2
+    from hybridcomp.models import load_machine
+
+    sources = [src.name for src in load_machine("vmc800").heat_sources]
+    if args.plant_source not in sources:
+        print(f"error: --plant-source: the demonstrator has no heat source {args.plant_source!r} (sources: "
+              f"{', '.join(sources)})", file=sys.stderr)
+        return 2
+    if not args.plant_factor > 0:
+        print(f"error: --plant-factor must be positive, got {args.plant_factor}", file=sys.stderr)
         return 2
     opts = DemoOptions(element_size_mm=args.element_size_mm, source=args.plant_source, factor=args.plant_factor,
                        day_hours=args.day_hours, basic_hours=args.basic_hours, rom_order=args.rom_order,

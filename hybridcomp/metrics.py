@@ -1,5 +1,6 @@
-"""Residual-drift metrics as a part sees them: one module for the scenario, the demo, the benchmarks and the
-diagnosis.
+"""Residual-drift metrics as a part sees them.
+
+One module for the scenario, the demo, the benchmarks and the diagnosis:
 
 * RMS and peak-to-peak of the residual (true drift − compensation);
 * E_P95(w): the 95th percentile, over all windows of length ``w``, of the residual's range (max − min) within

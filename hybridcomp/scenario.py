@@ -39,6 +39,7 @@ from hybridcomp.models.layout import PROBE_COLUMNS
 log = logging.getLogger(__name__)
 
 STRATEGIES = ("hybrid", "observer")
+BOUND = "best sensor map (bound)"
 NAMES = {"hybrid": "hybrid monitor", "observer": "observer"}
 
 
@@ -146,12 +147,12 @@ def fit_mlr(T_degC: np.ndarray, drift_um: np.ndarray) -> np.ndarray:
 
 
 def predict_mlr(coef: np.ndarray, T_degC: np.ndarray) -> np.ndarray:
+    """The drift [µm] the coefficients of :func:`fit_mlr` give for sensor rows [°C]."""
     return np.column_stack([np.ones(len(T_degC)), T_degC]) @ coef
 
 
 def rom_outputs(machine, rom, samples, increment_s: float = 300.0, loads_edit=None) -> tuple[np.ndarray, np.ndarray]:
-    """Sensor temperatures [°C] and drift [µm] at the sample times of a trace: the structure model on the trace's
-    own BCs.
+    """Sensor temperatures [°C] and drift [µm] at the sample times of a trace: the structure model on its own BCs.
 
     The BCs are the histogram generator's, per ``increment_s`` [s] (``loads_edit(loads)`` may change them);
     the ROM steps each increment with its loads row held constant (row k+1 over increment k) and the outputs
@@ -175,8 +176,11 @@ def rom_sensor_temperatures(machine, rom, samples, increment_s: float = 300.0) -
 
 @dataclass(frozen=True)
 class Models:
-    """What the scenario's monitor knows, built once per machine file and mesh: the FE model, the structure
-    model (saved), the default CDs of the basic load cases and a CD database holding them (activated)."""
+    """What the scenario's monitor knows, built once per machine file and mesh.
+
+    The FE model, the structure model (saved), the default CDs of the basic load cases and a CD database holding
+    them (activated).
+    """
 
     machine: object
     pose_mm: dict
@@ -283,7 +287,7 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     basic_hours : heating hours of each basic load case of the default CDs [h] (as many cooling hours follow)
     day_hours : replay only the first hours of the day [h] (default the whole 16 h)
     dt_s : evaluation grid and the models' loads step [s]
-    real_dt_s : load step of the real machine's FE run [s] (finer than the monitor's 60 s histograms)
+    real_dt_s : load step of the real machine's FE run [s] (finer than the models' ``dt_s`` loads)
     trace_rate_hz : sampling rate of the trace the monitor replays [Hz]
     sensor_noise_K : noise of the sensors the monitor reads [K]
     probe_every_h : a probed drift (noise ``probe_noise_um``) at the start and every this many hours [h]; None:
@@ -340,7 +344,6 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     res = simulate(real_model, real_loads.time_s, real_loads.as_inputs(real_machine.reference_temperature_degC),
                    theta=0.5)
     t = loads.time_s
-    T_real = np.column_stack([np.interp(t, res.time_s, res.sensors_degC[:, j]) for j in range(res.sensors_degC.shape[1])])
     truth = np.column_stack([np.interp(t, res.time_s, res.drift_um[:, j]) for j in range(3)])
     timings["real_machine_s"] = time.perf_counter() - t0
     log.info("real machine: %d nodes, %d steps, |drift| up to %.1f µm", real_model.n, res.time_s.size, np.abs(truth).max())
@@ -378,8 +381,13 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     T_train = np.column_stack([models.train.columns[f"{s}_degC"] for s in sensor_names])
     D_train = np.column_stack([models.train.columns[d] for d in DIRS])
     mlr = predict_mlr(fit_mlr(T_train, D_train), T_cd)
+    # a bound, not a strategy: the linear map of the day's own sensors that fits the day's true drift best (in
+    # sample). No static CD of these sensors can do better, on the whole day, than what this row shows
+    ok = np.all(np.isfinite(T_cd), axis=1)
+    bound = np.full_like(truth, np.nan)
+    bound[ok] = predict_mlr(fit_mlr(T_cd[ok], truth[ok]), T_cd[ok])
     preds = {"no compensation": np.zeros_like(truth), "static default CDs": static, **preds, "ROM direct": rom_drift,
-             "MLR on sensors": mlr}
+             "MLR on sensors": mlr, BOUND: bound}
     metrics = {k_: drift_metrics(t, truth - p) for k_, p in preds.items()}
     day = 16.0 * 3600.0 / max(t[-1] - t[0], 1.0)
     for strategy, r in runs.items():
@@ -406,7 +414,7 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
         "disturbance": {"name": disturbance.name, "description": disturbance.description},
         "element_size_mm": element_size_mm, "nodes": int(model.n), "rom_order": rom.order,
         "models_machine": str(machine.source), "real_machine": str(real_machine.source), "day_hours": float(t[-1] / 3600),
-        "sensor_noise_K": sensor_noise_K, "probe_every_h": probe_every_h,
+        "sensor_noise_K": sensor_noise_K, "probe_every_h": probe_every_h, "real_dt_s": real_dt_s,
         "rms_3d_um": m3,
         "switches": {s: r["activations"] for s, r in runs.items()},
         "generations": {s: r["generations"] for s, r in runs.items()},
@@ -448,14 +456,15 @@ def _replay(strategy, machine_name, db_path, rom_path, trace, pose, pkey, machin
     cfg = parse_config(data, f"scenario ({strategy})", db_path.parent)
     db = CDDatabase(db_path)
     try:
+        setup = max((e.id for e in MonitorStore(db).events()), default=0)  # the default set's activation is the setup's
         mon = Monitor(cfg, machine, rom, db, pkey)
         sink = MemorySink()
         asyncio.run(run_monitor(cfg, mon, ReplaySource(trace, machine, 0.0), sink,
                                 regenerator=Regenerator(cfg.regeneration.job, cfg.regeneration.timeout_s),
                                 await_regeneration=True))
         ev = [{"kind": e.kind, "machine_time_s": e.machine_time_s, **_event_brief(e)} for e in MonitorStore(db).events()
-              if e.kind in ("activation", "generation", "observer", "probe")
-              or (e.kind == "decision" and e.payload["action"] != "keep")]
+              if e.id > setup and (e.kind in ("activation", "generation", "observer", "probe", "sensor")
+                                   or (e.kind == "decision" and e.payload["action"] != "keep"))]
     finally:
         db.close()
     off = np.array([[r.dx_um, r.dy_um, r.dz_um] for r in sink.rows])
@@ -472,7 +481,7 @@ def _event_brief(e) -> dict:
     if e.kind == "generation":
         return {"status": p.get("status"), "ids": p.get("ids"), "error": p.get("error"), "wall_s": p.get("wall_s"),
                 "notes": p.get("notes")}
-    if e.kind in ("observer", "probe"):
+    if e.kind in ("observer", "probe", "sensor"):
         return dict(p)
     return {"action": p.get("action"), "reason": p.get("reason"), "error_um": p.get("error_um"),
             "delta_T_K": p.get("delta_T_K")}
@@ -480,8 +489,10 @@ def _event_brief(e) -> dict:
 
 def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, fe=None, sensor_names=(),
                  noise_K: float = 0.0, rng=None, fault=None, probe_every_h=None, probe_noise_um: float = 0.3) -> dict:
-    """Every sample of ``src`` on the ``rate_hz`` grid up to ``t_end`` [s]; with ``fe`` = (times, sensors, drift)
-    of the real machine, the sensors it measures (noise, fault) and, every ``probe_every_h``, a probed drift.
+    """Every sample of ``src`` on the ``rate_hz`` grid up to ``t_end`` [s], with what the real machine measures.
+
+    With ``fe`` = (times, sensors, drift) of the real machine: the sensors it measures (noise, fault) and, every
+    ``probe_every_h``, a probed drift.
 
     Returns the measured sensors at the samples and their low-pass (the daemon's filter), per sample time.
     """
@@ -520,7 +531,7 @@ def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, 
     names = [f"{n}_degC" for n in sensor_names] + (list(PROBE_COLUMNS) if probe_every_h else [])
     with dst.open("w") as fo:
         fo.write(",".join(header + names) + "\n")
-        for (tt, f), m, p in zip(rows, M, P):
+        for (_, f), m, p in zip(rows, M, P):
             probe = [("" if math.isnan(v) else f"{v:.4f}") for v in p] if probe_every_h else []
             fo.write(",".join(f + [("" if math.isnan(v) else f"{v:.4f}") for v in m] + probe) + "\n")
     from hybridcomp.monitor.config import MonitorConfig
@@ -561,7 +572,7 @@ def _plot(path: Path, t, truth, preds, events, title: str):
     h = t / 3600.0
     for j, (ax, d) in enumerate(zip(axes, DIRS)):
         for name, p in preds.items():
-            if name == "no compensation":
+            if name in ("no compensation", BOUND):
                 continue
             ax.plot(h, truth[:, j] - p[:, j], label=name, lw=1.3 if name == "hybrid monitor" else 0.9)
         ax.set_ylabel(f"residual {d.replace('_um', '')} [µm]")

@@ -7,7 +7,11 @@
 * :mod:`hybridcomp.monitor.sinks` — JSON lines, CSV, OPC UA
 * :mod:`hybridcomp.monitor.daemon` — :class:`Monitor` (the state) and :func:`run_monitor` (the asyncio shell)
 * :mod:`hybridcomp.monitor.regeneration` — the background CD generation job
-* :mod:`hybridcomp.monitor.scenario` — the hybrid scenario and drift metrics
+* :mod:`hybridcomp.monitor.state` — the daemon's state as one dataclass with a derived JSON form
+* :mod:`hybridcomp.monitor.store` — the monitor's events and state in the CD database
+
+The scenario harness that judges the daemon against a simulated real machine is :mod:`hybridcomp.scenario`
+(beside the demo); drift metrics are in :mod:`hybridcomp.metrics`.
 """
 
 from hybridcomp._lazy import lazy_exports

@@ -17,10 +17,12 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp monitor`` actions and their options."""
     p.description = (
-        "The monitoring daemon: compensation offsets from the active characteristic diagrams every few seconds, "
-        "and every monitoring interval the reduced structure model checks whether the machine's load case still "
-        "matches the one the CDs were trained for (keep, switch to a stored set, or generate a new one)."
+        "The monitoring daemon: compensation offsets every few seconds from the active characteristic diagrams "
+        "(strategy hybrid) or the structure model kept on the machine by a Kalman filter on the sensors (strategy "
+        "observer); every monitoring interval the active set's predicted compensation error in µm decides: keep, "
+        "switch to a stored set, or generate a new one."
     )
     sub = p.add_subparsers(dest="monitor_command", metavar="ACTION", required=True)
     r = sub.add_parser("run", help="run the daemon (stop with SIGTERM or Ctrl-C)",
@@ -35,21 +37,31 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("--events", type=int, default=5, help="show the last N decisions/switches/generations/warnings")
     e = sub.add_parser("example-config", help="write an annotated example configuration")
     e.add_argument("--out", type=Path, default=None, help="file to write (default: print)")
-    c = sub.add_parser("scenario", help="the hybrid scenario: job-shop day on the FE 'real machine', five strategies compared",
-                       description="Replay the bundled 16 h job-shop day with the FE model (plus a planted workspace "
-                       "disturbance) as the real machine, starting from default CDs of the basic load cases; compare "
-                       "no compensation, static default CDs, the hybrid monitor, the ROM used directly and a multiple "
-                       "linear regression on the sensors (RMS, peak-to-peak, 95th-percentile range over sliding windows).")
-    c.add_argument("--out", required=True, type=Path, help="output directory (table, plot, database, traces)")
+    c = sub.add_parser("scenario", help="the hybrid scenario: job-shop day on an FE 'real machine', every strategy compared",
+                       description="Replay the bundled 16 h job-shop day with the FE model plus a disturbance the models "
+                       "do not know as the real machine, starting from default CDs of the basic load cases; compare no "
+                       "compensation, static default CDs, the hybrid monitor, the observer, the ROM used directly and a "
+                       "multiple linear regression on the sensors (RMS, peak-to-peak, 95th-percentile range over "
+                       "sliding windows, activations, largest offset step).")
+    c.add_argument("--out", required=True, type=Path, help="output directory (table, plot, databases, traces)")
+    c.add_argument("--disturbance", default="workspace air", metavar="NAME",
+                   help="what the real machine does that the models do not know: " + ", ".join(
+                       f"'{n}'" for n in _disturbance_names()) + " (default %(default)r)")
     c.add_argument("--element-size-mm", type=float, default=80.0, help="FE element size of the 'real machine' and "
-                   "the training runs [mm] (default 80)")
-    c.add_argument("--disturbance-K", type=float, default=2.0, help="planted workspace air offset against the "
-                   "measured workshop air [K] (default 2)")
+                   "the models [mm] (default 80)")
+    c.add_argument("--day-hours", type=float, default=None, help="replay only the first hours of the day (default 16)")
     c.add_argument("--rom-order", type=int, default=None, help="order of the structure model (default: to tolerance)")
     c.add_argument("--basic-hours", type=float, default=8.0, help="heating hours of each basic load case (default 8)")
 
 
+def _disturbance_names() -> list[str]:
+    from hybridcomp.scenario import DISTURBANCES
+
+    return list(DISTURBANCES)
+
+
 def run(args: argparse.Namespace) -> int:
+    """Run a ``hybridcomp monitor`` action; returns the exit code (2: bad configuration or input, named)."""
     from hybridcomp.monitor.config import ConfigError
 
     try:
@@ -66,10 +78,14 @@ def run(args: argparse.Namespace) -> int:
                 args.out.write_text(example_config())
             return 0
         if args.monitor_command == "scenario":
-            from hybridcomp.monitor.scenario import run_scenario
+            from hybridcomp.scenario import DISTURBANCES, run_scenario
 
-            res = run_scenario(args.out, element_size_mm=args.element_size_mm, disturbance_K=args.disturbance_K,
-                               rom_order=args.rom_order, basic_hours=args.basic_hours)
+            if args.disturbance not in DISTURBANCES:
+                raise ValueError(f"--disturbance: unknown disturbance {args.disturbance!r} (known: "
+                                 f"{', '.join(DISTURBANCES)})")
+            res = run_scenario(args.out, disturbance=DISTURBANCES[args.disturbance],
+                               element_size_mm=args.element_size_mm, rom_order=args.rom_order,
+                               basic_hours=args.basic_hours, day_hours=args.day_hours)
             print(res.table)
             print(jsonio.dumps(res.summary))
             return 0

@@ -91,3 +91,16 @@ def test_an_option_typed_with_its_default_value_on_its_own_path_is_not_refused(t
     rc = main(["reduce", "--matrices", str(tmp_path / "sys.mat"), "--basis", "krylov", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "--basis" not in err and "sys.mat" in err, err
+
+
+@pytest.mark.parametrize("argv,option", [
+    (["--plant-source", "spindle_fan"], "--plant-source"),
+    (["--plant-factor", "0"], "--plant-factor"),
+    (["--day-hours", "17"], "--day-hours"),
+], ids=["unknown source", "factor not positive", "longer than the day"])
+def test_demo_refuses_a_planted_effect_it_cannot_plant_before_any_work(tmp_path, capsys, argv, option):
+    out = tmp_path / "demo"
+    rc = main(["demo", "--out", str(out), "--no-pictures", "--no-progress", *argv])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and option in err, err
+    assert not out.exists()

@@ -9,7 +9,9 @@ import pytest
 
 pytest.importorskip("sqlalchemy", reason="the demo's CD database needs SQLAlchemy (pip install 'hybridcomp[db]')")
 
-from hybridcomp.cli import main  # noqa: E402
+from hybridcomp.cli import main
+
+pytestmark = pytest.mark.slow  # FE, reduced models and daemon runs: the full suite, not the fast loop
 
 
 def _refuse(word):
