@@ -5,8 +5,9 @@ programme sampled at ``--rate-hz``) followed by 8 h standing still, the
 workshop air swinging ±1.5 K over 24 h, and sensor temperatures T1…T8 from a
 structure model (a ROM of the demonstrator at ``--element-size-mm``) driven by the
 trace's own BCs. The CD database holds two CD sets fitted on the first day
-(referenced at the cold start and at the hottest moment), so the monitor
-switches between them every day.
+(referenced at the cold start and at the hottest moment); every decision
+assesses the active set and these candidates over the interval and the
+forecasts.
 
 The daemon runs in a fresh process (``python benchmarks/monitor_soak.py
 --child ...``): replay at ``--speed`` (0: as fast as possible), JSON-lines
