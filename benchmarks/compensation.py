@@ -61,8 +61,8 @@ def targets(case: str, metrics: dict) -> list[dict]:
                     "bound": None if bound is None else round(bound, 3)})
 
     hyb, obs, bound = m3["hybrid monitor"], m3["observer"], m3.get("best sensor map (bound)")
-    # bound: what the best linear map of the day's own sensors reaches in sample; no static CD of the sensors
-    # does better, so a hybrid target below it is out of reach of a sensor-based compensation
+    # bound: what the best linear map of the day's own sensors reaches in sample; no linear map does better,
+    # and a target far below it asks more of the sensors than they carry (a CD can bend where it cannot)
     add("hybrid RMS <= min(static, ROM direct)", hyb["rms_um"], min(m3["static default CDs"]["rms_um"],
                                                                      m3["ROM direct"]["rms_um"]),
         bound=None if bound is None else bound["rms_um"])

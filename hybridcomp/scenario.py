@@ -381,8 +381,9 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     T_train = np.column_stack([models.train.columns[f"{s}_degC"] for s in sensor_names])
     D_train = np.column_stack([models.train.columns[d] for d in DIRS])
     mlr = predict_mlr(fit_mlr(T_train, D_train), T_cd)
-    # a bound, not a strategy: the linear map of the day's own sensors that fits the day's true drift best (in
-    # sample). No static CD of these sensors can do better, on the whole day, than what this row shows
+    # a yardstick, not a strategy: the linear map of the day's own sensors that fits the day's true drift best (in
+    # sample). No linear map of these sensors does better on the whole day; a CD (piecewise linear per sensor)
+    # can bend where it cannot, so for CDs it indicates what the sensors allow
     ok = np.all(np.isfinite(T_cd), axis=1)
     bound = np.full_like(truth, np.nan)
     bound[ok] = predict_mlr(fit_mlr(T_cd[ok], truth[ok]), T_cd[ok])
