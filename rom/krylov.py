@@ -38,7 +38,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.fem.solvers import Factor, factorize_spd, have_cholmod, have_cvxopt
+from hybridcomp.fem.solvers import Factor, factor_backend, factorize_spd
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +117,7 @@ class ThermalSystem:
 
 def factor_spd(A: sp.spmatrix, coords: np.ndarray | None) -> Factor:
     """Factorise a sparse SPD matrix: the project's solvers with coordinates or CHOLMOD, else SuperLU (MMD)."""
-    if coords is not None or have_cholmod() or have_cvxopt():
+    if coords is not None or factor_backend() != "superlu":
         return factorize_spd(A, coords)
     lu = sla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     return Factor(lu.solve, "superlu-mmd", int(lu.L.nnz + lu.U.nnz))
