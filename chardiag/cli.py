@@ -20,10 +20,13 @@ import numpy as np
 
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
+from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, check_output_path, write_text_atomic
 
 log = logging.getLogger(__name__)
 
 DEFAULT_DB = "hybridcomp-cds.sqlite"
+# database actions that only read: they open the database read-only and never create one
+READ_ONLY_DB_ACTIONS = ("list", "show", "search", "export")
 
 
 def _pose(text):
@@ -57,6 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(Dask LocalCluster) or a Dask scheduler address tcp://HOST:8786 (default: one after another here)")
     t.add_argument("--workers", type=int, help="worker processes for --scheduler process/local (default: cores)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.add_argument("--force", action="store_true", help=FORCE_HELP)
 
     f = sub.add_parser("fit", help="fit the X, Y, Z CDs of a pose to a training table → XML files",
                        description="Fit one CD per direction to a training table and write DIR/cd_X.xml, cd_Y.xml, "
@@ -80,6 +84,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f.add_argument("--db", help="also store the CDs in this database (file path or SQLAlchemy URL)")
     f.add_argument("--activate", action="store_true", help="and make them the active set of the pose")
     f.add_argument("--no-plot", action="store_true", help="no fit.png")
+    f.add_argument("--force", action="store_true", help=FORCE_HELP)
 
     e = sub.add_parser("eval", help="evaluate CDs on a table or at one point; CNC export of the offsets",
                        description="Evaluate the CDs of a directory (cd_X.xml, cd_Y.xml, cd_Z.xml) on a table "
@@ -94,6 +99,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "setting data (SD43900/SD43910/SD43920)")
     e.add_argument("--axis-names", help="with --cnc 840d: control axis identifiers, e.g. X=X1,Y=Y1,Z=Z1")
     e.add_argument("--out", type=Path, help="write predictions (with --data) or the CNC text (with --point) here")
+    e.add_argument("--force", action="store_true", help=FORCE_HELP)
 
     d = sub.add_parser("db", help="the CD database: list, show, search, activate, import, export",
                        description="The CD database (SQLite file by default, any SQLAlchemy URL such as "
@@ -104,6 +110,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     def db_arg(q):
         q.add_argument("--db", default=DEFAULT_DB, help="database file or SQLAlchemy URL (default %(default)s)")
 
+    # list, show, search and export only read the database: they never create one (a missing database is an error)
     q = dsub.add_parser("list", help="stored CDs")
     db_arg(q)
     q.add_argument("--machine-name", help="only CDs of this machine")
@@ -121,7 +128,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     db_arg(q)
     q.add_argument("ids", help="X=ID,Y=ID,Z=ID")
     q.add_argument("--reason", default="manual activation", help="recorded in the activation event")
-    q = dsub.add_parser("import", help="store CD XML files (validated; checked against --machine if given)")
+    q = dsub.add_parser("import", help="store CD XML files (validated; checked against --machine if given)",
+                        description="Store CD XML files in one transaction: all of them or, if one is invalid, none. "
+                        "A CD whose XML is already stored is not stored again.")
     db_arg(q)
     q.add_argument("files", nargs="+", type=Path)
     q.add_argument("--machine", help="check the CDs against this machine file or bundled name")
@@ -129,6 +138,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     db_arg(q)
     q.add_argument("ids", nargs="+", type=int)
     q.add_argument("--out", required=True, type=Path, help="output directory")
+    q.add_argument("--force", action="store_true", help=FORCE_HELP)
 
 
 def _pairs(text: str, what: str) -> dict[str, float]:
@@ -169,7 +179,8 @@ def _unused_rules(args) -> list:
     if c == "fit":
         return [("activate", args.db is None, "needs --db (the database to activate the CDs in)")]
     if c == "eval":
-        return [("cases", args.point is not None, "applies with --data only, not with --point"),
+        return [("force", args.out is None, "applies with --out only"),
+                ("cases", args.point is not None, "applies with --data only, not with --point"),
                 ("cnc", args.point is None, "applies with --point only"),
                 ("axis_names", args.cnc != "840d", "applies with --cnc 840d only")]
     return []
@@ -191,8 +202,11 @@ def _train_data(args) -> int:
         raise ValueError(f"--dt must be positive, got {args.dt}")
     if not 0.5 <= args.theta <= 1.0:
         raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
+    items = [c.strip() for c in args.cases.split(",") if c.strip()]
+    check_output_path(args.out, inputs=[machine.source, *(i for i in items if i not in STANDARD_CASES)],
+                      force=args.force)
     cases = {}
-    for item in [c.strip() for c in args.cases.split(",") if c.strip()]:
+    for item in items:
         if item in STANDARD_CASES:
             cases.update(standard_load_cases(machine, [item], args.heat_h, args.cool_h))
         else:
@@ -201,7 +215,8 @@ def _train_data(args) -> int:
     print(f"simulating {len(cases)} load case(s) on {machine.name} at {pose}: {', '.join(cases)}", file=sys.stderr)
     data = simulate_load_cases(machine, cases, pose, args.element_size_mm, args.dt, args.theta,
                                progress=not args.no_progress, executor=args.scheduler, workers=args.workers)
-    write_training_csv(args.out, data)
+    with atomic_path(args.out) as tmp:
+        write_training_csv(tmp, data)
     print(f"wrote {args.out} ({len(data)} rows)", file=sys.stderr)
     return 0
 
@@ -226,6 +241,8 @@ def _fit(args) -> int:
     if unknown:
         raise ValueError(f"{args.data}: column {unknown[0]}_degC is not a sensor of machine {machine.name!r} "
                          f"(sensors: {', '.join(sorted(sensors))})")
+    outputs = [f"cd_{d}.xml" for d in DIRECTIONS] + ["fit.json"] + ([] if args.no_plot else ["fit.png"])
+    check_output_dir(args.out, outputs, inputs=(args.data, machine.source, _db_file(args.db)), force=args.force)
     cases = ",".join(data.cases)
     sig = data.signature()
     cds = {}
@@ -254,7 +271,7 @@ def _fit(args) -> int:
             if args.activate:
                 db.activate(machine.name, cds["X"].pose_key, ids, reason=f"cd fit {args.data.name}")
         print(f"stored in {args.db}: {ids}" + (" (active)" if args.activate else ""), file=sys.stderr)
-    (args.out / "fit.json").write_text(jsonio.dumps(info, indent=2, default=str))
+    write_text_atomic(args.out / "fit.json", jsonio.dumps(info, indent=2, default=str))
     if not args.no_plot:
         _plot_fit(args.out / "fit.png", cds, data)
     print(f"wrote {args.out}/cd_X.xml, cd_Y.xml, cd_Z.xml, fit.json", file=sys.stderr)
@@ -288,7 +305,8 @@ def _plot_fit(path: Path, cds, data) -> None:
     axes[0].set_title(f"CD fit on {', '.join(data.cases)}")
     axes[-1].set_xlabel("training row (load cases separated by grey lines)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
@@ -317,6 +335,9 @@ def _eval(args) -> int:
     cd_map = cds.cds if isinstance(cds, CDSet) else cds
     if (args.data is None) == (args.point is None):
         raise ValueError("give either --data TABLE.csv or --point T1=..,T2=..")
+    if args.out is not None:
+        cd_files = [args.cds / f"cd_{d}.xml" for d in cd_map] if args.cds.is_dir() else [args.cds]
+        check_output_path(args.out, inputs=[*cd_files, args.data, machine.source], force=args.force)
     if args.point is not None:
         values = _pairs(args.point, "--point")
         if args.cnc:
@@ -333,7 +354,7 @@ def _eval(args) -> int:
                 rows.append(f"{cd.target} = {v:.4f} µm" + ("  (outside the trained range: clamped)" if out else ""))
             text = "\n".join(rows) + "\n"
         if args.out:
-            args.out.write_text(text)
+            write_text_atomic(args.out, text)
             print(f"wrote {args.out}", file=sys.stderr)
         else:
             sys.stdout.write(text)
@@ -359,7 +380,7 @@ def _eval(args) -> int:
     if args.out:
         import csv
 
-        with args.out.open("w", newline="") as fh:
+        with atomic_path(args.out) as tmp, tmp.open("w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(list(cols))
             for i in range(len(data)):
@@ -368,12 +389,26 @@ def _eval(args) -> int:
     return 0
 
 
+def _db_file(db: str | None) -> Path | None:
+    """The file of an SQLite ``--db`` (an input of the command), or None."""
+    from hybridcomp.chardiag.db import sqlite_file
+
+    return sqlite_file(db)
+
+
 def _db(args) -> int:
     from hybridcomp.chardiag.db import CDDatabase
     from hybridcomp.chardiag.xmlio import read_cd, write_cd
 
-    with CDDatabase(args.db) as db:
-        c = args.db_command
+    c = args.db_command
+    if c == "import":  # every file is read and checked before the database is opened: a bad one stores nothing
+        machine = None
+        if args.machine:
+            from hybridcomp.models.machine import load_machine
+
+            machine = load_machine(args.machine)
+        to_store = [read_cd(f, machine) for f in args.files]
+    with CDDatabase(args.db, readonly=c in READ_ONLY_DB_ACTIONS) as db:
         if c == "list":
             rows = db.list(args.machine_name)
             if not rows:
@@ -409,18 +444,13 @@ def _db(args) -> int:
             db.activate(cd.machine, cd.pose_key, ids, reason=args.reason)
             print(f"active for {cd.machine} {cd.pose_key}: {ids}")
         elif c == "import":
-            machine = None
-            if args.machine:
-                from hybridcomp.models.machine import load_machine
-
-                machine = load_machine(args.machine)
-            for f in args.files:
-                cd = read_cd(f, machine)
-                print(f"{f}: stored as id {db.add(cd)}")
+            for f, (cd_id, stored) in zip(args.files, db.add_many(to_store)):
+                print(f"{f}: stored as id {cd_id}" if stored else f"{f}: already stored as id {cd_id}")
         elif c == "export":
-            args.out.mkdir(parents=True, exist_ok=True)
-            for i in args.ids:
-                cd = db.get(i)
-                p = write_cd(args.out / f"cd_{i}_{cd.direction}.xml", cd)
+            cds = {i: db.get(i) for i in args.ids}
+            names = {i: f"cd_{i}_{cd.direction}.xml" for i, cd in cds.items()}
+            check_output_dir(args.out, names.values(), inputs=(_db_file(args.db),), force=args.force)
+            for i, cd in cds.items():
+                p = write_cd(args.out / names[i], cd)
                 print(f"wrote {p}")
     return 0

@@ -14,6 +14,10 @@ Tables (schema version :data:`SCHEMA_VERSION`, kept in ``meta``):
 This module stores CDs, load cases and active sets; the monitor's events and state are read and written by
 ``hybridcomp.monitor.store`` through the same engine (one database, one schema, created and migrated here).
 
+Read-only uses (:class:`CDDatabase` with ``readonly=True``: listing, showing, searching, exporting, a monitor's
+status) never create anything: a missing SQLite file, a file that is not an SQLite database and a database without
+the hybridcomp schema are errors, and no folder is made. Writers create the database and its folder.
+
 Writers serialise per database: SQLite opens every write transaction with ``BEGIN IMMEDIATE`` (WAL mode, so
 readers never wait); PostgreSQL takes transaction-scoped advisory locks: one per machine and pose for an
 activation, one for every transaction that writes events (so ids become visible in order), one for schema
@@ -26,9 +30,10 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
 import zlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -66,13 +71,60 @@ def utc_now() -> str:
     return datetime.now(UTC).isoformat(timespec="microseconds")
 
 
-def _url(url_or_path: str | Path) -> str:
+SQLITE_HEADER = b"SQLite format 3\x00"
+
+
+def _url(url_or_path: str | Path, create: bool = True) -> str:
+    """The SQLAlchemy URL of a URL or a file path (SQLite); ``create``: make the file's folder."""
     s = str(url_or_path)
     if "://" in s:
         return s
     p = Path(s)
-    p.parent.mkdir(parents=True, exist_ok=True)
+    if create:
+        p.parent.mkdir(parents=True, exist_ok=True)
     return f"sqlite:///{p}"
+
+
+def sqlite_file(url_or_path: str | Path | None) -> Path | None:
+    """The file of an SQLite database given as a path or an ``sqlite://`` URL; None for other databases and memory."""
+    if url_or_path is None:
+        return None
+    s = str(url_or_path)
+    if "://" not in s:
+        return Path(s)
+    if not s.startswith("sqlite"):
+        return None
+    url = _sqlalchemy().engine.make_url(s)
+    if not url.database or url.database == ":memory:" or url.query.get("uri") or url.database.startswith("file:"):
+        return None
+    return Path(url.database)
+
+
+def _check_sqlite_file(path: Path, must_exist: bool) -> None:
+    """Refuse a path that is not an SQLite database file (and, when ``must_exist``, a missing one), in one line."""
+    if not path.exists():
+        if must_exist:
+            raise CDDatabaseError(f"CD database {path} does not exist (read-only: nothing is created; 'hybridcomp cd "
+                                  "db import' or 'cd fit --db' create a database)")
+        return
+    if not path.is_file():
+        raise CDDatabaseError(f"CD database {path} is not a file")
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(len(SQLITE_HEADER))
+    except OSError as exc:
+        raise CDDatabaseError(f"cannot open CD database {path}: {exc.strerror}") from None
+    if head == b"" and not must_exist:  # an empty file is an empty SQLite database to a writer (``touch db.sqlite``)
+        return
+    if head != SQLITE_HEADER:
+        raise CDDatabaseError(f"CD database {path} is not an SQLite database"
+                              + (" (the file is empty)" if head == b"" else ""))
+
+
+def _reason(exc: BaseException) -> str:
+    """The first line of a database error's own message (without SQLAlchemy's statement and background link)."""
+    text = str(getattr(exc, "orig", None) or exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _redact(url: str) -> str:
@@ -158,6 +210,24 @@ def _tables(sa):
     return md
 
 
+def _readonly_connector(path: Path):
+    """A DB-API connect function that opens an existing SQLite file without creating it.
+
+    Opened read-write when the file and its folder are writable (the connection is ``query_only``), so SQLite's
+    -wal and -shm files go again when it closes; read-only (``mode=ro``) otherwise.
+    """
+    import sqlite3
+
+    folder = path.absolute().parent
+    mode = "rw" if os.access(path, os.W_OK) and os.access(folder, os.W_OK) else "ro"
+    uri = f"{path.absolute().as_uri()}?mode={mode}"
+
+    def connect():
+        return sqlite3.connect(uri, uri=True, timeout=60.0, check_same_thread=False)
+
+    return connect
+
+
 # schema migrations: version N → N+1, each a function of a connection (none yet: version 1 is the first)
 MIGRATIONS: dict[int, object] = {}
 
@@ -168,28 +238,42 @@ class CDDatabase:
     Parameters
     ----------
     url_or_path : a SQLAlchemy URL (``postgresql+psycopg://user:pw@host/db``) or a file path (SQLite)
+    readonly : only read: create, migrate and write nothing. A missing SQLite file, a file that is not an SQLite
+        database and a database without the hybridcomp schema raise :class:`CDDatabaseError`; no folder is made.
+        Otherwise the database (and an SQLite file's folder) is created when missing.
     """
 
-    def __init__(self, url_or_path: str | Path):
+    def __init__(self, url_or_path: str | Path, *, readonly: bool = False):
         sa = _sqlalchemy()
         self.sa = self._sa = sa
-        self.url = _url(url_or_path)
+        self.readonly = bool(readonly)
+        self.url = _url(url_or_path, create=not self.readonly)
         kwargs = {}
         self.dialect = self.url.split(":", 1)[0].split("+", 1)[0]
+        file = sqlite_file(url_or_path) if self.dialect == "sqlite" else None
+        if file is not None:
+            _check_sqlite_file(file, must_exist=self.readonly)
         if self.dialect == "sqlite":
             kwargs["connect_args"] = {"timeout": 60.0, "check_same_thread": False}
+            if self.readonly and file is not None:
+                kwargs["creator"] = _readonly_connector(file)
         else:  # a monitor runs for weeks: survive a database server restart
             kwargs["pool_pre_ping"] = True
         try:
             self.engine = sa.create_engine(self.url, **kwargs)
         except Exception as exc:  # noqa: BLE001 - any driver or URL problem
-            raise CDDatabaseError(f"cannot open CD database {_redact(self.url)}: {exc}") from None
+            raise CDDatabaseError(f"cannot open CD database {_redact(self.url)}: {_reason(exc)}") from None
         if self.dialect == "sqlite":
+            readonly = self.readonly
+
             @sa.event.listens_for(self.engine, "connect")
             def _connect(dbapi_conn, _rec):
                 dbapi_conn.isolation_level = None  # we issue BEGIN ourselves
                 cur = dbapi_conn.cursor()
-                cur.execute("PRAGMA journal_mode=WAL")
+                if readonly:  # a reader changes nothing, not even the journal mode
+                    cur.execute("PRAGMA query_only=ON")
+                else:
+                    cur.execute("PRAGMA journal_mode=WAL")
                 cur.execute("PRAGMA foreign_keys=ON")
                 cur.execute("PRAGMA busy_timeout=60000")
                 cur.close()
@@ -200,7 +284,14 @@ class CDDatabase:
 
         self.md = _tables(sa)
         self.t = self.md.tables
-        self._init_schema()
+        try:
+            if self.readonly:
+                self._check_schema()
+            else:
+                self._init_schema()
+        except BaseException:
+            self.engine.dispose()  # no connection outlives a refused opening
+            raise
 
     # ------------------------------------------------------------------ plumbing
 
@@ -210,6 +301,8 @@ class CDDatabase:
         Every writer of this database goes through here, the monitor's store too.
         """
         sa = self._sa
+        if self.readonly:
+            raise CDDatabaseError(f"{_redact(self.url)}: {what}: the database was opened read-only")
         delay = 0.05
         for attempt in range(8):
             try:
@@ -257,10 +350,32 @@ class CDDatabase:
         except sa.exc.IntegrityError:  # another process created it at the same moment
             version = self.schema_version()
         except sa.exc.SQLAlchemyError as exc:
-            raise CDDatabaseError(f"cannot open CD database {_redact(self.url)}: {exc}") from None
+            raise CDDatabaseError(f"cannot open CD database {_redact(self.url)}: {_reason(exc)}") from None
         if version > SCHEMA_VERSION:
             raise CDDatabaseError(f"{_redact(self.url)}: meta.schema_version is {version}, newer than this "
                                   f"hybridcomp's {SCHEMA_VERSION}: upgrade hybridcomp")
+
+    def _check_schema(self) -> None:
+        """A read-only opening: the hybridcomp schema must be there, at this hybridcomp's version."""
+        sa = self._sa
+        meta = self.t["meta"]
+        name = _redact(self.url)
+        try:
+            with self.engine.connect() as conn:
+                if not sa.inspect(conn).has_table("meta"):
+                    raise CDDatabaseError(f"{name} is not a hybridcomp CD database (it has no table 'meta')")
+                row = conn.execute(sa.select(meta.c.value).where(meta.c.key == "schema_version")).first()
+        except sa.exc.SQLAlchemyError as exc:
+            raise CDDatabaseError(f"cannot open CD database {name}: {_reason(exc)}") from None
+        if row is None:
+            raise CDDatabaseError(f"{name} is not a hybridcomp CD database (meta has no schema_version)")
+        version = int(row[0])
+        if version > SCHEMA_VERSION:
+            raise CDDatabaseError(f"{name}: meta.schema_version is {version}, newer than this hybridcomp's "
+                                  f"{SCHEMA_VERSION}: upgrade hybridcomp")
+        if version < SCHEMA_VERSION:
+            raise CDDatabaseError(f"{name}: meta.schema_version is {version}, older than this hybridcomp's "
+                                  f"{SCHEMA_VERSION}: a command that writes (hybridcomp cd db import, activate) migrates it")
 
     def schema_version(self) -> int:
         sa = self._sa
@@ -279,30 +394,56 @@ class CDDatabase:
 
     # ------------------------------------------------------------------ CDs and load cases
 
-    def add(self, cd: CharDiagram, load_case: str | None = None) -> int:
-        """Store a CD (and its load case, once); returns its id."""
+    def _insert(self, conn, cd: CharDiagram, xml: bytes, load_case: str | None) -> int:
+        """Insert a CD (and its load case, once) in an open write transaction; returns its id."""
         sa = self._sa
         lc, cds = self.t["load_cases"], self.t["cds"]
-        xml = cd_to_bytes(cd)
         name = load_case if load_case is not None else cd.load_case
         tref = jsonio.dumps(dict(cd.t_reference_degC), sort_keys=True)
-        stats = cd.fit_stats()
+        q = sa.select(lc.c.id).where(lc.c.machine == cd.machine, lc.c.pose_key == cd.pose_key, lc.c.name == name,
+                                     lc.c.t_reference == tref)
+        lc_id = conn.execute(q).scalar()
+        if lc_id is None:
+            lc_id = conn.execute(lc.insert().values(
+                machine=cd.machine, pose_key=cd.pose_key, name=name, t_reference=tref,
+                signature=jsonio.dumps([float(v) for v in cd.signature]), created=utc_now())).inserted_primary_key[0]
+        return int(conn.execute(cds.insert().values(
+            machine=cd.machine, machine_sha256=cd.machine_sha256, pose_key=cd.pose_key, direction=cd.direction,
+            load_case_id=lc_id, n_active_inputs=len(cd.active_inputs),
+            rms_residual_um=cd.fit_stats().get("rms_residual_um"), created=cd.created or utc_now(),
+            software_version=cd.software_version, xml=xml)).inserted_primary_key[0])
+
+    def add(self, cd: CharDiagram, load_case: str | None = None) -> int:
+        """Store a CD (and its load case, once); returns its id."""
+        xml = cd_to_bytes(cd)
+        return int(self.write(lambda conn: self._insert(conn, cd, xml, load_case), "storing a CD"))
+
+    def add_many(self, cds: Sequence[CharDiagram]) -> list[tuple[int, bool]]:
+        """Store CDs in one transaction, each unless a CD with the same XML is already stored (an import).
+
+        All or nothing: when one cannot be stored, none is. Importers serialise, so two importing the same file at
+        once store it once.
+
+        Returns
+        -------
+        per CD, in order: ``(id, True)`` when it was stored, ``(id of the stored one, False)`` when its XML (the
+        record) was already there, from before or earlier in ``cds``
+        """
+        sa = self._sa
+        table = self.t["cds"]
+        items = [(cd, cd_to_bytes(cd)) for cd in cds]
 
         def add(conn):
-            q = sa.select(lc.c.id).where(lc.c.machine == cd.machine, lc.c.pose_key == cd.pose_key, lc.c.name == name,
-                                         lc.c.t_reference == tref)
-            lc_id = conn.execute(q).scalar()
-            if lc_id is None:
-                lc_id = conn.execute(lc.insert().values(
-                    machine=cd.machine, pose_key=cd.pose_key, name=name, t_reference=tref,
-                    signature=jsonio.dumps([float(v) for v in cd.signature]), created=utc_now())).inserted_primary_key[0]
-            return conn.execute(cds.insert().values(
-                machine=cd.machine, machine_sha256=cd.machine_sha256, pose_key=cd.pose_key, direction=cd.direction,
-                load_case_id=lc_id, n_active_inputs=len(cd.active_inputs),
-                rms_residual_um=stats.get("rms_residual_um"), created=cd.created or utc_now(),
-                software_version=cd.software_version, xml=xml)).inserted_primary_key[0]
+            self.lock(conn, "hybridcomp cds import")
+            out = []
+            for cd, xml in items:
+                found = conn.execute(sa.select(table.c.id).where(
+                    table.c.machine == cd.machine, table.c.pose_key == cd.pose_key, table.c.direction == cd.direction,
+                    table.c.xml == xml).order_by(table.c.id).limit(1)).scalar()
+                out.append((int(found), False) if found is not None else (self._insert(conn, cd, xml, None), True))
+            return out
 
-        return int(self.write(add, "storing a CD"))
+        return self.write(add, f"storing {len(items)} CD(s)")
 
     def add_set(self, cds: Mapping[str, CharDiagram], load_case: str | None = None) -> dict[str, int]:
         """Store the three CDs of one pose; returns their ids by direction."""
@@ -455,4 +596,4 @@ class CDDatabase:
         return CDSet({d: self.get(i) for d, i in ids.items()}, ids)
 
 
-__all__ = ["CDDatabase", "CDDatabaseError", "Match", "SCHEMA_VERSION", "pose_key"]
+__all__ = ["CDDatabase", "CDDatabaseError", "Match", "SCHEMA_VERSION", "pose_key", "sqlite_file"]

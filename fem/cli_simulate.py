@@ -19,6 +19,7 @@ from hybridcomp.fem.timestep import DEFAULT_TOLERANCE, TimeTolerance
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loads", required=True, type=Path,
                    help="BC time series CSV: time_s, <source>[<segment>]_W, <zone>_degC; a missing column is zero power "
                    "or the reference temperature, an unknown column is an error")
-    p.add_argument("--out", required=True, type=Path, help="output directory (outputs.csv, run.json, fields, picture)")
+    p.add_argument("--out", required=True, type=Path,
+                   help="output directory (outputs.csv, run.json, fields, picture); files of an earlier run in it are "
+                   "overwritten only with --force, an input never")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     p.add_argument("--element-size-mm", type=float, help="largest element edge [mm] (default: from the machine file)")
     p.add_argument("--dt", type=float,
@@ -108,6 +112,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "same outputs.csv; the ROM must come from the --machine file as it is now")
 
 
+def stored_steps(args: argparse.Namespace, nt: int) -> tuple[int, ...]:
+    """The steps whose full fields are kept: ``--fields N`` evenly spaced ones, and the last with ``--png``."""
+    store = set()
+    if args.fields > 0:
+        store = set(np.linspace(0, nt - 1, args.fields).round().astype(int).tolist())
+    if args.png:
+        store.add(nt - 1)
+    return tuple(sorted(store))
+
+
+def output_files(args: argparse.Namespace, nt: int) -> list[str]:
+    """The files ``simulate`` writes into ``--out`` for a loads series of ``nt`` rows, relative to it."""
+    files = ["outputs.csv", "run.json"]
+    if args.fields > 0:
+        if args.field_format == "vtu":  # every stored step (with --png the last one too)
+            files += [f"fields/field_{k:05d}.vtu" for k in stored_steps(args, nt)]
+        else:
+            files += ["fields/fields.xdmf", "fields/fields.h5"]
+    if args.png:
+        files.append("machine.png")
+    return files
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``hybridcomp simulate``; returns the exit code (2: bad input, named on stderr)."""
     bad = refuse_unused(args, [("field_format", args.fields <= 0, "applies with --fields N only")])
@@ -129,6 +156,8 @@ def run(args: argparse.Namespace) -> int:
         if args.theta is not None and not 0.5 <= args.theta <= 1.0:
             raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
         tolerance = time_tolerance(args)
+        check_output_dir(args.out, output_files(args, len(loads.time_s)),
+                         inputs=(args.loads, machine.source, getattr(args, "rom", None)), force=args.force)
     except (MachineFileError, LoadsFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -150,11 +179,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     nt = len(loads.time_s)
-    store = ()
-    if args.fields > 0:
-        store = tuple(sorted(set(np.linspace(0, nt - 1, args.fields).round().astype(int).tolist())))
-    if args.png:
-        store = tuple(sorted(set(store) | {nt - 1}))
+    store = stored_steps(args, nt)
     U = loads.as_inputs(machine.reference_temperature_degC)
     if tolerance is not None:
         from hybridcomp.fem.timestep import simulate_controlled
@@ -177,7 +202,8 @@ def run(args: argparse.Namespace) -> int:
         }
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    write_outputs(out / "outputs.csv", res.time_s, model.sensor_names, res.sensors_degC, res.drift_um)
+    with atomic_path(out / "outputs.csv") as tmp:
+        write_outputs(tmp, res.time_s, model.sensor_names, res.sensors_degC, res.drift_um)
     files = ["outputs.csv"]
     if args.fields > 0:
         from hybridcomp.fem.export import write_fields
@@ -189,9 +215,10 @@ def run(args: argparse.Namespace) -> int:
         from hybridcomp.fem.export import render_png
 
         try:
-            png = render_png(model, res.fields_K[nt - 1], out / "machine.png",
-                             title=f"{machine.name} at t = {res.time_s[-1] / 3600:.2f} h, pose {pose}")
-            files.append(png.name)
+            with atomic_path(out / "machine.png") as tmp:
+                render_png(model, res.fields_K[nt - 1], tmp,
+                           title=f"{machine.name} at t = {res.time_s[-1] / 3600:.2f} h, pose {pose}")
+            files.append("machine.png")
         except RuntimeError as exc:  # pictures are optional: the numbers are already written
             print(f"warning: {exc}", file=sys.stderr)
     info = {
@@ -207,6 +234,6 @@ def run(args: argparse.Namespace) -> int:
         "solvers": solver_backends(model),
         "files": files,
     }
-    (out / "run.json").write_text(jsonio.dumps(info, indent=2))
+    write_text_atomic(out / "run.json", jsonio.dumps(info, indent=2))
     print(f"wrote {out / 'outputs.csv'} ({nt} rows, {model.n} nodes, {info['timings_s']['total']:.1f} s)", file=sys.stderr)
     return 0

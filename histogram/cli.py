@@ -30,6 +30,7 @@ from hybridcomp.histogram.signature import SignatureLayout, write_signatures
 from hybridcomp.histogram.trace import TraceFileError, TraceWarning
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.safeio import FORCE_HELP, atomic_path, check_distinct, check_output_dir, check_output_path
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="write factors.png (load factors over time) and histogram_K.png per --plot-increment (needs matplotlib)")
     p.add_argument("--plot-increment", type=int, action="append", metavar="K",
                    help="increment to draw as a histogram (repeatable; default: the one with the largest mean axis factor)")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)
 
 
 def _fail(exc: Exception) -> int:
@@ -96,6 +98,13 @@ def run(args: argparse.Namespace) -> int:
         ])
         if bad:
             raise ValueError(bad)
+        inputs = (args.input, machine.source)
+        check_distinct({"--out": args.out, "--signature": args.signature})
+        check_output_path(args.out, inputs=inputs, force=args.force)
+        if args.signature is not None:
+            check_output_path(args.signature, inputs=inputs, force=args.force, what="--signature")
+        if args.plot is not None:
+            check_output_dir(args.plot, ["factors.png"], inputs=inputs, force=args.force, what="--plot")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TraceWarning)
             if fmt == "trace":
@@ -112,14 +121,21 @@ def run(args: argparse.Namespace) -> int:
         for k in args.plot_increment or []:
             if not -len(inc) <= k < len(inc):
                 raise ValueError(f"--plot-increment {k}: there are {len(inc)} increments (0 .. {len(inc) - 1})")
+        if args.plot is not None:
+            ks = args.plot_increment or [int(np.argmax(inc.axis_factor.mean(axis=1)))]
+            pictures = {k: f"histogram_{k % len(inc):04d}.png" for k in ks}
+            check_output_dir(args.plot, ["factors.png", *pictures.values()], inputs=inputs, force=args.force,
+                             what="--plot")
     except (MachineFileError, TraceFileError, ValueError) as exc:
         return _fail(exc)
-    write_bcs(args.out, loads)
+    with atomic_path(args.out) as tmp:
+        write_bcs(tmp, loads)
     print(f"wrote {args.out} ({len(loads.time_s)} rows: {len(inc)} increments of {args.increment:g} s, "
           f"{len(loads.names)} columns)", file=sys.stderr)
     if args.signature is not None:
         try:
-            write_signatures(args.signature, inc, SignatureLayout.of(machine), args.signature_period)
+            with atomic_path(args.signature) as tmp:
+                write_signatures(tmp, inc, SignatureLayout.of(machine), args.signature_period)
         except ValueError as exc:
             return _fail(exc)
         print(f"wrote {args.signature}", file=sys.stderr)
@@ -127,10 +143,13 @@ def run(args: argparse.Namespace) -> int:
         from hybridcomp.histogram.plots import plot_factors, plot_increment
 
         try:
-            files = [plot_factors(inc, args.plot / "factors.png")]
-            ks = args.plot_increment or [int(np.argmax(inc.axis_factor.mean(axis=1)))]
-            for k in ks:
-                files.append(plot_increment(inc, k, args.plot / f"histogram_{k % len(inc):04d}.png"))
+            files = [args.plot / "factors.png"]
+            with atomic_path(files[0]) as tmp:
+                plot_factors(inc, tmp)
+            for k, name in pictures.items():
+                files.append(args.plot / name)
+                with atomic_path(files[-1]) as tmp:
+                    plot_increment(inc, k, tmp)
         except (RuntimeError, IndexError) as exc:
             return _fail(exc)
         print(f"wrote {', '.join(str(f) for f in files)}", file=sys.stderr)

@@ -7,10 +7,11 @@ import sys
 from pathlib import Path
 
 from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S
-from hybridcomp.histogram.scenarios import SCENARIOS, write_scenario
+from hybridcomp.histogram.scenarios import SCENARIOS, scenario_files, write_scenario
 from hybridcomp.histogram.trace import TraceFileError
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.safeio import FORCE_HELP, check_output_dir
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -26,6 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--power", choices=("factor", "mean"), default="mean",
                    help="heat power per increment (see hybridcomp histogram --help)")
     p.add_argument("--hours", type=float, default=8.0, help="basic: duration of each load case [h] (default 8)")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
         for opt in ("increment", "rate_hz", "hours"):
             if not getattr(args, opt) > 0:
                 raise ValueError(f"--{opt.replace('_', '-')} must be positive, got {getattr(args, opt)}")
+        check_output_dir(args.out, scenario_files(args.name, machine), inputs=(machine.source,), force=args.force)
         files = write_scenario(args.name, machine, args.out, args.increment, args.rate_hz, args.hours, args.power)
     except (MachineFileError, TraceFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

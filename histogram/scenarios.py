@@ -42,6 +42,7 @@ from hybridcomp.histogram.gcode import (
 from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S
 from hybridcomp.histogram.trace import AMBIENT, write_trace
 from hybridcomp.models.machine import Machine
+from hybridcomp.safeio import atomic_path, write_text_atomic
 
 SCENARIOS = ("basic", "jobshop")
 BLOCK_S = 7200.0
@@ -313,6 +314,17 @@ def jobshop_ambient(machine: Machine):
 # --------------------------------------------------------------------------- writing
 
 
+def scenario_files(name: str, machine: Machine) -> list[str]:
+    """The file names :func:`write_scenario` writes for a scenario and machine, in the order written."""
+    if name not in SCENARIOS:
+        raise ValueError(f"unknown scenario {name!r} (scenarios: {', '.join(SCENARIOS)})")
+    if name == "basic":
+        cases = [f"basic_{a.name}" for a in machine.axes] + (["basic_spindle"] if machine.spindle_max_speed_rpm > 0 else [])
+    else:
+        cases = ["jobshop"]
+    return [f"{case}{suffix}" for case in cases for suffix in (".nc", "_trace.csv", "_loads.csv")]
+
+
 def write_scenario(
     name: str,
     machine: Machine,
@@ -350,16 +362,17 @@ def write_scenario(
         cases = {"jobshop": (jobshop_program(machine), {AMBIENT: jobshop_ambient(machine)})}
     files: dict[str, Path] = {}
     for case, (gcode, air) in cases.items():
-        nc = out / f"{case}.nc"
-        nc.write_text(gcode)
+        nc = write_text_atomic(out / f"{case}.nc", gcode)
         motion = parse_gcode(gcode, machine, source=str(nc))
         trace = out / f"{case}_trace.csv"
-        write_trace(trace, machine, sample_motion(motion, rate_hz, air))
+        with atomic_path(trace) as tmp:
+            write_trace(tmp, machine, sample_motion(motion, rate_hz, air))
         # the loads come from the programme's exact motion; the sampled trace gives the same within 1 % unless
         # an axis reverses faster than the sampling resolves (see increments_from_motion / the tests)
         inc = increments_from_motion(machine, motion, increment_s, air_degC=air)
         loads: Loads = boundary_conditions(machine, inc, power)
         lpath = out / f"{case}_loads.csv"
-        write_bcs(lpath, loads)
+        with atomic_path(lpath) as tmp:
+            write_bcs(tmp, loads)
         files.update({nc.name: nc, trace.name: trace, lpath.name: lpath})
     return files

@@ -13,6 +13,7 @@ from hybridcomp.models import jsonio
 from hybridcomp.models.machine import Machine
 from hybridcomp.rom.machine import inputs_from_columns, split_outputs
 from hybridcomp.rom.reduced import RomFileError, RomInputError, load_rom
+from hybridcomp.safeio import atomic_path, write_text_atomic
 
 
 def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], loads: Loads) -> int:
@@ -46,7 +47,8 @@ def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], 
     sensors_degC, drift_um = split_outputs(rom, Y)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    write_outputs(out / "outputs.csv", loads.time_s, rom.output_names[:-3], sensors_degC, drift_um)
+    with atomic_path(out / "outputs.csv") as tmp:  # --out was checked by the caller (fem.cli_simulate.run)
+        write_outputs(tmp, loads.time_s, rom.output_names[:-3], sensors_degC, drift_um)
     info = {
         "machine": machine.name,
         "machine_file": Path(machine.source).name,
@@ -60,7 +62,7 @@ def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], 
         "timings_s": {"stepping": t_sim, "total": time.perf_counter() - t0},
         "files": ["outputs.csv"],
     }
-    (out / "run.json").write_text(jsonio.dumps(info, indent=2))
+    write_text_atomic(out / "run.json", jsonio.dumps(info, indent=2))
     print(f"wrote {out / 'outputs.csv'} ({len(loads.time_s)} rows, ROM order {rom.order}, {t_sim * 1e3:.1f} ms stepping)",
           file=sys.stderr)
     return 0

@@ -104,11 +104,15 @@ def test_cd_command_line_fit_eval_cnc_and_database(training, tmp_path, capsys):
     assert main(["cd", "db", "list", "--db", str(db)]) == 0
     assert capsys.readouterr().out.count("ACTIVE") == 3
     assert main(["cd", "db", "export", "1", "2", "3", "--db", str(db), "--out", str(tmp_path / "exp")]) == 0
+    capsys.readouterr()
+    # the exported XML is the stored record: importing it again stores nothing new
     assert main(["cd", "db", "import", *map(str, sorted((tmp_path / "exp").glob("*.xml"))), "--db", str(db),
                  "--machine", "vmc800"]) == 0
-    assert main(["cd", "db", "activate", "X=4,Y=5,Z=6", "--db", str(db)]) == 0
+    assert [ln.split(": ", 1)[1] for ln in capsys.readouterr().out.splitlines()] == [
+        f"already stored as id {i}" for i in (1, 2, 3)]
+    assert main(["cd", "db", "activate", "X=1,Y=2,Z=3", "--db", str(db)]) == 0
     capsys.readouterr()
-    assert main(["cd", "db", "show", "4", "--db", str(db)]) == 0
+    assert main(["cd", "db", "show", "1", "--db", str(db)]) == 0
     assert "T_reference" in capsys.readouterr().out
     # bad input: clear errors, exit code 2
     assert main(["cd", "eval", str(out), "--point", "T1=abc"]) == 2

@@ -280,6 +280,37 @@ def test_two_monitors_open_a_new_database_at_once(chardiag, fresh_postgres_url, 
         assert sorted(e.payload["who"] for e in MonitorStore(store).events("sensor")) == ["p0", "p1"]
 
 
+def test_a_reader_creates_nothing_and_an_import_is_idempotent_and_all_or_nothing_on_postgresql(
+        chardiag, sets, fresh_postgres_url):
+    db, _ = chardiag
+    sa = pytest.importorskip("sqlalchemy")
+    with pytest.raises(db.CDDatabaseError, match="is not a hybridcomp CD database"):
+        db.CDDatabase(fresh_postgres_url, readonly=True)
+    engine = sa.create_engine(fresh_postgres_url)
+    try:
+        assert sa.inspect(engine).get_table_names() == []  # the reader created no schema
+    finally:
+        engine.dispose()
+    warm = list(sets["warm"].values())
+    with db.CDDatabase(fresh_postgres_url) as store:
+        first = store.add_many(warm)
+        assert [stored for _, stored in first] == [True, True, True]
+        again = store.add_many([*warm, warm[0]])
+        assert again == [(i, False) for i, _ in first] + [(first[0][0], False)]
+        real = store._insert
+
+        def failing(conn, cd, xml, load_case):
+            if cd.direction == "Z":
+                raise db.CDDatabaseError("planted failure")
+            return real(conn, cd, xml, load_case)
+
+        store._insert = failing
+        with pytest.raises(db.CDDatabaseError, match="planted failure"):
+            store.add_many(list(sets["cold"].values()))
+    with db.CDDatabase(fresh_postgres_url, readonly=True) as reader:
+        assert [r["id"] for r in reader.list()] == [i for i, _ in first]  # nothing of the failed import
+
+
 def test_sqlite_stays_the_default(chardiag, tmp_path):
     db, _ = chardiag
     with db.CDDatabase(tmp_path / "cd.sqlite") as store:
