@@ -30,10 +30,18 @@ from functools import cached_property
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.layout import DIRECTIONS
+from hybridcomp.models.layout import DIRECTIONS, TEMPERATURE_RANGE_DEGC, control_character
 
 TARGETS = {"X": "dx_um", "Y": "dy_um", "Z": "dz_um"}
 UNITS = ("degC", "mm")
+
+# plausibility bounds of a CD, checked when one is built or read (chardiag/README.md, "Plausibility")
+#: the largest magnitude of a grid value [µm]: 10 mm of thermal drift is a broken file, not a machine
+MAX_VALUE_UM = 1e4
+#: the largest magnitude of a position: a pose or a position input's grid [mm] (100 m)
+MAX_POSITION_MM = 1e5
+#: the most support points of one input's grid
+MAX_SUPPORT_POINTS = 1000
 
 
 class CDError(HybridcompError, ValueError):
@@ -136,6 +144,7 @@ class CharDiagram:
     def __post_init__(self):
         if self.direction not in DIRECTIONS:
             raise CDError(f"direction: {self.direction!r} is not one of {DIRECTIONS}")
+        self._check_text()
         names = [i.name for i in self.inputs]
         if len(set(names)) != len(names):
             raise CDError(f"inputs: duplicate names in {names}")
@@ -145,8 +154,12 @@ class CharDiagram:
             if inp.active:
                 if not (math.isfinite(inp.min) and math.isfinite(inp.max) and inp.max > inp.min):
                     raise CDError(f"input {inp.name!r}: range [{inp.min!r}, {inp.max!r}] must be finite with max > min")
-                if inp.n_support < 2:
-                    raise CDError(f"input {inp.name!r}: n_support {inp.n_support!r} must be at least 2")
+                lo, hi = TEMPERATURE_RANGE_DEGC if inp.unit == "degC" else (-MAX_POSITION_MM, MAX_POSITION_MM)
+                if not (lo <= inp.min and inp.max <= hi):
+                    raise CDError(f"input {inp.name!r}: range [{inp.min!r}, {inp.max!r}] {inp.unit} is outside the "
+                                  f"plausible [{lo:g}, {hi:g}] {inp.unit}")
+                if not 2 <= inp.n_support <= MAX_SUPPORT_POINTS:
+                    raise CDError(f"input {inp.name!r}: n_support {inp.n_support!r} must be from 2 to {MAX_SUPPORT_POINTS}")
         if not self.terms:
             raise CDError("terms: a CD needs at least one term")
         for k, t in enumerate(self.terms):
@@ -155,11 +168,47 @@ class CharDiagram:
             for j in t.inputs:
                 if not 0 <= j < len(self.inputs) or not self.inputs[j].active:
                     raise CDError(f"term {k}: input index {j} is not an active input")
+            if len(set(t.inputs)) != len(t.inputs):
+                dup = next(j for j in t.inputs if t.inputs.count(j) > 1)
+                raise CDError(f"term {k}: input {self.inputs[dup].name!r} appears twice in its inputs "
+                              f"{' '.join(self.inputs[j].name for j in t.inputs)!r}")
             shape = tuple(self.inputs[j].n_support for j in t.inputs)
             if t.values.shape != shape:
                 raise CDError(f"term {k}: values have shape {t.values.shape}, the grid is {shape}")
-            if not np.all(np.isfinite(t.values)):
-                raise CDError(f"term {k}: values are not all finite")
+            bad = ~(np.abs(t.values) <= MAX_VALUE_UM)  # also NaN
+            if bad.any():
+                v = float(t.values.flat[int(np.argmax(bad.ravel()))])
+                raise CDError(f"term {k}: value {v!r} µm is not finite or beyond the plausible ±{MAX_VALUE_UM:g} µm")
+        for a, x in self.pose_mm:
+            if not (math.isfinite(x) and abs(x) <= MAX_POSITION_MM):
+                raise CDError(f"pose: axis {a!r} position {x!r} mm is not finite or beyond ±{MAX_POSITION_MM:g} mm")
+        lo, hi = TEMPERATURE_RANGE_DEGC
+        for sensor, T in self.t_reference_degC:
+            if not lo <= T <= hi:
+                raise CDError(f"referenceTemperatures: sensor {sensor!r} T_degC {T!r} is not finite or outside the "
+                              f"plausible [{lo:g}, {hi:g}] °C")
+        for what, v in (("smoothing", self.smoothing), ("ridge", self.ridge)):
+            if not (math.isfinite(v) and v >= 0):
+                raise CDError(f"regularisation: {what} {v!r} must be finite and not negative")
+        sig = np.asarray(self.signature, float)
+        if not np.all(np.isfinite(sig)):
+            raise CDError(f"loadCase: signature value {float(sig[~np.isfinite(sig)][0])!r} is not finite")
+
+    def _check_text(self) -> None:
+        """No control character in any name or text of the CD (it would forge lines in listings and logs)."""
+        texts = [("machine name", self.machine), ("machine sha256", self.machine_sha256),
+                 ("loadCase name", self.load_case), ("created", self.created), ("software version", self.software_version)]
+        texts += [(f"input {i.name!r} name", i.name) for i in self.inputs]
+        texts += [(f"input {i.name!r} reason", i.reason) for i in self.inputs]
+        texts += [("pose axis name", a) for a, _ in self.pose_mm]
+        texts += [("referenceTemperatures sensor name", n) for n, _ in self.t_reference_degC]
+        texts += [("fit statistic name", n) for n, _ in self.fit]
+        for what, text in texts:
+            if not isinstance(text, str):
+                raise CDError(f"{what}: must be text, got {text!r}")
+            c = control_character(text)
+            if c is not None:
+                raise CDError(f"{what}: {text!r} has a control character {c!r}")
 
     # ------------------------------------------------------------------ description
 

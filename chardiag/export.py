@@ -19,6 +19,10 @@ compensation at P0 = the axis position of the CD's pose; tan β is the
 derivative of the compensation along the same axis where the CD has that
 axis' position as an active input (central difference over 1 % of its
 trained range), else 0 (a CD of one pose says nothing about the slope).
+
+Every export passes its values through :mod:`hybridcomp.chardiag.guard` first: an offset that is
+not finite or beyond the clamp (default ±1000 µm), or a slope or reference position that is not
+finite, raises :class:`~hybridcomp.chardiag.guard.OffsetGuardError` and nothing is written.
 """
 
 from __future__ import annotations
@@ -29,6 +33,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from hybridcomp.chardiag.cd import DIRECTIONS, TARGETS, CDSet
+from hybridcomp.chardiag.guard import DEFAULT_CLAMP_UM, guard_finite, guard_offsets
+from hybridcomp.models.layout import control_character
 
 SIEMENS_SD = {"abs": ("SD43900", "$SA_TEMP_COMP_ABS_VALUE"), "slope": ("SD43910", "$SA_TEMP_COMP_SLOPE"),
               "ref": ("SD43920", "$SA_TEMP_COMP_REF_POSITION")}
@@ -77,8 +83,25 @@ def axis_offsets(cds: CDSet, values: Mapping[str, float]) -> tuple[AxisOffset, .
     return tuple(out)
 
 
-def generic_table(offsets: tuple[AxisOffset, ...]) -> str:
-    """CSV: ``axis, drift_um, compensation_um, slope, reference_mm, outside``."""
+def check_offsets(offsets: tuple[AxisOffset, ...], clamp_um: float = DEFAULT_CLAMP_UM,
+                  source: str = "CNC export") -> None:
+    """Raise :class:`~hybridcomp.chardiag.guard.OffsetGuardError` unless every offset can be written.
+
+    Drift and compensation finite and within ±``clamp_um`` [µm]; slope and reference position finite.
+    """
+    guard_offsets({f"{o.axis} compensation": o.compensation_um for o in offsets}, clamp_um=clamp_um, source=source)
+    guard_offsets({f"{o.axis} drift": o.drift_um for o in offsets}, clamp_um=clamp_um, source=source)
+    guard_finite({f"{o.axis} slope": o.slope for o in offsets}, source=source)
+    guard_finite({f"{o.axis} reference position": o.reference_mm for o in offsets}, source=source, unit="mm")
+
+
+def generic_table(offsets: tuple[AxisOffset, ...], clamp_um: float = DEFAULT_CLAMP_UM) -> str:
+    """CSV: ``axis, drift_um, compensation_um, slope, reference_mm, outside``.
+
+    Raises :class:`~hybridcomp.chardiag.guard.OffsetGuardError` (nothing written) when an offset is not
+    finite or beyond ±``clamp_um`` [µm] (:func:`check_offsets`).
+    """
+    check_offsets(offsets, clamp_um, "CNC export (generic table)")
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["axis", "drift_um", "compensation_um", "slope", "reference_mm", "outside"])
@@ -89,7 +112,7 @@ def generic_table(offsets: tuple[AxisOffset, ...]) -> str:
 
 
 def siemens_840d(offsets: tuple[AxisOffset, ...], axis_names: Mapping[str, str] | None = None,
-                 header: str = "") -> str:
+                 header: str = "", clamp_um: float = DEFAULT_CLAMP_UM) -> str:
     """A part-program fragment that writes SD43900/SD43910/SD43920 per axis.
 
     Parameters
@@ -97,7 +120,16 @@ def siemens_840d(offsets: tuple[AxisOffset, ...], axis_names: Mapping[str, str] 
     offsets : from :func:`axis_offsets`
     axis_names : CD direction → the control's axis identifier (default ``X1``, ``Y1``, ``Z1``)
     header : a comment line (machine, pose, time)
+    clamp_um : the largest compensation magnitude written [µm]; beyond it nothing is written
+
+    Raises
+    ------
+    OffsetGuardError
+        when an offset is not finite or beyond ±``clamp_um`` (:func:`check_offsets`).
+    ValueError
+        when the header or an axis identifier has a control character (it would forge a program line).
     """
+    check_offsets(offsets, clamp_um, "CNC export (Siemens 840D sl)")
     names = {d: f"{d}1" for d in DIRECTIONS}
     names.update(axis_names or {})
     lines = []
@@ -106,6 +138,10 @@ def siemens_840d(offsets: tuple[AxisOffset, ...], axis_names: Mapping[str, str] 
     lines += ["; hybridcomp temperature compensation: dK = K0 + tanB * (P - P0)",
               f"; {SIEMENS_SD['abs'][0]} {SIEMENS_SD['abs'][1]} = K0 [mm], {SIEMENS_SD['slope'][0]} "
               f"{SIEMENS_SD['slope'][1]} = tanB [-], {SIEMENS_SD['ref'][0]} {SIEMENS_SD['ref'][1]} = P0 [mm]"]
+    for text in (header, *names.values()):
+        c = control_character(text)
+        if c is not None:
+            raise ValueError(f"CNC export (Siemens 840D sl): {text!r} has a control character {c!r}")
     for o in offsets:
         ax = names[o.axis]
         if o.outside:
@@ -117,4 +153,4 @@ def siemens_840d(offsets: tuple[AxisOffset, ...], axis_names: Mapping[str, str] 
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["AxisOffset", "SIEMENS_SD", "TARGETS", "axis_offsets", "generic_table", "siemens_840d"]
+__all__ = ["AxisOffset", "SIEMENS_SD", "TARGETS", "axis_offsets", "check_offsets", "generic_table", "siemens_840d"]

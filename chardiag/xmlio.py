@@ -3,15 +3,19 @@
 Numbers are written in Python's shortest round-trip form (``repr``), so a
 read gives back the same bits and a re-write the same bytes.
 
-Reading is hardened for files that come from elsewhere: the size is checked
-before anything is read (``max_bytes``, default 16 MiB); a document type
-declaration or entity declaration is refused before parsing (no DTD, no
-external entity, no entity expansion: no billion laughs); the parser never
-touches the network; the document must validate against the schema.
+Reading is hardened for files that come from elsewhere: only a regular file
+is opened (a named pipe, a device or a directory is refused without blocking);
+the size is checked before anything is read (``max_bytes``, default 16 MiB); a
+document type declaration or entity declaration is refused before parsing (no
+DTD, no external entity, no entity expansion: no billion laughs); the parser
+never touches the network; the document must validate against the schema; and
+the CD it describes must be plausible (:class:`~hybridcomp.chardiag.cd.CharDiagram`
+checks finite, bounded values and names without control characters).
 """
 
 from __future__ import annotations
 
+import math
 import os
 from functools import lru_cache
 from importlib import resources
@@ -22,6 +26,7 @@ from lxml import etree
 
 from hybridcomp.chardiag.cd import CDError, CDInput, CharDiagram, Term
 from hybridcomp.errors import HybridcompError
+from hybridcomp.models.toml import open_regular_file
 
 NS = "urn:hybridcomp:characteristic-diagram:1"
 FORMAT_VERSION = 1
@@ -46,7 +51,11 @@ def _parser() -> etree.XMLParser:
 
 
 def _f(v: float) -> str:
-    return repr(float(v))
+    """An xs:double: the shortest round-trip form, and ``NaN``, ``INF``, ``-INF`` as the schema spells them."""
+    v = float(v)
+    if math.isfinite(v):
+        return repr(v)
+    return "NaN" if math.isnan(v) else "INF" if v > 0 else "-INF"
 
 
 def cd_to_element(cd: CharDiagram) -> etree._Element:
@@ -142,14 +151,14 @@ def cd_from_bytes(data: bytes, source: str = "<bytes>", machine=None, max_bytes:
 def read_cd(path: str | Path, machine=None, max_bytes: int = MAX_BYTES, allow_modified_machine: bool = False) -> CharDiagram:
     """Read a CD file (see :func:`cd_from_bytes`); the size is checked before the file is read."""
     path = Path(path)
-    try:
-        size = path.stat().st_size
-    except OSError as exc:
-        raise CDXmlError(f"{path}: cannot open CD file: {exc.strerror}") from None
-    if size > max_bytes:
-        raise CDXmlError(f"{path}: {size} bytes is over the limit of {max_bytes} bytes for a CD file")
-    with path.open("rb") as fh:
-        data = fh.read(max_bytes + 1)
+    with open_regular_file(path, CDXmlError, "CD file") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size > max_bytes:
+            raise CDXmlError(f"{path}: {size} bytes is over the limit of {max_bytes} bytes for a CD file")
+        try:
+            data = fh.read(max_bytes + 1)
+        except OSError as exc:
+            raise CDXmlError(f"{path}: cannot read CD file: {exc.strerror or exc}") from None
     return cd_from_bytes(data, str(path), machine, max_bytes, allow_modified_machine)
 
 
@@ -189,14 +198,17 @@ def _from_element(root) -> CharDiagram:
     terms = []
     for k, el in enumerate(ch["terms"]):
         names = el.get("inputs").split()
+        twice = [n for n in names if names.count(n) > 1]
+        if twice:
+            raise ValueError(f"term {k}: input {twice[0]!r} appears twice in its inputs {' '.join(names)!r}")
         missing = [n for n in names if n not in index]
         if missing:
             raise ValueError(f"term {k}: input {missing[0]!r} is not declared in <inputs>")
         idx = tuple(index[n] for n in names)
         shape = tuple(inputs[j].n_support for j in idx)
         vals = _doubles(el.find(_Q + "values").text)
-        if vals.size != int(np.prod(shape)):
-            raise ValueError(f"term {k} ({' '.join(names)}): {vals.size} values, the grid {shape} needs {int(np.prod(shape))}")
+        if vals.size != math.prod(shape):  # exact integers: a huge supportPoints cannot wrap around
+            raise ValueError(f"term {k} ({' '.join(names)}): {vals.size} values, the grid {shape} needs {math.prod(shape)}")
         terms.append(Term(inputs=idx, values=vals.reshape(shape)))
     reg = ch["regularisation"]
     lc = ch["loadCase"]

@@ -10,7 +10,7 @@ temperature; an unknown column is an error.  Outputs CSV: ``time_s``,
 from __future__ import annotations
 
 import csv
-import math
+import io
 from pathlib import Path
 
 import numpy as np
@@ -19,10 +19,14 @@ from hybridcomp.models.layout import (  # Loads and in_model_order re-exported f
     DRIFT_COLUMNS,
     Loads,
     LoadsColumnError,
+    control_character,
     in_model_order,
     temperature_column,
+    time_problem,
+    value_problem,
 )
 from hybridcomp.models.machine import Machine
+from hybridcomp.models.toml import open_regular_file
 
 
 class LoadsFileError(LoadsColumnError):
@@ -48,59 +52,89 @@ def full_power_inputs(machine: Machine) -> np.ndarray:
 
 
 def read_loads(path: str | Path, machine: Machine) -> Loads:
-    """Read and check a loads CSV against a machine."""
+    """Read and check a loads CSV against a machine.
+
+    The file must be a regular file of UTF-8 text (a byte-order mark is allowed) whose name has no
+    control character (it names the load case); every value must be physically plausible
+    (:func:`hybridcomp.models.layout.value_problem`): heat powers finite, not negative beyond
+    round-off (read as 0) and at most 1e6 W per input; air temperatures within [-50, 200] °C;
+    ``time_s`` finite, strictly increasing and spanning at most 1e8 s.
+
+    Raises
+    ------
+    LoadsFileError
+        naming the file, the line, the column and the value.
+    """
     path = Path(path)
     expected = input_columns(machine)
-    try:
-        fh = path.open(newline="")
-    except OSError as exc:
-        raise LoadsFileError(f"{path}: cannot open loads file: {exc}") from None
-    with fh:
+    bad_name = control_character(path.name)
+    if bad_name:
+        raise LoadsFileError(f"{str(path)!r}: the file name has a control character {bad_name!r}; it names the load case")
+    with open_regular_file(path, LoadsFileError, "loads file") as raw, \
+            io.TextIOWrapper(raw, encoding="utf-8-sig", newline="") as fh:
         rd = csv.reader(fh)
         try:
-            header = [h.strip() for h in next(rd)]
-        except StopIteration:
-            raise LoadsFileError(f"{path}: empty file, expected a header with 'time_s'") from None
-        if "time_s" not in header:
-            raise LoadsFileError(f"{path}: column 'time_s' is missing (header: {header})")
-        if len(set(header)) != len(header):
-            dup = [h for h in header if header.count(h) > 1][0]
-            raise LoadsFileError(f"{path}: column {dup!r} appears twice")
-        unknown = [h for h in header if h != "time_s" and h not in expected]
-        if unknown:
-            raise LoadsFileError(
-                f"{path}: column {unknown[0]!r} is not an input of machine {machine.name!r} (inputs: {', '.join(expected)})"
-            )
-        rows = []
-        for i, row in enumerate(rd, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                raise LoadsFileError(f"{path}: line {i} has {len(row)} fields, the header has {len(header)}")
-            try:
-                vals = [float(c) for c in row]
-            except ValueError:
-                bad = next(c for c in row if not _is_float(c))
-                raise LoadsFileError(f"{path}: line {i}: value {bad!r} is not a number") from None
-            for h, v in zip(header, vals):
-                if not math.isfinite(v):
-                    raise LoadsFileError(f"{path}: line {i}, column {h!r}: value {v} is not finite")
-                if h.endswith("_W") and v < 0:
-                    raise LoadsFileError(f"{path}: line {i}, column {h!r}: a heat power cannot be negative, got {v}")
-            rows.append(vals)
+            header, rows, lines = _read_rows(path, rd, expected, machine)
+        except UnicodeDecodeError as exc:
+            raise LoadsFileError(f"{path}: not a UTF-8 text CSV: undecodable byte {exc.object[exc.start:exc.start + 1]!r} "
+                                 f"after line {rd.line_num}") from None
+        except csv.Error as exc:
+            raise LoadsFileError(f"{path}: line {rd.line_num}: not a readable CSV line: {exc}") from None
+        except OSError as exc:
+            raise LoadsFileError(f"{path}: cannot read loads file: {exc.strerror or exc}") from None
     if not rows:
         raise LoadsFileError(f"{path}: no data rows")
     data = np.array(rows)
     t = data[:, header.index("time_s")]
-    back = np.flatnonzero(np.diff(t) <= 0)
-    if back.size:
-        i = int(back[0])
-        raise LoadsFileError(f"{path}: line {i + 3}: time_s {t[i + 1]} does not increase after {t[i]}")
+    problem = time_problem(t)
+    if problem is not None:
+        i, why = problem
+        raise LoadsFileError(f"{path}: line {lines[i]}: {why}")
     cols = [j for j, h in enumerate(header) if h != "time_s"]
+    values = data[:, cols]
+    powers = [k for k, j in enumerate(cols) if header[j].endswith("_W")]
+    values[:, powers] = np.maximum(values[:, powers], 0.0)  # round-off below 0 (larger negatives are refused)
     try:
-        return in_model_order(Loads(t, data[:, cols], tuple(header[j] for j in cols)), machine.layout(), str(path))
+        return in_model_order(Loads(t, values, tuple(header[j] for j in cols)), machine.layout(), str(path))
     except LoadsColumnError as exc:
         raise LoadsFileError(str(exc)) from None
+
+
+def _read_rows(path: Path, rd, expected: tuple[str, ...], machine: Machine) -> tuple[list[str], list, list[int]]:
+    """The header, the checked data rows and their line numbers of a loads CSV."""
+    try:
+        header = [h.strip() for h in next(rd)]
+    except StopIteration:
+        raise LoadsFileError(f"{path}: empty file, expected a header with 'time_s'") from None
+    if "time_s" not in header:
+        raise LoadsFileError(f"{path}: column 'time_s' is missing (header: {header})")
+    if len(set(header)) != len(header):
+        dup = [h for h in header if header.count(h) > 1][0]
+        raise LoadsFileError(f"{path}: column {dup!r} appears twice")
+    unknown = [h for h in header if h != "time_s" and h not in expected]
+    if unknown:
+        raise LoadsFileError(
+            f"{path}: column {unknown[0]!r} is not an input of machine {machine.name!r} (inputs: {', '.join(expected)})"
+        )
+    rows, lines = [], []
+    for row in rd:
+        i = rd.line_num
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            raise LoadsFileError(f"{path}: line {i} has {len(row)} fields, the header has {len(header)}")
+        try:
+            vals = [float(c) for c in row]
+        except ValueError:
+            j = next(j for j, c in enumerate(row) if not _is_float(c))
+            raise LoadsFileError(f"{path}: line {i}, column {header[j]!r}: value {row[j]!r} is not a number") from None
+        for h, v in zip(header, vals):
+            why = value_problem(h, v) if h != "time_s" else None
+            if why:
+                raise LoadsFileError(f"{path}: line {i}, column {h!r}: {why}")
+        rows.append(vals)
+        lines.append(i)
+    return header, rows, lines
 
 
 def _is_float(s: str) -> bool:

@@ -18,7 +18,16 @@ from pathlib import Path
 import numpy as np
 import skfem
 
-from hybridcomp.models.machine import FACES, Machine, MachineFileError, box_at_pose, check_pose_geometry
+from hybridcomp.models.machine import (
+    FACES,
+    Machine,
+    MachineFileError,
+    box_at_pose,
+    check_element_budget,
+    check_pose_geometry,
+    max_elements,
+)
+from hybridcomp.models.toml import open_regular_file
 
 log = logging.getLogger(__name__)
 
@@ -209,14 +218,19 @@ def mesh_machine(machine: Machine, pose_mm: dict[str, float] | None = None, elem
     machine : a loaded machine
     pose_mm : axis positions [mm]; missing axes at mid travel
     element_size_mm : largest element edge [mm]; default from the machine file
+
+    Raises
+    ------
+    MachineFileError
+        for a bad pose or geometry, and before any meshing when the element count (estimated from the
+        box faces and the element size) is over the limit (:func:`hybridcomp.models.machine.max_elements`).
     """
     pose = machine.check_pose(pose_mm or {})
     if machine.mesh.file is not None:
         return _import_mesh(machine, pose)
     check_pose_geometry(machine, pose)
-    h = float(element_size_mm or machine.mesh.element_size_mm)
-    if h <= 0:
-        raise MachineFileError(f"{machine.source}: element size must be positive, got {h} mm")
+    h = float(machine.mesh.element_size_mm if element_size_mm is None else element_size_mm)
+    check_element_budget(machine, pose, h)
     boxes = [box_at_pose(machine, b, pose) for b in machine.bodies]
     lines_mm = []
     for d in range(3):
@@ -310,6 +324,10 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
     import meshio
 
     path: Path = machine.mesh.file
+    try:  # a named pipe or a device would hang meshio or feed it forever
+        open_regular_file(path, MachineFileError, "mesh file").close()
+    except MachineFileError as exc:
+        raise MachineFileError(f"{machine.source}: field 'mesh.file': {exc}") from None
     try:
         m = meshio.read(path)
     except Exception as exc:  # noqa: BLE001 - meshio raises many kinds
@@ -323,6 +341,10 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
     tets = [i for i, c in enumerate(m.cells) if c.type == "tetra"]
     if not tets:
         raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} has no tetrahedra")
+    n_tets = sum(len(m.cells[i].data) for i in tets)
+    if n_tets > max_elements(machine):
+        raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} has {n_tets:,} tetrahedra, more than "
+                               f"the limit of {max_elements(machine):,} elements (set [mesh] max_elements)")
     offsets = np.cumsum([0] + [len(c.data) for c in m.cells])
     tet_global = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in tets])
     t = np.concatenate([m.cells[i].data for i in tets]).T

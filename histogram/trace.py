@@ -20,15 +20,18 @@ A trace CSV (DESIGN.md) has the columns
 Any other column is an error (a misspelt column is never silently ignored).
 The reader streams the file in chunks of rows, so a week of 10 Hz data never
 sits in memory at once. Rows with a NaN or empty field in a column that is read
-are dropped and counted (the caller warns); a field that is not a number, a row
-with the wrong number of fields and a missing column are errors naming the
-file, line and column.
+are dropped and counted (the caller warns); a field that is not a number, an
+infinite value, an air temperature outside [-50, 200] °C, a row with the wrong
+number of fields and a missing column are errors naming the file, line and
+column. The file must be a regular file of UTF-8 text (a byte-order mark is
+allowed) whose name has no control character (it names the load case).
 """
 
 from __future__ import annotations
 
 import csv
 import difflib
+import io
 import logging
 import math
 from collections.abc import Iterator
@@ -38,8 +41,17 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.layout import AMBIENT_COLUMN, DRIFT_COLUMNS, PROBE_COLUMNS, WORKSPACE_COLUMN
+from hybridcomp.models.layout import (
+    AMBIENT_COLUMN,
+    DRIFT_COLUMNS,
+    PROBE_COLUMNS,
+    TEMPERATURE_RANGE_DEGC,
+    WORKSPACE_COLUMN,
+    control_character,
+    value_problem,
+)
 from hybridcomp.models.machine import SPINDLE, Machine
+from hybridcomp.models.toml import open_regular_file
 
 log = logging.getLogger(__name__)
 
@@ -244,8 +256,11 @@ def _parse_slow(path: Path, lines: list[str], first_line: int, layout: _Layout) 
         s = text.strip()
         if not s:
             continue
-        f = next(csv.reader([s]))
         ln = first_line + i
+        try:
+            f = next(csv.reader([s]))
+        except csv.Error as exc:
+            raise TraceFileError(f"{path}: line {ln}: not a readable CSV line: {exc}") from None
         if len(f) != ncol:
             raise TraceFileError(f"{path}: line {ln} has {len(f)} fields, the header has {ncol}")
         vals = []
@@ -337,20 +352,24 @@ def read_trace_chunks(
     """
     path = Path(path)
     stats = stats if stats is not None else ReadStats()
-    try:
-        fh = path.open(encoding="utf-8-sig")  # universal newlines: CRLF files read like LF ones
-    except OSError as exc:
-        raise TraceFileError(f"{path}: cannot open trace: {exc}") from None
-    with fh:
-        first = fh.readline()
+    bad_name = control_character(path.name)
+    if bad_name:
+        raise TraceFileError(f"{str(path)!r}: the file name has a control character {bad_name!r}; it names the load case")
+    # universal newlines: CRLF files read like LF ones
+    with open_regular_file(path, TraceFileError, "trace") as raw, io.TextIOWrapper(raw, encoding="utf-8-sig") as fh:
+        line = 1
+        first = _read_text(path, fh.readline, line)
         if not first.strip():
             raise TraceFileError(f"{path}: empty file, expected a header with {TIME!r}")
-        header = [h.strip() for h in next(csv.reader([first]))]
+        try:
+            header = [h.strip() for h in next(csv.reader([first]))]
+        except csv.Error as exc:
+            raise TraceFileError(f"{path}: line 1: not a readable CSV header: {exc}") from None
         layout = _layout(path, header, machine)
         line = 2
         hint = max(1, chunk_rows) * max(16, len(first))  # bytes per chunk, from the header length as a row-size guess
         while True:
-            lines = fh.readlines(hint)
+            lines = _read_text(path, lambda: fh.readlines(hint), line)
             if not lines:
                 break
             if len(lines) > chunk_rows:  # keep the chunk size promise whatever the row length
@@ -361,8 +380,36 @@ def read_trace_chunks(
             line += len(lines)
 
 
+def _read_text(path: Path, read, line: int):
+    """``read()`` on the text file, with an undecodable byte or a read error named with the file and line."""
+    try:
+        return read()
+    except UnicodeDecodeError as exc:
+        raise TraceFileError(f"{path}: not a UTF-8 text CSV: undecodable byte {exc.object[exc.start:exc.start + 1]!r} "
+                             f"at or after line {line}") from None
+    except OSError as exc:
+        raise TraceFileError(f"{path}: cannot read trace: {exc.strerror or exc}") from None
+
+
+def _check_values(path: Path, data: np.ndarray, line_no: np.ndarray, layout: _Layout) -> None:
+    """No infinite value in a column that is read; air temperatures plausible (NaN rows are dropped later)."""
+    lo, hi = TEMPERATURE_RANGE_DEGC
+    used = layout.used
+    air = set(layout.air)
+    bad = np.isinf(data)
+    for k, j in enumerate(used):
+        if j in air:
+            bad[:, k] |= (data[:, k] < lo) | (data[:, k] > hi)  # NaN compares False: dropped, not refused
+    if bad.any():
+        r, k = (int(x) for x in np.argwhere(bad)[0])
+        name = layout.header[used[k]]
+        why = value_problem(name, float(data[r, k])) or f"value {data[r, k]} is not finite"
+        raise TraceFileError(f"{path}: line {int(line_no[r])}, column {name!r}: {why}")
+
+
 def _emit(path, lines, first_line, layout, stats: ReadStats) -> Iterator[Samples]:
     data, line_no = _parse_block(path, lines, first_line, layout)
+    _check_values(path, data, line_no, layout)
     s, dropped, first_bad = _to_samples(data, line_no, layout)
     stats.rows += len(line_no)
     if dropped:

@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import traceback
 from importlib import import_module
+
+from hybridcomp.errors import HybridcompError
 
 # subcommand -> module with add_arguments(parser) and run(args) -> int
 SUBCOMMANDS = {
@@ -60,8 +63,27 @@ def _given_options(argv: list[str] | None) -> set[str]:
     return set(vars(parser.parse_args(argv)))
 
 
+def one_line(text: str) -> str:
+    """``text`` on one line: control characters (a newline in a file name or a value) written as escapes."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def error_message(exc: BaseException) -> str:
+    """The message of an expected error, naming the file for an ``OSError`` (``x.csv: No such file or directory``)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        where = exc.filename if exc.filename is not None else ""
+        return f"{where}: {exc.strerror}" if where != "" else exc.strerror
+    return str(exc) or type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the ``hybridcomp`` command line (``argv`` without the program name); returns the exit code."""
+    """Run the ``hybridcomp`` command line (``argv`` without the program name); returns the exit code.
+
+    A subcommand's error never ends in a traceback: bad input (:class:`~hybridcomp.errors.HybridcompError`,
+    ``OSError``, ``ValueError`` including ``UnicodeDecodeError``) prints one line ``error: <message>`` to
+    stderr and returns 2; anything else prints ``error: internal error <Type>: <message> (run with -vv for
+    the traceback)`` and returns 1.  With ``-vv`` the traceback is printed before that line.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     args._given = _given_options(argv)
@@ -70,7 +92,19 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    return import_module(args._module).run(args)
+    try:
+        return import_module(args._module).run(args)
+    except (HybridcompError, OSError, ValueError) as exc:
+        if args.verbose >= 2:
+            traceback.print_exc()
+        print(f"error: {one_line(error_message(exc))}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - the one place that turns any failure into a line and an exit code
+        if args.verbose >= 2:
+            traceback.print_exc()
+        hint = "" if args.verbose >= 2 else " (run with -vv for the traceback)"
+        print(f"error: internal error {type(exc).__name__}: {one_line(str(exc))}{hint}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

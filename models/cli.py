@@ -63,6 +63,10 @@ def run(args: argparse.Namespace) -> int:
     if args.mesh:
         from hybridcomp.fem.mesh import mesh_machine
 
-        mm = mesh_machine(m, None, args.element_size_mm)
+        try:
+            mm = mesh_machine(m, None, args.element_size_mm)
+        except MachineFileError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         print(f"  mesh at {mm.pose_mm}: {mm.n_nodes} nodes, {mm.mesh.t.shape[1]} elements")
     return 0

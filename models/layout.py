@@ -25,6 +25,8 @@ model inputs (:meth:`InputLayout.inputs`); no other module does either.
 
 from __future__ import annotations
 
+import math
+import unicodedata
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -47,6 +49,21 @@ TEMPERATURE_SUFFIX = "_degC"
 # measured air columns of a trace or dataset, by the kind of air a zone has
 AMBIENT_COLUMN = "Tamb_degC"
 WORKSPACE_COLUMN = "Tws_degC"
+
+
+# physical bounds of the inputs a file may give (loads CSV, trace CSV, CDs): beyond them a value is a
+# mistake in the file, never an operating condition, and is refused with the file, column and line
+ABSOLUTE_ZERO_DEGC = -273.15
+#: plausible air (zone) and structure temperatures [°C]: a workshop, a cold store, a hot enclosure
+TEMPERATURE_RANGE_DEGC = (-50.0, 200.0)
+#: the largest power one heat input (loads column) may carry [W]; the largest spindle motors have ~100 kW
+MAX_HEAT_POWER_W = 1e6
+#: a negative power down to this is round-off of a written number and is read as 0 [W]
+POWER_ROUND_OFF_W = 1e-6
+#: the largest magnitude of a time in a loads CSV [s] (Unix times in seconds fit) ...
+MAX_TIME_S = 1e10
+#: ... and of the time a loads CSV spans [s] (about 3.2 years)
+MAX_SPAN_S = 1e8
 
 
 class LoadsColumnError(HybridcompError, ValueError):
@@ -230,6 +247,101 @@ class Loads:
             if n.endswith(TEMPERATURE_SUFFIX):
                 U[:, j] -= reference_temperature_degC
         return U
+
+
+def control_character(text: str) -> str | None:
+    """The first control character in ``text`` (a newline, a tab, an escape, a line separator), or None.
+
+    Names that reach a listing, a log line or a CNC file (load cases, CD metadata, file names) must
+    have none: a newline in a name would forge a line.
+    """
+    for c in text:
+        if unicodedata.category(c) in ("Cc", "Zl", "Zp"):
+            return c
+    return None
+
+
+def value_problem(column: str, value: float) -> str | None:
+    """Why ``value`` cannot be in a loads (or trace air) column, or None when it is plausible.
+
+    A ``*_W`` column holds a heat power: finite, not negative beyond :data:`POWER_ROUND_OFF_W`, at
+    most :data:`MAX_HEAT_POWER_W`.  A ``*_degC`` column holds an air temperature: finite, within
+    :data:`TEMPERATURE_RANGE_DEGC` (and never below absolute zero).  Other columns: finite.
+
+    Parameters
+    ----------
+    column : the column name (its unit suffix decides the check)
+    value : the value [W or °C]
+    """
+    if not math.isfinite(value):
+        return f"value {value} is not finite"
+    if column.endswith(POWER_SUFFIX):
+        if value < -POWER_ROUND_OFF_W:
+            return f"a heat power cannot be negative, got {value} W"
+        if value > MAX_HEAT_POWER_W:
+            return f"heat power {value:g} W is beyond the plausible maximum of {MAX_HEAT_POWER_W:g} W per input"
+    elif column.endswith(TEMPERATURE_SUFFIX):
+        if value < ABSOLUTE_ZERO_DEGC:
+            return f"temperature {value:g} °C is below absolute zero ({ABSOLUTE_ZERO_DEGC} °C)"
+        lo, hi = TEMPERATURE_RANGE_DEGC
+        if not lo <= value <= hi:
+            return f"temperature {value:g} °C is outside the plausible range [{lo:g}, {hi:g}] °C"
+    return None
+
+
+def check_loads(loads: Loads, source: str = "loads") -> Loads:
+    """``loads`` with every value checked by :func:`value_problem` and its times by the loads-CSV rules.
+
+    Times must be finite, within ±:data:`MAX_TIME_S`, strictly increasing and span at most
+    :data:`MAX_SPAN_S`; a power negative only by round-off is set to 0.  For loads made in memory
+    (rows counted from 1); :func:`hybridcomp.fem.loads.read_loads` makes the same checks naming
+    the file's lines.
+
+    Raises
+    ------
+    LoadsColumnError
+        naming ``source``, the row, the column and the value.
+    """
+    t = np.asarray(loads.time_s, float)
+    V = np.asarray(loads.values, float)
+    for j, name in enumerate(loads.names):
+        col = V[:, j]
+        lo, hi = TEMPERATURE_RANGE_DEGC
+        ok = np.isfinite(col)
+        if name.endswith(POWER_SUFFIX):
+            ok &= (col >= -POWER_ROUND_OFF_W) & (col <= MAX_HEAT_POWER_W)
+        elif name.endswith(TEMPERATURE_SUFFIX):
+            ok &= (col >= lo) & (col <= hi)
+        if not ok.all():
+            i = int(np.argmin(ok))
+            raise LoadsColumnError(f"{source}: row {i + 1}, column {name!r}: {value_problem(name, float(col[i]))}")
+    problem = time_problem(t)
+    if problem is not None:
+        i, why = problem
+        raise LoadsColumnError(f"{source}: row {i + 1}: {why}")
+    powers = [j for j, n in enumerate(loads.names) if n.endswith(POWER_SUFFIX)]
+    if powers and (V[:, powers] < 0).any():
+        V = V.copy()
+        V[:, powers] = np.maximum(V[:, powers], 0.0)
+        return Loads(t, V, loads.names)
+    return loads
+
+
+def time_problem(time_s: np.ndarray) -> tuple[int, str] | None:
+    """(index, why) of the first time that breaks the loads-CSV rules (see :func:`check_loads`), or None."""
+    t = np.asarray(time_s, float)
+    bad = ~np.isfinite(t) | (np.abs(t) > MAX_TIME_S)
+    if bad.any():
+        i = int(np.argmax(bad))
+        return i, f"time_s {t[i]:g} is not finite or beyond ±{MAX_TIME_S:g} s"
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        return i, f"time_s {t[i]} does not increase after {t[i - 1]}"
+    if t.size and t[-1] - t[0] > MAX_SPAN_S:
+        return t.size - 1, (f"time_s {t[-1]:g} is {t[-1] - t[0]:g} s after the first time {t[0]:g} s: loads may span at "
+                            f"most {MAX_SPAN_S:g} s ({MAX_SPAN_S / 86400 / 365.25:.1f} years)")
+    return None
 
 
 def in_model_order(loads: Loads, layout: InputLayout | Machine, source: str = "loads") -> Loads:

@@ -12,6 +12,8 @@ import dataclasses
 import hashlib
 import itertools
 import logging
+import math
+import os
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -20,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.layout import COORDINATES, InputLayout, input_layout
+from hybridcomp.models.layout import COORDINATES, MAX_HEAT_POWER_W, TEMPERATURE_RANGE_DEGC, InputLayout, input_layout
 from hybridcomp.models.toml import StrictTable, read_toml
 
 log = logging.getLogger(__name__)
@@ -30,6 +32,22 @@ FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
 AIR_KINDS = ("ambient", "workspace")
 SPINDLE = "spindle"
 GEOMETRY_TOLERANCE_MM = 1e-6
+
+# bounds that keep the work of loading and meshing a machine file bounded on any input (models/README.md)
+#: the largest magnitude of a coordinate, size or travel [mm] (100 m)
+MAX_COORDINATE_MM = 1e5
+#: the most axes a machine may have: the geometry is checked at 3 positions per axis, 3^n poses (6,561 for 8)
+MAX_AXES = 8
+#: the most box bodies a machine may have: every pair is checked at every pose
+MAX_BOX_BODIES = 100
+#: the most rail segments of one axis (each is a heat input and a loads column)
+MAX_SEGMENTS = 1000
+#: default limit of the number of elements of a box-body mesh (its tensor grid, before empty cells are dropped)
+DEFAULT_MAX_ELEMENTS = 2_000_000
+#: environment variable that sets the element limit when the machine file has no ``[mesh] max_elements``
+MAX_ELEMENTS_ENV = "HYBRIDCOMP_MAX_ELEMENTS"
+#: memory meshing takes per grid cell [bytes] (measured: ~490 on vmc800 at 30 and 49 mm); assembly takes more
+MESH_BYTES_PER_ELEMENT = 500
 
 
 class MachineFileError(HybridcompError, ValueError):
@@ -175,10 +193,14 @@ class Support:
 
 @dataclass(frozen=True)
 class MeshSettings:
-    """How the FE mesh is made: box bodies are meshed with ``element_size_mm``; ``file`` imports a mesh."""
+    """How the FE mesh is made: box bodies are meshed with ``element_size_mm``; ``file`` imports a mesh.
+
+    ``max_elements`` is the file's limit of the element count (None: :func:`max_elements` decides).
+    """
 
     element_size_mm: float
     file: Path | None
+    max_elements: int | None = None
 
 
 @dataclass(frozen=True)
@@ -281,8 +303,11 @@ def resolve_machine_path(name_or_path: str | Path) -> Path:
     """A bundled machine name or a path to a TOML file."""
     p = Path(name_or_path)
     if p.suffix == ".toml" or p.exists():
-        if not p.is_file():
+        if not p.exists():
             raise MachineFileError(f"{p}: machine file not found")
+        if not p.is_file():
+            raise MachineFileError(f"{p}: not a regular file (a directory, named pipe or device); a machine file "
+                                   "is a TOML file")
         return p
     root = resources.files("hybridcomp.models") / "machines"
     cand = root / f"{name_or_path}.toml"
@@ -311,7 +336,7 @@ KEYS = {
             "table_reference", "supports"),
     "machine": ("name", "description", "reference_temperature_degC"),
     "spindle": ("max_speed_rpm",),
-    "mesh": ("element_size_mm", "file"),
+    "mesh": ("element_size_mm", "file", "max_elements"),
     "material": ("conductivity_W_mK", "density_kg_m3", "specific_heat_J_kgK", "youngs_modulus_GPa", "poisson_ratio",
                  "expansion_1_K"),
     "body": ("name", "material", "box_mm", "group", "mounted_on"),
@@ -342,6 +367,8 @@ class _Reader(StrictTable):
             return v
         if len(v) != 3 or not all(_is_number(x) for x in v):
             raise self.err(key, f"must be three numbers [mm], got {v!r}")
+        if not all(_plausible_mm(x) for x in v):
+            raise self.err(key, f"must be finite and within ±{MAX_COORDINATE_MM:g} mm, got {v!r}")
         if positive and min(v) <= 0:
             raise self.err(key, f"must be positive in every direction, got {v!r}")
         return (float(v[0]), float(v[1]), float(v[2]))
@@ -363,6 +390,11 @@ def _is_number(x: Any) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
+def _plausible_mm(x: float) -> bool:
+    """A finite length or coordinate within ±:data:`MAX_COORDINATE_MM`."""
+    return math.isfinite(x) and abs(x) <= MAX_COORDINATE_MM
+
+
 def _name_of(rd: _Reader) -> str:
     name = rd.get("name", kind=str)
     if not name or not all(c.isalnum() or c in "_-" for c in name):
@@ -378,6 +410,8 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
     name = _name_of(m)
     description = m.get("description", "", str)
     t_ref = m.number("reference_temperature_degC", 20.0)
+    if not TEMPERATURE_RANGE_DEGC[0] <= t_ref <= TEMPERATURE_RANGE_DEGC[1]:
+        raise m.err("reference_temperature_degC", f"must be within {list(TEMPERATURE_RANGE_DEGC)} °C, got {t_ref!r}")
 
     sp = _Reader(source, "spindle", top.get("spindle", {}, dict), "spindle")
     spindle_rpm = sp.number("max_speed_rpm", 0.0, nonneg=True)
@@ -403,12 +437,17 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
 
     msh = _Reader(source, "mesh", top.get("mesh", {}, dict), "mesh")
     h_mm = msh.number("element_size_mm", 50.0, positive=True)
+    max_el = msh.number("max_elements", None, integer=True)
+    if max_el is not None and max_el < 1:
+        raise msh.err("max_elements", f"must be at least 1, got {max_el!r}")
     mfile = msh.get("file", None, str)
     mesh_path = None
     if mfile is not None:
         mesh_path = Path(mfile) if Path(mfile).is_absolute() else (base_dir or Path(".")) / mfile
-        if not mesh_path.is_file():
+        if not mesh_path.exists():
             raise msh.err("file", f"names a mesh that does not exist: {mfile!r} (looked at {mesh_path})")
+        if not mesh_path.is_file():
+            raise msh.err("file", f"names {mfile!r}, which is not a regular file (looked at {mesh_path})")
 
     bodies: list[Body] = []
     for where, t in top.tables("bodies"):
@@ -430,6 +469,9 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         bodies.append(Body(bname, mat, box, group, r.get("mounted_on", None, str)))
     if not bodies:
         raise top.err("bodies", "must define at least one body")
+    if mesh_path is None and len(bodies) > MAX_BOX_BODIES:
+        raise top.err("bodies", f"has {len(bodies)} box bodies, more than the limit of {MAX_BOX_BODIES} (every pair of "
+                                "bodies is checked at every pose)")
     _unique(source, "bodies", [b.name for b in bodies])
     body_names = {b.name for b in bodies}
     for i, b in enumerate(bodies):
@@ -450,6 +492,8 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         if moves not in body_names:
             raise r.err("moves", f"names an unknown body {moves!r}")
         tr = r.get("travel_mm", kind=list)
+        if len(tr) == 2 and all(_is_number(x) for x in tr) and not all(_plausible_mm(x) for x in tr):
+            raise r.err("travel_mm", f"must be finite and within ±{MAX_COORDINATE_MM:g} mm, got {tr!r}")
         if len(tr) != 2 or not all(_is_number(x) for x in tr) or tr[1] <= tr[0]:
             raise r.err("travel_mm", f"must be [min, max] with max > min, got {tr!r}")
         if not tr[0] <= 0 <= tr[1]:
@@ -460,19 +504,23 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         if (nseg is None) == (bounds is None):
             raise r.err("segments", "or 'segment_bounds_mm' must be given (exactly one of them)")
         if nseg is not None:
-            if nseg < 1:
-                raise r.err("segments", f"must be at least 1, got {nseg!r}")
+            if not 1 <= nseg <= MAX_SEGMENTS:
+                raise r.err("segments", f"must be from 1 to {MAX_SEGMENTS}, got {nseg!r}")
             bounds = list(np.linspace(tr[0], tr[1], nseg + 1))
         else:
             if (
-                not all(_is_number(b) for b in bounds)
-                or len(bounds) < 2
+                not all(_is_number(b) and _plausible_mm(b) for b in bounds)
+                or not 2 <= len(bounds) <= MAX_SEGMENTS + 1
                 or abs(bounds[0] - tr[0]) > 1e-9
                 or abs(bounds[-1] - tr[1]) > 1e-9
                 or any(b <= a for a, b in zip(bounds, bounds[1:]))
             ):
-                raise r.err("segment_bounds_mm", f"must ascend from the travel min to max {tr!r}, got {bounds!r}")
+                raise r.err("segment_bounds_mm", f"must ascend from the travel min to max {tr!r} in at most "
+                                                 f"{MAX_SEGMENTS} segments, got {bounds!r}")
         axes.append(Axis(aname, COORDINATES.index(d), moves, (float(tr[0]), float(tr[1])), feed, tuple(float(b) for b in bounds)))
+    if len(axes) > MAX_AXES:
+        raise top.err("axes", f"has {len(axes)} axes, more than the limit of {MAX_AXES} (the geometry is checked at "
+                              f"3^n poses: 3^{len(axes)} = {3 ** len(axes):,})")
     _unique(source, "axes", [a.name for a in axes])
     _unique(source, "axes[].moves", [a.moves for a in axes])
     axis_names = {a.name for a in axes}
@@ -513,7 +561,8 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
             raise r.err("driver", "is 'spindle' but [spindle] max_speed_rpm is not set")
         table = r.get("power_table", None, list)
         if table is not None:
-            ok = all(isinstance(p, list) and len(p) == 2 and all(_is_number(x) for x in p) for p in table)
+            ok = all(isinstance(p, list) and len(p) == 2 and all(_is_number(x) and math.isfinite(x) for x in p)
+                     for p in table)
             xs = [p[0] for p in table] if ok else []
             if (not ok or len(table) < 2 or xs[0] != 0 or xs[-1] != 1 or any(b <= a for a, b in zip(xs, xs[1:]))
                     or any(p[1] < 0 for p in table)):
@@ -529,7 +578,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
                 driver=driver,
                 position_mm=r.vec3("position_mm"),
                 size_mm=r.vec3("size_mm", (20.0, 20.0, 20.0), positive=True),
-                power_W=r.number("power_W", nonneg=True),
+                power_W=_power(r),
                 exponent=r.number("exponent", 1.0, positive=True),
                 power_table=table,
             )
@@ -614,9 +663,16 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         tcp=tcp,
         table_reference=table_ref,
         supports=tuple(supports),
-        mesh=MeshSettings(h_mm, mesh_path),
+        mesh=MeshSettings(h_mm, mesh_path, max_el),
     )
     return _validate_geometry(machine)
+
+
+def _power(r: _Reader) -> float:
+    p = r.number("power_W", nonneg=True)
+    if p > MAX_HEAT_POWER_W:
+        raise r.err("power_W", f"must be at most {MAX_HEAT_POWER_W:g} W (a plausible heat source), got {p!r}")
+    return p
 
 
 def bodies_by(bodies) -> dict[str, Body]:
@@ -653,27 +709,38 @@ def _inside(box: tuple[Vec3, Vec3], p, tol: float = GEOMETRY_TOLERANCE_MM) -> bo
     return bool(np.all(p >= lo - tol) and np.all(p <= hi + tol))
 
 
-def _overlap(a: tuple[Vec3, Vec3], b: tuple[Vec3, Vec3]) -> np.ndarray:
-    """Per-direction overlap length of two boxes [mm] (negative: a gap)."""
-    return np.minimum(np.asarray(a[1]), np.asarray(b[1])) - np.maximum(np.asarray(a[0]), np.asarray(b[0]))
-
-
 def box_at_pose(machine: Machine, body: Body, pose_mm: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     """A body's box corners [mm] at a pose."""
     off = machine.body_offset_mm(body.name, pose_mm)
     return np.asarray(body.box_mm[0]) + off, np.asarray(body.box_mm[1]) + off
 
 
+def _pair_overlaps(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-direction overlap [mm] of every pair of boxes (n_pairs × 3, negative: a gap), pairs in combinations order."""
+    a, b = np.triu_indices(lo.shape[0], 1)
+    return a, b, np.minimum(hi[a], hi[b]) - np.maximum(lo[a], lo[b])
+
+
+def _touching(ov: np.ndarray) -> np.ndarray:
+    """Pairs that share a face of positive area: in contact in one direction, overlapping in the other two."""
+    tol = GEOMETRY_TOLERANCE_MM
+    return (np.sum(np.abs(ov) <= tol, axis=1) == 1) & (np.sum(ov > tol, axis=1) == 2)
+
+
+def _boxes_at(machine: Machine, pose_mm: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corners [mm] of every body at a pose (n_bodies × 3 each)."""
+    boxes = [box_at_pose(machine, b, pose_mm) for b in machine.bodies]
+    return np.array([lo for lo, _ in boxes]), np.array([hi for _, hi in boxes])
+
+
 def contact_graph(machine: Machine, pose_mm: dict[str, float]) -> dict[str, set[str]]:
     """Which box bodies share a face of positive area at a pose."""
-    boxes = {b.name: box_at_pose(machine, b, pose_mm) for b in machine.bodies}
-    g: dict[str, set[str]] = {n: set() for n in boxes}
-    for a, b in itertools.combinations(boxes, 2):
-        ov = _overlap(boxes[a], boxes[b])
-        touching = np.sum(np.abs(ov) <= GEOMETRY_TOLERANCE_MM) == 1 and np.sum(ov > GEOMETRY_TOLERANCE_MM) == 2
-        if touching:
-            g[a].add(b)
-            g[b].add(a)
+    names = [b.name for b in machine.bodies]
+    a, b, ov = _pair_overlaps(*_boxes_at(machine, pose_mm))
+    g: dict[str, set[str]] = {n: set() for n in names}
+    for i, j in zip(a[_touching(ov)], b[_touching(ov)]):
+        g[names[i]].add(names[j])
+        g[names[j]].add(names[i])
     return g
 
 
@@ -681,28 +748,177 @@ def check_pose_geometry(machine: Machine, pose_mm: dict[str, float]) -> None:
     """Bodies must not overlap and must form one connected structure at ``pose_mm``."""
     if machine.mesh.file is not None:
         return
-    boxes = {b.name: box_at_pose(machine, b, pose_mm) for b in machine.bodies}
-    for a, b in itertools.combinations(boxes, 2):
-        ov = _overlap(boxes[a], boxes[b])
-        if np.all(ov > GEOMETRY_TOLERANCE_MM):
-            raise MachineFileError(
-                f"{machine.source}: field 'bodies' has overlapping bodies {a!r} and {b!r} at pose {pose_mm} "
-                f"(overlap {np.round(ov, 3).tolist()} mm)"
-            )
-    g = contact_graph(machine, pose_mm)
-    start = machine.bodies[0].name
+    _check_boxes(machine, *_boxes_at(machine, pose_mm), pose_mm)
+
+
+def _check_boxes(machine: Machine, lo: np.ndarray, hi: np.ndarray, pose_mm: dict[str, float]) -> None:
+    """:func:`check_pose_geometry` on the bodies' corners at the pose (all pairs at once)."""
+    a, b, ov = _pair_overlaps(lo, hi)
+    _check_overlap(machine, a, b, ov, pose_mm)
+    _check_connected(machine, np.arange(len(machine.bodies)), a, b, _touching(ov), pose_mm)
+
+
+def _check_overlap(machine: Machine, a: np.ndarray, b: np.ndarray, ov: np.ndarray, pose_mm: dict[str, float]) -> None:
+    """Raise for the first pair (a[k], b[k]) whose boxes overlap (``ov``: per-direction overlaps [mm])."""
+    clash = np.all(ov > GEOMETRY_TOLERANCE_MM, axis=1)
+    if clash.any():
+        k = int(np.argmax(clash))
+        names = [x.name for x in machine.bodies]
+        raise MachineFileError(
+            f"{machine.source}: field 'bodies' has overlapping bodies {names[a[k]]!r} and {names[b[k]]!r} at pose {pose_mm} "
+            f"(overlap {np.round(ov[k], 3).tolist()} mm)"
+        )
+
+
+def _check_connected(machine: Machine, part: np.ndarray, a: np.ndarray, b: np.ndarray, touch: np.ndarray,
+                     pose_mm: dict[str, float]) -> None:
+    """Raise unless every body is connected to the first through face contacts.
+
+    ``part`` is the group of each body (bodies of a group are known to be connected); ``a``, ``b``
+    index bodies, ``touch`` says which of those pairs share a face at the pose.
+    """
+    nbr: dict[int, set[int]] = {}
+    for i, j in zip(part[a[touch]].tolist(), part[b[touch]].tolist()):
+        nbr.setdefault(i, set()).add(j)
+        nbr.setdefault(j, set()).add(i)
+    start = int(part[0])
     seen, todo = {start}, [start]
     while todo:
-        for n in g[todo.pop()]:
+        for n in nbr.get(todo.pop(), ()):
             if n not in seen:
                 seen.add(n)
                 todo.append(n)
-    loose = [b.name for b in machine.bodies if b.name not in seen]
+    loose = [x.name for x, g in zip(machine.bodies, part.tolist()) if g not in seen]
     if loose:
         raise MachineFileError(
-            f"{machine.source}: field 'bodies' leaves {loose} without face contact to {start!r} at pose {pose_mm}: "
-            "a loose body is a mechanism, not a statically determinate structure"
+            f"{machine.source}: field 'bodies' leaves {loose} without face contact to {machine.bodies[0].name!r} at pose "
+            f"{pose_mm}: a loose body is a mechanism, not a statically determinate structure"
         )
+
+
+def _check_all_poses(machine: Machine) -> None:
+    """Overlap and connectivity at the reference pose and at every combination of travel ends (3^n poses at most).
+
+    Bodies that move together (with the same axes) keep their relative position: their pairs are
+    checked once, and their face contacts join them into one group; at each pose only the pairs of
+    bodies that move against each other are checked again.
+    """
+    axes = [a.name for a in machine.axes]
+    ref = {a: 0.0 for a in axes}
+    A = _offset_matrix(machine)
+    lo0, hi0 = _boxes_at(machine, ref)
+    a, b, ov0 = _pair_overlaps(lo0, hi0)
+    moving = np.any(A[a] != A[b], axis=(1, 2)) if axes else np.zeros(len(a), bool)
+    _check_overlap(machine, a, b, ov0, ref)  # every pair at the reference pose, in file order
+    # groups: bodies joined by face contacts that no axis changes (union-find)
+    part = np.arange(len(machine.bodies))
+
+    def root(i: int) -> int:
+        while part[i] != i:
+            part[i] = part[part[i]]
+            i = int(part[i])
+        return i
+
+    fixed_touch = _touching(ov0) & ~moving
+    for i, j in zip(a[fixed_touch].tolist(), b[fixed_touch].tolist()):
+        part[root(i)] = root(j)
+    part = np.array([root(i) for i in range(len(part))])
+    am, bm = a[moving], b[moving]
+    choices = [sorted({ax.travel_mm[0], 0.0, ax.travel_mm[1]}) for ax in machine.axes]
+    for combo in itertools.chain([tuple(ref.values())], itertools.product(*choices)):
+        pose = dict(zip(axes, combo))
+        off = np.einsum("j,bjd->bd", np.asarray(combo, float), A) if axes else np.zeros_like(lo0)
+        lo, hi = lo0 + off, hi0 + off
+        ov = np.minimum(hi[am], hi[bm]) - np.maximum(lo[am], lo[bm])
+        _check_overlap(machine, am, bm, ov, pose)
+        _check_connected(machine, part, am, bm, _touching(ov), pose)
+
+
+def _offset_matrix(machine: Machine) -> np.ndarray:
+    """How each body moves with each axis: offsets [mm] = pose @ A[body] (n_bodies × n_axes × 3)."""
+    A = np.zeros((len(machine.bodies), len(machine.axes), 3))
+    for k, body in enumerate(machine.bodies):
+        for j, axis in enumerate(machine.axes):
+            A[k, j] = machine.body_offset_mm(body.name, {axis.name: 1.0})
+    return A
+
+
+def max_elements(machine: Machine) -> int:
+    """The element limit of a machine's mesh: ``[mesh] max_elements``, else ``$HYBRIDCOMP_MAX_ELEMENTS``, else 2,000,000.
+
+    Raises
+    ------
+    MachineFileError
+        when the environment variable is set but not a positive whole number.
+    """
+    if machine.mesh.max_elements is not None:
+        return machine.mesh.max_elements
+    text = os.environ.get(MAX_ELEMENTS_ENV, "").strip()
+    if not text:
+        return DEFAULT_MAX_ELEMENTS
+    try:
+        n = int(float(text))
+    except (ValueError, OverflowError):
+        n = 0
+    if n < 1:
+        raise MachineFileError(f"environment variable {MAX_ELEMENTS_ENV} = {text!r} must be a positive whole number")
+    return n
+
+
+def grid_cells(machine: Machine, pose_mm: dict[str, float], element_size_mm: float) -> float:
+    """Elements of the tensor grid that meshes the box bodies at a pose with ``element_size_mm`` [mm], estimated.
+
+    Counted from the box faces alone, without building the grid: every box face is a grid plane and each
+    interval between planes is split into cells of at most ``element_size_mm``.  A float (it may be huge).
+    """
+    lo, hi = _boxes_at(machine, pose_mm)
+    n = 1.0
+    for d in range(3):
+        breaks = np.unique(np.round(np.concatenate([lo[:, d], hi[:, d]]), 9))
+        with np.errstate(over="ignore"):
+            n *= float(np.sum(np.maximum(1.0, np.ceil(np.diff(breaks) / element_size_mm - 1e-9))))
+    return n
+
+
+def format_bytes(n: float) -> str:
+    """``1.1 PiB``, ``512 MiB``: a byte count in binary units."""
+    units = ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB")
+    k = 0
+    while n >= 1024 and k < len(units) - 1:
+        n /= 1024
+        k += 1
+    return f"{n:.3g} {units[k]}"
+
+
+def check_element_budget(machine: Machine, pose_mm: dict[str, float], element_size_mm: float,
+                         what: str | None = None) -> float:
+    """The estimated element count of meshing at a pose; raises before any meshing when it is over :func:`max_elements`.
+
+    Parameters
+    ----------
+    machine : a machine with box bodies
+    pose_mm : the pose [mm]
+    element_size_mm : the element size [mm]
+    what : how the element size is named in the message (default ``element size <h> mm``)
+
+    Raises
+    ------
+    MachineFileError
+        naming the element size, the estimated count, the memory meshing would take and the limit.
+    """
+    h = float(element_size_mm)
+    if not (math.isfinite(h) and h > 0):
+        raise MachineFileError(f"{machine.source}: element size must be a positive number, got {h} mm")
+    n = grid_cells(machine, pose_mm, h)
+    limit = max_elements(machine)
+    if not n <= limit:
+        name = what or f"element size {h:g} mm"
+        raise MachineFileError(
+            f"{machine.source}: {name} would give ~{n:.2g} elements at pose {pose_mm} (meshing alone would need "
+            f"~{format_bytes(n * MESH_BYTES_PER_ELEMENT)}); the limit is {limit:,} elements (set [mesh] max_elements in "
+            f"the machine file or the environment variable {MAX_ELEMENTS_ENV}, or use a larger element size)"
+        )
+    return n
 
 
 def _locate(machine: Machine, where: str, p: Point | Support | HeatSource, box_ok) -> str:
@@ -721,14 +937,9 @@ def _locate(machine: Machine, where: str, p: Point | Support | HeatSource, box_o
 
 def _validate_geometry(machine: Machine) -> Machine:
     src = machine.source
-    ref = {a.name: 0.0 for a in machine.axes}
     if machine.mesh.file is None:
         box_ok = lambda b, p: _inside(b.box_mm, p)  # noqa: E731
-        # overlap and connectivity at the reference pose and at every combination of travel ends
-        choices = [sorted({a.travel_mm[0], 0.0, a.travel_mm[1]}) for a in machine.axes]
-        check_pose_geometry(machine, ref)
-        for combo in itertools.product(*choices):
-            check_pose_geometry(machine, dict(zip([a.name for a in machine.axes], combo)))
+        _check_all_poses(machine)
         sensors = tuple(
             dataclasses.replace(s, body=_locate(machine, f"sensors[{i}]", s, box_ok)) for i, s in enumerate(machine.sensors)
         )
@@ -755,6 +966,9 @@ def _validate_geometry(machine: Machine) -> Machine:
                 f"{src}: field 'supports[{i}].body' is {s.body!r}, which is mounted on another body; supports hold a ground body"
             )
     check_statically_determinate(machine)
+    if machine.mesh.file is None:  # the grid the file's element size gives, counted before anything is meshed
+        check_element_budget(machine, machine.default_pose_mm(), machine.mesh.element_size_mm,
+                             f"field 'mesh.element_size_mm' = {machine.mesh.element_size_mm:g} mm")
     return machine
 
 

@@ -8,6 +8,10 @@ file and turns a syntax error into the caller's error class.
 
 Writing: :func:`dumps_toml` writes the plain data TOML can hold (tables,
 arrays of tables, inline tables in lists); it refuses a non-finite number.
+
+Reading any input file: :func:`open_regular_file` opens a file only when it is
+a regular file (never blocking on a named pipe, never reading a device or a
+directory), for the project's TOML and CSV readers.
 """
 
 from __future__ import annotations
@@ -15,27 +19,92 @@ from __future__ import annotations
 import difflib
 import json
 import math
+import os
 import re
+import stat
 import tomllib
 from collections.abc import Collection, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
+
+#: the largest TOML file read [bytes]: a machine file or a configuration is a few kB
+MAX_TOML_BYTES = 16 * 1024 * 1024
+#: the deepest nesting of tables and arrays a TOML file may have (a machine file needs 7: zones[].surfaces[].region_mm)
+MAX_TOML_DEPTH = 32
+
+_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def open_regular_file(path: str | Path, error: type[Exception] = ValueError, what: str = "file") -> BinaryIO:
+    """Open ``path`` for binary reading if it is a regular file; raises ``error`` naming it otherwise.
+
+    The file is opened without blocking and checked on the open descriptor, so a named pipe
+    without a writer, a character device or a directory is refused at once instead of
+    hanging or reading forever, and nothing can be swapped in between the check and the read.
+
+    Parameters
+    ----------
+    path : the file
+    error : exception class of the message (``<path>: cannot open <what>: ...``)
+    what : what the file is, for the message (``"loads file"``)
+    """
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    except OSError as exc:
+        raise error(f"{path}: cannot open {what}: {exc.strerror or exc}") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = next((k for test, k in _KINDS if test(mode)), "not a regular file")
+            raise error(f"{path}: cannot open {what}: it is {kind}, not a regular file")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _depth(data: Any) -> int:
+    """Nesting depth of parsed TOML: 0 for a scalar, 1 for a flat table or array (iterative, any depth)."""
+    deepest, todo = 0, [(data, 1)]
+    while todo:
+        v, d = todo.pop()
+        items = v.values() if isinstance(v, Mapping) else v if isinstance(v, list) else None
+        if items is None:
+            continue
+        deepest = max(deepest, d)
+        todo.extend((x, d + 1) for x in items if isinstance(x, (Mapping, list)))
+    return deepest
 
 
 def read_toml(path: str | Path, error: type[Exception] = ValueError) -> tuple[dict, bytes]:
     """Parse a TOML file; returns the data and the file's bytes (for a checksum).
 
-    Raises ``error`` naming the file when it cannot be read or is not valid UTF-8 TOML.
+    Raises ``error`` naming the file when it cannot be read, is not a regular file, is larger than
+    :data:`MAX_TOML_BYTES`, is not valid UTF-8 TOML (a leading byte-order mark is allowed) or nests
+    tables and arrays deeper than :data:`MAX_TOML_DEPTH`.
     """
     path = Path(path)
+    with open_regular_file(path, error, "the file") as fh:
+        try:
+            raw = fh.read(MAX_TOML_BYTES + 1)
+        except OSError as exc:
+            raise error(f"{path}: cannot read the file: {exc.strerror or exc}") from None
+    if len(raw) > MAX_TOML_BYTES:
+        raise error(f"{path}: the file is larger than the limit of {MAX_TOML_BYTES} bytes for a TOML file")
+    too_deep = f"{path}: not valid TOML: tables and arrays nested more than {MAX_TOML_DEPTH} levels deep"
     try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise error(f"{path}: cannot read the file: {exc.strerror or exc}") from None
-    try:
-        return tomllib.loads(raw.decode("utf-8")), raw
+        data = tomllib.loads(raw.decode("utf-8-sig"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise error(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and inline tables recursively
+        raise error(too_deep) from None
+    if _depth(data) > MAX_TOML_DEPTH:
+        raise error(too_deep)
+    return data, raw
 
 
 def did_you_mean(key: str, known: Collection[str]) -> str:
@@ -211,4 +280,5 @@ def dumps_toml(data: dict) -> str:
     return "\n".join(lines).lstrip("\n") + "\n"
 
 
-__all__ = ["StrictTable", "did_you_mean", "dumps_toml", "read_toml"]
+__all__ = ["MAX_TOML_BYTES", "MAX_TOML_DEPTH", "StrictTable", "did_you_mean", "dumps_toml", "open_regular_file",
+           "read_toml"]

@@ -37,7 +37,7 @@ def test_missing_columns_mean_zero_power_and_reference_temperature(machine, tmp_
         (["time_s", "x_motor_W"], [[0, 1], [60, 1], [30, 1]], r"l\.csv: line 4: time_s 30\.0 does not increase after 60\.0"),
         (["time_s", "x_motor_W"], [[0, 1], [60, "nan"]], r"l\.csv: line 3, column 'x_motor_W': value nan is not finite"),
         (["time_s", "x_motor_W"], [[0, -1]], r"l\.csv: line 2, column 'x_motor_W': a heat power cannot be negative, got -1"),
-        (["time_s", "x_motor_W"], [[0, "abc"]], r"l\.csv: line 2: value 'abc' is not a number"),
+        (["time_s", "x_motor_W"], [[0, "abc"]], r"l\.csv: line 2, column 'x_motor_W': value 'abc' is not a number"),
         (["x_motor_W"], [[1]], r"l\.csv: column 'time_s' is missing"),
         (["time_s", "x_motor_W", "x_motor_W"], [[0, 1, 1]], r"l\.csv: column 'x_motor_W' appears twice"),
     ],
