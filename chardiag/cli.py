@@ -348,9 +348,12 @@ def _eval(args) -> int:
             text = generic_table(offs) if args.cnc == "generic" else siemens_840d(
                 offs, names, header=f"machine {machine.name}, pose {cds.pose_key}")
         else:
+            from hybridcomp.chardiag.guard import guard_offsets
+
             rows = []
             for cd in cd_map.values():
                 v, out = cd.evaluate_point(values)
+                v = guard_offsets({cd.target: v}, source="cd eval --point")[cd.target]
                 rows.append(f"{cd.target} = {v:.4f} µm" + ("  (outside the trained range: clamped)" if out else ""))
             text = "\n".join(rows) + "\n"
         if args.out:

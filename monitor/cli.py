@@ -30,13 +30,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        "cleanly; after a crash or kill it resumes at the last monitoring boundary.")
     r.add_argument("--config", required=True, type=Path, help="monitor TOML file (see 'hybridcomp monitor example-config')")
     r.add_argument("--speed", type=float, default=None, help="override [source] speed of a replay (0: as fast as possible)")
-    s = sub.add_parser("status", help="print the active CDs, last ΔT, last decision, data freshness",
-                       description="Print what the daemon of a configuration last did, from its database.")
+    r.add_argument("--standby", action="store_true", help="when another daemon holds this machine and pose, wait for "
+                   "its lease to end and take over from its last state (default: refuse to start)")
+    s = sub.add_parser("status", help="print health, the active CDs, last ΔT, last decision, data freshness",
+                       description="Print what the daemon of a configuration last did, from its database. Exit code "
+                       "0: healthy (an offset was applied within [monitor] stale_after_s); 1: unhealthy (no daemon "
+                       "running, or no offset applied for longer, or the database writes back up).")
     s.add_argument("--config", required=True, type=Path, help="monitor TOML file")
     s.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     s.add_argument("--events", type=int, default=5, help="show the last N decisions/switches/generations/warnings")
     e = sub.add_parser("example-config", help="write an annotated example configuration")
     e.add_argument("--out", type=Path, default=None, help="file to write (default: print)")
+    e.add_argument("--force", action="store_true", help="overwrite existing output files")
     c = sub.add_parser("scenario", help="the hybrid scenario: job-shop day on an FE 'real machine', every strategy compared",
                        description="Replay the bundled 16 h job-shop day with the FE model plus a disturbance the models "
                        "do not know as the real machine, starting from default CDs of the basic load cases; compare no "
@@ -62,6 +67,7 @@ def _disturbance_names() -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     """Run a ``hybridcomp monitor`` action; returns the exit code (2: bad configuration or input, named)."""
+    from hybridcomp.errors import HybridcompError
     from hybridcomp.monitor.config import ConfigError
 
     try:
@@ -71,11 +77,14 @@ def run(args: argparse.Namespace) -> int:
             return _status(args)
         if args.monitor_command == "example-config":
             from hybridcomp.monitor.config import example_config
+            from hybridcomp.safeio import check_output_path, write_text_atomic
 
             if args.out is None:
+                if args.force:
+                    raise ValueError("--force applies with --out only")
                 print(example_config(), end="")
             else:
-                args.out.write_text(example_config())
+                write_text_atomic(check_output_path(args.out, force=args.force), example_config())
             return 0
         if args.monitor_command == "scenario":
             from hybridcomp.scenario import DISTURBANCES, run_scenario
@@ -89,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
             print(res.table)
             print(jsonio.dumps(res.summary))
             return 0
-    except (ConfigError, ValueError, OSError) as exc:
+    except (ConfigError, ValueError, OSError, HybridcompError) as exc:
         print(f"hybridcomp monitor: {exc}", file=sys.stderr)
         return 2
     return 2
@@ -146,7 +155,7 @@ def _run(args) -> int:
 
             server = await serve_metrics(monitor, cfg.prometheus_port)
         try:
-            return await run_monitor(cfg, monitor, source, sink, clock=clock, stop=stop)
+            return await run_monitor(cfg, monitor, source, sink, clock=clock, stop=stop, standby=args.standby)
         finally:
             if server is not None:
                 server.close()
@@ -174,7 +183,8 @@ def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dic
     beat = json.loads(store.get_state(key + ":heartbeat") or "null")
     active = db.active_set(machine_name, pkey)
     now = time.time()
-    ev = [e for e in store.events() if e.kind in ("decision", "activation", "generation", "warning", "model_drift", "sensor")]
+    ev = [e for e in store.events() if e.kind in ("decision", "activation", "generation", "warning", "model_drift", "sensor",
+                                                  "time", "source", "store", "lease")]
     out = {
         "machine": machine_name, "pose": pkey,
         "active": None if active is None else {"ids": dict(active.ids), "load_case": active.cds["X"].load_case,
@@ -184,6 +194,9 @@ def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dic
         "last_machine_time_s": max([x["last_time_s"] for x in (beat, state) if x and x.get("last_time_s") is not None],
                                    default=None),
         "seconds_since_data": None if beat is None else now - beat["unix"],
+        "seconds_since_offset": None if beat is None or beat.get("applied_unix") is None else now - beat["applied_unix"],
+        "running": None if beat is None else beat.get("running", True),
+        "store_backlog": None if beat is None else beat.get("store_backlog"),
         "seconds_since_boundary": None if state is None else now - state["updated_unix"],
         "degraded_sensors": None if beat is None else beat.get("degraded"),
         "regeneration_running": None if beat is None else beat.get("regeneration_running"),
@@ -191,7 +204,24 @@ def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dic
         "recent_events": [{"kind": e.kind, "machine_time_s": e.machine_time_s, "created": e.created,
                            "summary": _summary(e)} for e in ev[-n_events:]],
     }
+    out["health"], out["health_reason"] = health(out, cfg.stale_after_s)
     return out
+
+
+def health(st: dict, stale_after_s: float) -> tuple[str, str]:
+    """Whether an offset is being applied now: ``("healthy" | "unhealthy", why)`` from a status dict."""
+    if st["running"] is None:
+        return "unhealthy", "no daemon has run on this machine and pose"
+    if not st["running"]:
+        return "unhealthy", "the daemon stopped: no offsets are applied"
+    age = st["seconds_since_offset"]
+    if age is None:
+        return "unhealthy", "no offset applied yet"
+    if age > stale_after_s:
+        return "unhealthy", f"no offset applied for {age:.0f} s (limit {stale_after_s:g} s)"
+    if (st["store_backlog"] or 0) > 1000:
+        return "unhealthy", f"{st['store_backlog']} database writes queued: the database does not take writes"
+    return "healthy", f"last offset applied {age:.1f} s ago"
 
 
 def _summary(e) -> str:
@@ -222,16 +252,18 @@ def _status(args) -> int:
         pose = machine.check_pose(dict(cfg.pose_mm))
     else:
         pose = machine.check_pose({k: float(v) for k, v in (load_rom(cfg.rom).meta.get("pose_mm") or {}).items()})
-    db = CDDatabase(cfg.database)
+    db = CDDatabase(cfg.database, readonly=True)
     try:
         st = status_dict(cfg, db, machine.name, pose_key(pose), args.events)
     finally:
         db.close()
+    rc = 0 if st["health"] == "healthy" else 1
     if args.json:
         print(jsonio.dumps(st))
-        return 0
+        return rc
     a = st["active"]
     print(f"machine {st['machine']}, pose {st['pose']}")
+    print(f"health: {st['health']} ({st['health_reason']})")
     print("active CDs: " + ("none" if a is None else f"{a['ids']} (load case {a['load_case']})"))
     print(f"last ΔT: {_fmt(st['last_delta_T_K'], 'K')}")
     d = st["last_decision"]
@@ -244,7 +276,7 @@ def _status(args) -> int:
         print(f"generation pending for the decision at {st['pending_generation']:.0f} s")
     for e in st["recent_events"]:
         print(f"  {e['created']}  t={_fmt(e['machine_time_s'], 's')}  {e['kind']}: {e['summary']}")
-    return 0
+    return rc
 
 
 def _fmt(v, unit) -> str:

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hybridcomp.chardiag.cd import CDSet
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.increments import increments_from_samples
 from hybridcomp.histogram.signature import SignatureLayout, signatures
@@ -57,8 +58,8 @@ from hybridcomp.monitor.decisions import Candidate, Decision, SensorState, SetEr
 from hybridcomp.monitor.regeneration import FORECAST_STEP_S, RegenerationRequest
 from hybridcomp.monitor.sinks import Offset
 from hybridcomp.monitor.sources import Reading, SourceDisconnected, WallClock
-from hybridcomp.monitor.state import STATE_VERSION, MonitorState
-from hybridcomp.monitor.store import MonitorStore
+from hybridcomp.monitor.state import NO_DROPS, STATE_VERSION, MonitorState
+from hybridcomp.monitor.store import LeaseHeld, MonitorStore, QueuedStore, lease_owner
 from hybridcomp.rom.observer import build_observer
 
 log = logging.getLogger(__name__)
@@ -118,6 +119,9 @@ class Counters:
     dropped_repeated: int = 0
     dropped_backwards: int = 0
     dropped_invalid: int = 0
+    dropped_jump: int = 0
+    gaps: int = 0
+    resyncs: int = 0
     switches: int = 0
     generations: int = 0
     reconnects: int = 0
@@ -172,8 +176,13 @@ class Monitor:
         self.step_n = np.zeros(len(self.sensor_names))
         self.active = None
         self.regeneration_running = False
+        # machine seconds per wall second of the source: None (no clock to ask, a replay), a number, or "observed"
+        # (a live control: its stamps against the wall clock over the last samples)
+        self.time_scale: float | str | None = None
+        self._pace: deque[tuple[float, float]] = deque(maxlen=64)  # (machine time, wall time) of accepted samples
         self._outbox: list[dict] = []
         self._eval_failed_logged = False
+        self._nonfinite_logged = False
         self._snap: dict | None = None
         self.rewind: deque[StepRecord] = deque()  # the recent model steps (not persisted: a restart cannot rewind)
         self.restore()
@@ -236,10 +245,8 @@ class Monitor:
     def process(self, r: Reading) -> list[Offset]:
         """Handle one reading; returns the offsets of the compensation cycles it completes (0 or 1)."""
         s = self.s
-        verdict = decisions.accept_time(s.last_time_s, r.time_s)
-        if verdict != "ok":
-            s.interval_drops[verdict] += 1
-            setattr(self.counters, f"dropped_{verdict}", getattr(self.counters, f"dropped_{verdict}") + 1)
+        r = self._check_time(r)
+        if r is None:
             return []
         self.counters.readings += 1
         r = self._clean(r)
@@ -248,6 +255,12 @@ class Monitor:
             self._start(r)
         else:
             # model steps ending before this sample close first (samples up to a boundary belong to its step)
+            gap_end = s.origin_s + (math.ceil((r.time_s - s.origin_s) / self.cfg.increment_s) - 1) * self.cfg.increment_s
+            if gap_end - s.next_step_s > self.cfg.monitoring_interval_s:
+                # a long gap in the data: the step of the samples before it, then one standstill step across it
+                # (bounded work however long the gap), and one monitoring decision at its end
+                self._close_step(s.next_step_s)
+                self._close_step(gap_end, standstill=True)
             while r.time_s > s.next_step_s:
                 self._close_step(s.next_step_s)
             self.buffer.append(r)
@@ -266,6 +279,64 @@ class Monitor:
         if r.time_s == s.next_step_s:  # r is the last sample of the step
             self._close_step(r.time_s)
         return out
+
+    def _check_time(self, r: Reading) -> Reading | None:
+        """The reading in the monitor's time line, or None when its time stamp is dropped (counted, reported).
+
+        A suspect stamp (far ahead of the time line, or behind it) is an event at once; a confirmed gap or a new
+        time line of the control's clock is an event too (:func:`hybridcomp.monitor.decisions.check_time`).
+        """
+        s = self.s
+        now = self.clock.unix()
+        wall = None if s.last_wall_unix is None else now - s.last_wall_unix
+        chk = decisions.check_time(s.last_time_s, r.time_s, s.time_offset_s, s.time_candidates, self.cfg.time, wall,
+                                   self._time_scale())
+        first_suspect = chk.verdict in ("jump", "backwards") and len(chk.candidates) == 1 and not s.time_candidates
+        s.time_candidates = list(chk.candidates)
+        if not chk.accepted:
+            s.interval_drops[chk.verdict] += 1
+            name = f"dropped_{chk.verdict}"
+            setattr(self.counters, name, getattr(self.counters, name) + 1)
+            if chk.verdict == "jump" and first_suspect:
+                self.event("time", s.last_time_s, {
+                    "status": "implausible time stamp", "source_time_s": _finite(r.time_s), "last_time_s": s.last_time_s,
+                    "max_step_s": self.cfg.time.max_step_s,
+                    "message": f"time stamp {r.time_s!r} s is {r.time_s + s.time_offset_s - s.last_time_s:.6g} s ahead of "
+                               f"the last sample (plausible: {self.cfg.time.max_step_s:g} s): dropped until "
+                               f"{self.cfg.time.confirm_samples} samples confirm it",
+                }, f"jump@{_t(s.last_time_s)}")
+                log.warning("implausible time stamp %r s after %.3f s: dropped", r.time_s, s.last_time_s)
+            return None
+        if chk.verdict in ("gap", "resync"):
+            msg = (f"the data resumed {chk.time_s - s.last_time_s:.6g} s after the last sample (a gap: the machine time "
+                   "is kept)" if chk.verdict == "gap" else
+                   f"the control's clock was set: its time stamps moved by {r.time_s - (s.last_source_time_s or 0.0):.6g} s; "
+                   f"the monitor's time continues from {s.last_time_s:.3f} s")
+            self.event("time", chk.time_s, {"status": chk.verdict, "source_time_s": r.time_s, "last_time_s": s.last_time_s,
+                                            "offset_s": chk.offset_s, "message": msg}, f"{chk.verdict}@{_t(chk.time_s)}")
+            log.warning("%s", msg)
+            self.counters.resyncs += chk.verdict == "resync"
+            self.counters.gaps += chk.verdict == "gap"
+        if chk.verdict != "ok":
+            self._pace.clear()
+        self._pace.append((chk.time_s, now))
+        s.time_offset_s = chk.offset_s
+        s.last_source_time_s = r.time_s
+        s.last_wall_unix = now
+        return r if chk.time_s == r.time_s else dataclasses.replace(r, time_s=chk.time_s)
+
+    def _time_scale(self) -> float | None:
+        """Machine seconds per wall second of the source: given, observed over the recent samples, or None."""
+        if self.time_scale != "observed":
+            return self.time_scale
+        if len(self._pace) < 2:
+            return None
+        (t0, w0), (t1, w1) = self._pace[0], self._pace[-1]
+        return (t1 - t0) / (w1 - w0) if w1 - w0 >= 1.0 else None
+
+    def resume_after_s(self) -> float | None:
+        """The source time stamp to resume after (a reconnect or restart)."""
+        return self.s.last_source_time_s if self.s.last_source_time_s is not None else self.s.last_time_s
 
     def _start(self, r: Reading) -> None:
         s = self.s
@@ -401,10 +472,13 @@ class Monitor:
             return self._standstill_inputs(b[-1] if b else s.carry), None
         return np.asarray(s.step_inputs, float), None  # no samples, or an implausible histogram: hold the loads
 
-    def _close_step(self, end_s: float) -> None:
-        """One model step: loads of the step's samples → observer predict → correct with sensors and probe."""
+    def _close_step(self, end_s: float, standstill: bool = False) -> None:
+        """One model step: loads of the step's samples → observer predict → correct with sensors and probe.
+
+        ``standstill``: a step across a gap in the data, with no heat and the last air.
+        """
         s = self.s
-        u, sig = self._step_inputs(end_s)
+        u, sig = (self._standstill_inputs(s.carry), None) if standstill else self._step_inputs(end_s)
         dt = end_s - s.observer.time_s
         before = s.observer
         if dt > 0:
@@ -547,6 +621,14 @@ class Monitor:
                     self.event("warning", r.time_s, {"message": f"the active CDs cannot be evaluated ({exc}); offsets held",
                                                      "values": {k: _finite(v) for k, v in values.items()}},
                                f"evaluate@{_t(r.time_s)}")
+        if target is not None and not all(math.isfinite(float(v)) for v in target.values()):
+            if not self._nonfinite_logged:
+                self._nonfinite_logged = True
+                self.event("warning", r.time_s, {"message": f"non-finite offsets from the {by} ({target}); offsets "
+                                                 "held"}, f"nonfinite@{by}@{_t(r.time_s)}")
+            target = None
+        elif target is not None:
+            self._nonfinite_logged = False
         if target is None:
             target = dict(s.offsets_um)  # hold (zero before the first CD)
         else:
@@ -576,9 +658,9 @@ class Monitor:
             self._monitor(boundary)
         finally:
             if any(s.interval_drops.values()):
-                self.event("time", boundary, {"message": "samples dropped for repeated, backward or invalid time stamps",
-                                              **s.interval_drops}, _t(boundary))
-                s.interval_drops = {"repeated": 0, "backwards": 0, "invalid": 0}
+                self.event("time", boundary, {"message": "samples dropped for repeated, backward, implausible or "
+                                              "invalid time stamps", **s.interval_drops}, _t(boundary))
+                s.interval_drops = dict(NO_DROPS)
             s.interval = s.interval[-1:]  # the boundary row opens the next interval
             s.signature_sum, s.signature_s, s.rejected = None, 0.0, {}
             s.next_mon_s = boundary + self.cfg.monitoring_interval_s
@@ -708,11 +790,19 @@ class Monitor:
         ids = {k: int(v) for k, v in ids.items()}
         if self.s.active_ids == ids:
             return
-        self.db.activate(self.machine.name, self.pose_key, ids, reason=reason, machine_time_s=t,
-                         event_key=f"activation@{self.pose_key}@{_t(t)}@{ids['X']},{ids['Y']},{ids['Z']}")
+        new = CDSet({d: self.db.get(ids[d]) for d in DIRECTIONS}, ids)  # (reads never wait; a missing id raises)
+        if (new.machine, new.pose_key) != (self.machine.name, self.pose_key):
+            raise ValueError(f"CD set {ids} is for {new.machine} {new.pose_key}, not {self.machine.name} {self.pose_key}")
+        key = f"activation@{self.pose_key}@{_t(t)}@{ids['X']},{ids['Y']},{ids['Z']}"
+        name, pose = self.machine.name, self.pose_key
+        # the database's record of the switch is written in order with the events, off the compensation path
+        self.store.call(lambda: self.db.activate(name, pose, ids, reason=reason, machine_time_s=t, event_key=key),
+                        f"activating {ids}")
         self.counters.switches += 1
         had_set = self.active is not None
-        self.reload_active()
+        self.active = new
+        self.s.active_ids = dict(ids)
+        self._eval_failed_logged = False
         self.s.activated_s = t
         self.s.blend_pending = had_set and self.cfg.blend_s > 0
 
@@ -874,6 +964,7 @@ async def run_monitor(
     await_regeneration: bool = False,
     seed: int | None = None,
     heartbeat_s: float = 5.0,
+    standby: bool = False,
 ) -> RunResult:
     """The daemon's loop: readings → monitor → sink, with reconnect, background jobs and a clean stop.
 
@@ -890,14 +981,41 @@ async def run_monitor(
         virtual; never for a live machine)
     seed : seed of the reconnect jitter
     heartbeat_s : write the freshness record this often [s of wall time]
+    standby : when another daemon holds the pose, wait until its lease ends (then resume from its last state)
+        instead of refusing to start (:class:`~hybridcomp.monitor.store.LeaseHeld`)
+
+    The database is written by a background thread (:class:`~hybridcomp.monitor.store.QueuedStore`): a locked or
+    restarting database delays the record, never an offset. Every offset passes :func:`check_offset` before a
+    sink sees it.
     """
     clock = clock or WallClock()
     stop = stop or asyncio.Event()
+    lease = monitor.key
+    owner = lease_owner()
+    await _take_lease(monitor, lease, owner, cfg.lease_s, clock, stop, standby)
+    if stop.is_set():
+        return RunResult(monitor.status(), "signal")
+    sync_store = monitor.store
+    monitor.store = QueuedStore(sync_store)
+    monitor.time_scale = getattr(source, "time_scale", None)
     regen = regenerator or Regenerator(cfg.regeneration.job, cfg.regeneration.timeout_s)
     rng = random.Random(seed)
     jobs: set[asyncio.Task] = set()
     attempt = 0
     last_beat = -math.inf
+    last_renew = clock.monotonic()
+    applied_unix: float | None = None
+    bad_seen: dict[str, int] = {}
+    lost: list[str] = []
+
+    def renew() -> None:
+        """Renew the lease (on the writer thread, in order with the writes); a lost lease stops the daemon."""
+        def run():
+            holder = sync_store.acquire_lease(lease, owner, cfg.lease_s, clock.unix())
+            if holder is not None:
+                lost.append(f"the lease on {lease} was taken by {holder.get('owner')} (this daemon could not renew it "
+                            f"within {cfg.lease_s:g} s)")
+        monitor.store.call(run, "renewing the lease")
 
     async def job(request: dict) -> None:
         monitor.regeneration_running = True
@@ -913,30 +1031,59 @@ async def run_monitor(
             jobs.add(t)
             t.add_done_callback(jobs.discard)
 
-    def beat(force: bool = False) -> None:
-        nonlocal last_beat
+    def beat(force: bool = False, running: bool = True) -> None:
+        nonlocal last_beat, last_renew
         now = clock.monotonic()
         if force or now - last_beat >= heartbeat_s:
             last_beat = now
             monitor.store.put_state(monitor.key + ":heartbeat", jsonio.dumps(
-                {"unix": clock.unix(), "last_time_s": monitor.s.last_time_s, "offsets_um": monitor.s.offsets_um,
+                {"unix": clock.unix(), "applied_unix": applied_unix, "running": running,
+                 "last_time_s": monitor.s.last_time_s, "offsets_um": monitor.s.offsets_um,
                  "active": monitor.s.active_ids, "degraded": monitor.status()["degraded"],
-                 "regeneration_running": monitor.regeneration_running}))
+                 "regeneration_running": monitor.regeneration_running, "store_backlog": monitor.store.backlog(),
+                 "stale_after_s": cfg.stale_after_s}))
+        if running and now - last_renew >= cfg.lease_s / 3.0:
+            last_renew = now
+            renew()
+
+    def source_faults(r: Reading) -> None:
+        """Values the source could not read as numbers (a String node where a number belongs): an event per node."""
+        bad = getattr(source, "bad_values", None)
+        if not bad:
+            return
+        for node, n in bad.items():
+            if n > bad_seen.get(node, 0):
+                if node not in bad_seen:
+                    monitor.event("source", r.time_s, {"status": "not a number", "node": node, "count": n,
+                                                       "message": f"{node}: a value that is not a number was read as "
+                                                       "missing (a sensor fault for a temperature)"},
+                                  f"nan-value@{node}@{_t(r.time_s) if math.isfinite(r.time_s) else 'nan'}")
+                    log.warning("source value %s is not a number: read as missing", node)
+                bad_seen[node] = n
 
     async def consume() -> str:
-        nonlocal attempt
+        nonlocal attempt, applied_unix
         while True:
             connected = False
             try:
-                async for r in source.readings(start_after_s=monitor.s.last_time_s):
+                async for r in source.readings(start_after_s=monitor.resume_after_s()):
                     if not connected:
                         connected = True
                         if attempt:
                             monitor.counters.reconnects += 1
                             monitor.store.log_event("source", r.time_s, {"status": "reconnected", "attempts": attempt})
                         attempt = 0
+                    source_faults(r)
                     for off in monitor.process(r):
+                        problem = check_offset(off, cfg.max_offset_um)
+                        if problem:
+                            monitor.event("warning", off.time_s, {"message": f"offset not written: {problem}"},
+                                          f"guard@{_t(off.time_s)}")
+                            continue
                         await sink.write(off)
+                        applied_unix = clock.unix()
+                    if lost:
+                        raise LeaseHeld(lost[0])
                     start_jobs()
                     if await_regeneration:
                         while jobs:
@@ -985,8 +1132,56 @@ async def run_monitor(
         regen.close()
         await sink.close()
         if monitor.s.last_time_s is not None:
-            beat(force=True)
+            beat(force=True, running=False)
+        if not lost:
+            monitor.store.call(lambda: sync_store.release_lease(lease, owner["owner"]), "releasing the lease")
+        monitor.store.close()
+        monitor.store = sync_store
     return RunResult(monitor.status(), stopped_by)
+
+
+def check_offset(off: Offset, max_abs_um: float) -> str:
+    """Why an offset must not reach the control ("" when it may): not finite, or beyond the clamp [µm].
+
+    The project's one output guard (:func:`hybridcomp.chardiag.guard.guard_offsets`), as the CNC exports use it.
+    """
+    from hybridcomp.chardiag.guard import OffsetGuardError, guard_offsets
+
+    if not math.isfinite(off.time_s):
+        return f"time_s = {off.time_s!r} is not finite"
+    try:
+        guard_offsets({c: getattr(off, c) for c in DRIFT_COLUMNS}, clamp_um=max_abs_um * (1 + 1e-12),
+                      source=f"offset at {off.time_s:.3f} s")
+    except OffsetGuardError as exc:
+        return str(exc)
+    return ""
+
+
+async def _take_lease(monitor: Monitor, lease: str, owner: dict, ttl_s: float, clock, stop: asyncio.Event,
+                      standby: bool) -> None:
+    """Hold the pose: refuse to start while another daemon holds it, or wait for it (``standby``)."""
+    waited = False
+    while True:
+        holder = monitor.store.acquire_lease(lease, owner, ttl_s, clock.unix())
+        if holder is None:
+            break
+        msg = (f"{lease} is held by another daemon ({holder.get('owner')}, pid {holder.get('pid')} on "
+               f"{holder.get('host')}) until its lease ends or it stops")
+        if not standby:
+            raise LeaseHeld(f"{msg}: refusing to start a second writer (--standby waits for it)")
+        if not waited:
+            log.warning("%s: standing by", msg)
+            waited = True
+        try:
+            await asyncio.wait_for(stop.wait(), max(0.2, ttl_s / 3.0))
+            return
+        except TimeoutError:
+            pass
+    if waited:  # the other daemon went on meanwhile: continue from where it stopped
+        monitor.s = monitor._fresh()
+        monitor.restore()
+        monitor.reload_active()
+        monitor.store.log_event("lease", monitor.s.last_time_s, {"status": "taken over", "owner": owner["owner"]})
 
 
 def install_signal_handlers(stop: asyncio.Event) -> None:

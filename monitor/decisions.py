@@ -6,7 +6,8 @@ these functions and acts on what they return; each is tested on its own
 
 * :func:`limit_offsets` — clamp the compensation offsets and limit their change per cycle;
 * :func:`blend_offsets` — bumpless transfer when the active CD set changes;
-* :func:`accept_time` — drop samples whose time stamp is repeated or goes backwards;
+* :func:`check_time` — drop samples whose time stamp is repeated, goes backwards or leaps implausibly; accept a
+  confirmed gap, resynchronise to a confirmed new time line of the control's clock;
 * :func:`check_sensor` — NaN, frozen and spiking sensors: hold the last good value for a
   bounded time, then degrade (the structure model's estimate stands in), recover when the
   readings are plausible again;
@@ -97,7 +98,7 @@ def blend_offsets(
 
 
 def accept_time(last_time_s: float | None, time_s: float) -> str:
-    """Whether a sample's time stamp can be processed after ``last_time_s``.
+    """Whether a sample's time stamp can be processed after ``last_time_s`` (order only; see :func:`check_time`).
 
     Returns
     -------
@@ -108,6 +109,107 @@ def accept_time(last_time_s: float | None, time_s: float) -> str:
     if last_time_s is None or time_s > last_time_s:
         return "ok"
     return "repeated" if time_s == last_time_s else "backwards"
+
+
+@dataclass(frozen=True)
+class TimeRules:
+    """Plausibility of the machine's time stamps.
+
+    Attributes
+    ----------
+    max_step_s : a sample farther ahead of the last one than this is suspect (a corrupt stamp, or the control's
+        clock was set) until ``confirm_samples`` samples continue from it [s]
+    confirm_samples : consecutive samples, each within ``max_step_s`` of the one before, that confirm a new time
+        line (forward or backward) [-]
+    """
+
+    max_step_s: float = 600.0
+    confirm_samples: int = 5
+
+    def __post_init__(self):
+        if not (math.isfinite(self.max_step_s) and self.max_step_s > 0):
+            raise ValueError(f"max_step_s must be a positive number of seconds, got {self.max_step_s!r}")
+        if not (isinstance(self.confirm_samples, int) and 2 <= self.confirm_samples <= 1000):
+            raise ValueError(f"confirm_samples must be an integer in 2..1000, got {self.confirm_samples!r}")
+
+
+@dataclass(frozen=True)
+class TimeCheck:
+    """What :func:`check_time` made of a time stamp.
+
+    Attributes
+    ----------
+    verdict : ``"ok"``; ``"gap"`` (a confirmed jump ahead that the wall clock, or a source without one, backs:
+        the data stopped, the machine time is kept); ``"resync"`` (a confirmed new time line the wall clock
+        contradicts, or one that went backwards: the control's clock was set; machine time continues from the
+        last sample and ``offset_s`` changes); or the sample is dropped: ``"repeated"``, ``"backwards"``,
+        ``"jump"`` (suspect, not yet confirmed), ``"invalid"`` (NaN/inf)
+    time_s : the sample's machine time in the monitor's time line (``source time + offset_s``) [s], NaN if dropped
+    offset_s : monitor time − source time from now on [s]
+    candidates : source times of the suspect samples so far [s]
+    """
+
+    verdict: str
+    time_s: float
+    offset_s: float
+    candidates: tuple[float, ...] = ()
+
+    @property
+    def accepted(self) -> bool:
+        return self.verdict in ("ok", "gap", "resync")
+
+
+def check_time(
+    last_time_s: float | None,
+    source_time_s: float,
+    offset_s: float,
+    candidates: Sequence[float],
+    rules: TimeRules,
+    wall_elapsed_s: float | None = None,
+    time_scale: float | None = None,
+) -> TimeCheck:
+    """Check a time stamp against the last accepted one, a plausible step and the source's clock.
+
+    A single corrupt stamp (far in the future, or 1e308) is dropped, and the samples after it are accepted as
+    before; compensation never stops because one stamp was wrong. A stamp that leaves the time line is suspect:
+    when ``rules.confirm_samples`` consecutive samples continue from it (each within ``max_step_s`` of the one
+    before), the new time line is real. Ahead of the last sample it is a gap in the data (the machine time is
+    kept) if the wall clock has moved as far — ``wall_elapsed_s × time_scale`` at least half the jump — or if the
+    source has no clock to ask (``time_scale`` None: a replay as fast as possible); otherwise, and always when it
+    goes backwards, the control's clock was set, and the monitor's time continues from the last sample with the
+    new line's step (``offset_s`` changes).
+
+    Parameters
+    ----------
+    last_time_s : machine time of the last accepted sample in the monitor's time line [s] (None: first sample)
+    source_time_s : the sample's time stamp as the source gives it [s]
+    offset_s : monitor time − source time so far [s]
+    candidates : source times of the suspect samples before this one [s]
+    rules : plausible step and confirmation
+    wall_elapsed_s : wall time since the last accepted sample [s] (None: unknown)
+    time_scale : machine seconds per wall second of the source (1 for a live machine; None: no clock)
+    """
+    if not math.isfinite(source_time_s):
+        return TimeCheck("invalid", math.nan, offset_s, tuple(candidates))
+    t = source_time_s + offset_s
+    if last_time_s is None:
+        return TimeCheck("ok", t, offset_s)
+    dt = t - last_time_s
+    if 0 < dt <= rules.max_step_s:
+        return TimeCheck("ok", t, offset_s)
+    if dt == 0:
+        return TimeCheck("repeated", math.nan, offset_s, tuple(candidates))
+    if dt > 0 and time_scale is not None and wall_elapsed_s is not None and wall_elapsed_s * time_scale >= 0.5 * dt:
+        return TimeCheck("gap", t, offset_s)  # the wall clock has moved as far: the data stopped for a while
+    step = source_time_s - candidates[-1] if candidates else math.nan
+    cand = (*candidates, source_time_s) if 0 < step <= rules.max_step_s else (source_time_s,)
+    if len(cand) < rules.confirm_samples:
+        return TimeCheck("jump" if dt > 0 else "backwards", math.nan, offset_s, cand)
+    if dt > 0 and time_scale is None:
+        return TimeCheck("gap", t, offset_s)  # no clock to ask: a confirmed jump ahead is a gap in the data
+    new_step = min(max(cand[-1] - cand[-2], 1e-3), rules.max_step_s)
+    new_offset = last_time_s + new_step - source_time_s
+    return TimeCheck("resync", source_time_s + new_offset, new_offset)
 
 
 # --------------------------------------------------------------------------- sensors

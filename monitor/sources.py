@@ -34,6 +34,7 @@ from hybridcomp.histogram.trace import (
 )
 from hybridcomp.models.layout import PROBE_COLUMNS
 from hybridcomp.models.machine import Machine
+from hybridcomp.models.toml import open_regular_file
 
 log = logging.getLogger(__name__)
 
@@ -132,11 +133,12 @@ def read_replay(path: str | Path, machine: Machine) -> Iterable[Reading]:
     with them); a field that is not a number is an error naming line and column.
     """
     path = Path(path)
-    with path.open() as fh:
-        header = fh.readline().strip().lstrip("\ufeff").split(",")
+    with open_regular_file(path, SourceFileError, "replay trace") as fh:
+        header = _decode(fh.readline(), path, 1, "utf-8-sig").strip().split(",")
         cols = trace_columns(header, machine, str(path))
         n = len(header)
-        for lineno, line in enumerate(fh, start=2):
+        for lineno, raw in enumerate(fh, start=2):
+            line = _decode(raw, path, lineno)
             f = line.rstrip("\r\n").split(",")
             if len(f) != n:
                 if not line.strip():
@@ -157,6 +159,34 @@ def read_replay(path: str | Path, machine: Machine) -> Iterable[Reading]:
                                       f"{f[header.index(bad)]!r}") from None
 
 
+def as_number(x: object, name: str = "", bad: dict[str, int] | None = None) -> float:
+    """A node's value as a float; a missing value, or one that is no number (``"n/a"``, a bool), is NaN.
+
+    The daemon treats NaN as a sensor fault (held, then degraded, with events) or, for the time, as an invalid
+    stamp; ``bad`` counts the values that were no numbers, per name.
+    """
+    if x is None:
+        return math.nan
+    if isinstance(x, (int, float)) and not isinstance(x, bool):
+        return float(x)
+    try:
+        if isinstance(x, bool):
+            raise TypeError
+        return float(x)  # numpy scalars, Decimal, numeric text
+    except (TypeError, ValueError, OverflowError):
+        if bad is not None:
+            bad[name] = bad.get(name, 0) + 1
+        return math.nan
+
+
+def _decode(raw: bytes, path: Path, lineno: int, encoding: str = "utf-8") -> str:
+    """One line of the trace as text; bytes that are no UTF-8 are an error naming the file and line."""
+    try:
+        return raw.decode(encoding)
+    except UnicodeDecodeError as exc:
+        raise SourceFileError(f"{path}: line {lineno}: not UTF-8 text ({exc.reason} at column {exc.start + 1})") from None
+
+
 def _probe(values: tuple[float, ...]) -> tuple[float, ...] | None:
     """A probed drift, or None when nothing was probed at this sample (all NaN)."""
     return values if any(math.isfinite(v) for v in values) else None
@@ -170,8 +200,15 @@ def _is_number(x: str) -> bool:
         return False
 
 
+PACE_STEP_S = 3600.0  # a replay waits for at most this much machine time between two samples
+
+
 class ReplaySource:
     """Replay a trace CSV in machine time accelerated by ``speed`` (0: as fast as possible).
+
+    A replay has no clock of its own to check time stamps against (``time_scale`` None): the daemon takes a
+    confirmed jump ahead in its stamps for a gap in the data. Two stamps more than :data:`PACE_STEP_S` apart (or
+    going backwards) are not waited for.
 
     Parameters
     ----------
@@ -191,18 +228,22 @@ class ReplaySource:
         self.clock = clock or WallClock()
         self.start_s = start_s
         self.finished = False
+        self.time_scale = None
 
     async def readings(self, start_after_s: float | None = None) -> AsyncIterator[Reading]:
         after = self.start_s if start_after_s is None else max(self.start_s, start_after_s)
         t0 = w0 = None
+        last = None
         n = 0
         for r in read_replay(self.path, self.machine):
             if r.time_s <= after:  # (NaN times are passed on: the daemon reports them)
                 continue
             n += 1
             if self.speed > 0 and math.isfinite(r.time_s):
-                if t0 is None:
+                if t0 is None or not 0 <= r.time_s - last <= PACE_STEP_S:
+                    # pace from here: a stamp far ahead (or behind) must not make the replay sleep for ever
                     t0, w0 = r.time_s, self.clock.monotonic()
+                last = r.time_s
                 wait = w0 + (r.time_s - t0) / self.speed - self.clock.monotonic()
                 if wait > 1e-3:
                     await self.clock.sleep(wait)
@@ -275,19 +316,31 @@ class OpcUaSource:
         self.stale_s = float(stale_s)
         self.timeout_s = float(timeout_s)
         self.finished = False
+        self.time_scale = "observed"  # the daemon compares the stamps with the wall clock (1 for a live machine)
+        self.bad_values: dict[str, int] = {}  # node → values that were not numbers (read as NaN: a sensor fault)
+        self._check_node_ids()
         self._axes = [position_column(a.name) for a in machine.axes]
         self._sensors = [s.name for s in machine.sensors if f"{s.name}_degC" in nodes]
         self._air = [c for c in air_columns(machine) if c in nodes]
 
-    def _reading(self, v: Mapping[str, float]) -> Reading:
+    def _reading(self, v: Mapping[str, object]) -> Reading:
         def g(k: str) -> float:
-            x = v.get(k)
-            return math.nan if x is None else float(x)
+            return as_number(v.get(k), k, self.bad_values)
 
         return Reading(
             g(TIME), tuple(g(c) for c in self._axes), g(SPINDLE_RPM) if SPINDLE_RPM in self.nodes else 0.0,
             {s: g(f"{s}_degC") for s in self._sensors}, {c: g(c) for c in self._air},
         )
+
+    def _check_node_ids(self) -> None:
+        """A malformed node id is a configuration error now, not a connection that is retried for ever."""
+        ua = _asyncua()
+        for col, nid in self.nodes.items():
+            try:
+                ua.ua.NodeId.from_string(str(nid))
+            except Exception as exc:  # noqa: BLE001 - asyncua raises several types for a malformed id
+                raise SourceFileError(f"{self.url} nodes: source.nodes.{col} = {nid!r} is not an OPC UA node id "
+                                      f"(e.g. 'ns=2;s=time_s'): {exc}") from None
 
     async def readings(self, start_after_s: float | None = None) -> AsyncIterator[Reading]:
         ua = _asyncua()

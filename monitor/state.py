@@ -20,8 +20,9 @@ from hybridcomp.monitor.decisions import SensorState
 from hybridcomp.monitor.sources import Reading
 from hybridcomp.rom.observer import ObserverState
 
-STATE_VERSION = 2
+STATE_VERSION = 3
 ZERO_OFFSETS = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
+NO_DROPS = {"repeated": 0, "backwards": 0, "jump": 0, "invalid": 0}
 
 
 def _reading_out(r: Reading | None):
@@ -64,7 +65,12 @@ class MonitorState:
     version : :data:`STATE_VERSION` of the layout
     machine, pose_key, rom_id : what the state belongs to
     origin_s : machine time of the first sample; the cycles are counted from it
-    last_time_s : machine time of the last accepted sample
+    last_time_s : machine time of the last accepted sample (in the monitor's time line: source time + ``time_offset_s``)
+    last_source_time_s : the source's time stamp of that sample (a reconnect resumes after it)
+    last_wall_unix : wall time when it was accepted [Unix s] (a jump ahead of the stamps is a gap if the wall
+        clock moved as far)
+    time_offset_s : monitor time − source time; changes when the control's clock is set (a confirmed new time line)
+    time_candidates : source times of suspect samples (far ahead of or behind the time line) not yet confirmed
     next_comp_s, next_step_s, next_mon_s : the next compensation cycle, model step and monitoring boundary
     observer : the observer's estimate (None before the first sample)
     step_time_s : end of the last model step
@@ -103,6 +109,10 @@ class MonitorState:
     rom_id: str = ""
     origin_s: float | None = None
     last_time_s: float | None = None
+    last_source_time_s: float | None = None
+    last_wall_unix: float | None = None
+    time_offset_s: float = 0.0
+    time_candidates: list = field(default_factory=list)
     next_comp_s: float = -math.inf
     next_step_s: float = -math.inf
     next_mon_s: float = -math.inf
@@ -140,7 +150,7 @@ class MonitorState:
     observer_flag: str = ""
     max_residual_K: float | None = None
     rejected: dict = field(default_factory=dict)
-    interval_drops: dict = field(default_factory=lambda: {"repeated": 0, "backwards": 0, "invalid": 0})
+    interval_drops: dict = field(default_factory=lambda: dict(NO_DROPS))
     active_ids: dict | None = None
 
     def to_dict(self) -> dict:

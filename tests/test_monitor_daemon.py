@@ -477,9 +477,11 @@ def test_kill_9_at_random_moments_and_restart_loses_and_duplicates_no_event(mach
     kills = 0
     for k in range(11):
         cfg_file = write_config(tmp_path / f"m{k}.toml", rom_file, path, tmp_path / "cd.db", tmp_path / f"off{k}.jsonl", speed)
+        # each run with its own hash seed: event keys must not depend on Python's salted hash()
+        run_env = {**env, "PYTHONHASHSEED": str(int(rng.integers(1, 2**31)))}
         with (tmp_path / f"err{k}.txt").open("wb") as err:
             proc = subprocess.Popen([sys.executable, "-m", "hybridcomp", "monitor", "run", "--config", str(cfg_file)],
-                                    env=env, stdout=subprocess.DEVNULL, stderr=err)
+                                    env=run_env, stdout=subprocess.DEVNULL, stderr=err)
         if k < 10:
             # killed at a random moment after its first offset (a start-up takes 1-5 s, more on a busy machine)
             out = tmp_path / f"off{k}.jsonl"
