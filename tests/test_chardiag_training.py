@@ -133,7 +133,7 @@ def test_train_data_command(tmp_path, capsys):
     T = np.column_stack([data.columns[f"T{i}_degC"] for i in range(1, 9)])
     assert T.max() > 21.0  # heat sources warm the machine ...
     assert T.min() > 20.0 - 0.02  # ... and never cool it (beyond the small undershoot of a consistent-mass FE model)
-    assert main(["cd", "train-data", "--cases", "basic,nonsense", "--out", str(out)]) == 2
+    assert main(["cd", "train-data", "--cases", "basic,nonsense", "--out", str(tmp_path / "other.csv")]) == 2
     assert "nonsense: no such file" in capsys.readouterr().err
 
 

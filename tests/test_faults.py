@@ -18,7 +18,17 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_monitor_daemon import PKEY, config, events, make_db, rom, rom_file, run, trace  # noqa: F401 - fixtures
+from test_monitor_daemon import (  # noqa: F401 - fixtures among them
+    PKEY,
+    TimedSink,
+    config,
+    events,
+    make_db,
+    rom,
+    rom_file,
+    run,
+    trace,
+)
 
 from hybridcomp.monitor.daemon import Monitor, check_offset, run_monitor
 from hybridcomp.monitor.decisions import TimeRules, check_time
@@ -232,16 +242,6 @@ class _PacedSource(ListSource):
         self.finished = True
 
 
-class _TimedSink(MemorySink):
-    def __init__(self):
-        super().__init__()
-        self.wall = []
-
-    async def write(self, offset):
-        self.wall.append(time.monotonic())
-        await super().write(offset)
-
-
 @pytest.mark.slow
 def test_a_database_locked_by_another_process_does_not_stall_compensation(machine, rom, rom_file, trace, tmp_path):
     path, s, T = trace
@@ -262,7 +262,7 @@ def test_a_database_locked_by_another_process_does_not_stall_compensation(machin
 
     th = threading.Thread(target=hold_the_write_lock)
     th.start()
-    sink = _TimedSink()
+    sink = TimedSink()
     mon, sink, res = run(cfg, machine, rom, db, _PacedSource(readings, 100.0), sink)
     th.join()
     assert locked.is_set()
