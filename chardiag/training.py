@@ -21,6 +21,7 @@ Bundled load cases (:func:`standard_load_cases`):
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import math
 from collections.abc import Mapping, Sequence
@@ -39,6 +40,7 @@ from hybridcomp.histogram.signature import signatures
 from hybridcomp.histogram.trace import AMBIENT
 from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.models.machine import Machine
+from hybridcomp.models.toml import open_regular_file
 
 log = logging.getLogger(__name__)
 
@@ -173,16 +175,40 @@ def load_case_from_file(machine: Machine, path: str | Path, increment_s: float =
     ``*_degC`` columns; positions and signature then unknown).
     """
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise TrainingDataError(f"{p}: no such file")
     if p.suffix.lower() in (".nc", ".gcode", ".ngc", ".mpf", ".tap"):
-        return load_case_from_gcode(machine, p.stem, p.read_text(), increment_s, source=str(p))
-    with p.open(newline="") as fh:
-        header = next(csv.reader(fh), [])
+        return load_case_from_gcode(machine, p.stem, _read_text(p, "G-code"), increment_s, source=str(p))
+    with open_regular_file(p, TrainingDataError, "load case") as raw, \
+            io.TextIOWrapper(raw, encoding="utf-8-sig", newline="") as fh:
+        try:
+            header = next(csv.reader(fh), [])
+        except UnicodeDecodeError as exc:
+            raise TrainingDataError(f"{p}: not UTF-8 text ({exc.reason})") from None
+        except csv.Error as exc:
+            raise TrainingDataError(f"{p}: line 1: not a readable CSV header: {exc}") from None
+        except OSError as exc:
+            raise TrainingDataError(f"{p}: cannot read load case: {exc.strerror or exc}") from None
     if any(h.endswith("_W") for h in header):
         return LoadCase(name=p.stem, loads=read_loads(p, machine))
     inc = increments_from_trace(p, machine, increment_s)
     return load_case_from_increments(machine, p.stem, inc)
+
+
+def _read_text(path: Path, what: str) -> str:
+    """The text of a regular UTF-8 file with universal newlines (a leading byte-order mark is dropped).
+
+    Errors name the file.
+    """
+    with open_regular_file(path, TrainingDataError, what) as raw:
+        try:
+            data = raw.read()
+        except OSError as exc:
+            raise TrainingDataError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    try:
+        return data.decode("utf-8-sig").replace("\r\n", "\n").replace("\r", "\n")
+    except UnicodeDecodeError as exc:
+        raise TrainingDataError(f"{path}: not UTF-8 text ({exc.reason})") from None
 
 
 # --------------------------------------------------------------------------- the table
@@ -338,11 +364,10 @@ def read_training_csv(path: str | Path) -> TrainingData:
     As written by :func:`write_training_csv`, or any CSV with the unit-suffixed columns (``load_case`` is optional).
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise TrainingDataError(f"{path}: no such file")
     sigs: dict[str, np.ndarray] = {}
-    with path.open(newline="") as fh:
-        lines = fh.read().splitlines()
+    lines = _read_text(path, "training table").splitlines()
     body = []
     for ln in lines:
         if ln.startswith(SIGNATURE_PREFIX):
@@ -356,23 +381,26 @@ def read_training_csv(path: str | Path) -> TrainingData:
     if not body:
         raise TrainingDataError(f"{path}: no header row")
     reader = csv.reader(body)
-    header = [h.strip() for h in next(reader)]
-    if len(set(header)) != len(header):
-        raise TrainingDataError(f"{path}: duplicate column names in the header {header}")
-    case_col = header.index("load_case") if "load_case" in header else None
-    num = [j for j in range(len(header)) if j != case_col]
-    data = {header[j]: [] for j in num}
-    cases = []
-    for i, row in enumerate(reader, start=2):
-        if len(row) != len(header):
-            raise TrainingDataError(f"{path}: row {i} has {len(row)} fields, the header has {len(header)}")
-        for j in num:
-            v = row[j].strip()
-            try:
-                data[header[j]].append(float(v) if v else math.nan)
-            except ValueError:
-                raise TrainingDataError(f"{path}: row {i}, column {header[j]!r}: {v!r} is not a number") from None
-        cases.append(row[case_col] if case_col is not None else path.stem)
+    try:
+        header = [h.strip() for h in next(reader)]
+        if len(set(header)) != len(header):
+            raise TrainingDataError(f"{path}: duplicate column names in the header {header}")
+        case_col = header.index("load_case") if "load_case" in header else None
+        num = [j for j in range(len(header)) if j != case_col]
+        data = {header[j]: [] for j in num}
+        cases = []
+        for i, row in enumerate(reader, start=2):
+            if len(row) != len(header):
+                raise TrainingDataError(f"{path}: row {i} has {len(row)} fields, the header has {len(header)}")
+            for j in num:
+                v = row[j].strip()
+                try:
+                    data[header[j]].append(float(v) if v else math.nan)
+                except ValueError:
+                    raise TrainingDataError(f"{path}: row {i}, column {header[j]!r}: {v!r} is not a number") from None
+            cases.append(row[case_col] if case_col is not None else path.stem)
+    except csv.Error as exc:
+        raise TrainingDataError(f"{path}: row {reader.line_num}: not a readable CSV line: {exc}") from None
     if not cases:
         raise TrainingDataError(f"{path}: no data rows")
     return TrainingData(np.array(cases, dtype=object), {k: np.asarray(v, float) for k, v in data.items()}, sigs)

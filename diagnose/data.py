@@ -18,16 +18,19 @@ in the CSV); without one, every column is read under its own name.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import math
 import re
-import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
+from hybridcomp.models.toml import open_regular_file, read_toml
 
 log = logging.getLogger(__name__)
 
@@ -89,12 +92,7 @@ class Dataset:
 def read_column_map(path: str | Path) -> tuple[dict[str, str], dict[str, float]]:
     """Read a column map TOML: ``[columns] project_name = "csv column"`` and optional ``[scale]``."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read column map: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise DatasetError(f"{path}: column map is not valid TOML: {exc}") from None
+    data, _ = read_toml(path, DatasetError)
     unknown = [k for k in data if k not in ("columns", "scale")]
     if unknown:
         raise DatasetError(f"{path}: field {unknown[0]!r} is not a known field (known: columns, scale)")
@@ -127,6 +125,16 @@ def check_column_name(name: str, where: str) -> None:
         raise DatasetError(f"{where}: column name {name!r} has no known unit suffix ({', '.join(UNIT_SUFFIXES)})")
 
 
+@contextlib.contextmanager
+def _open_text(path: Path) -> Iterator[io.TextIOWrapper]:
+    """A regular UTF-8 text file (a leading byte-order mark is dropped); decoding errors name the file."""
+    with open_regular_file(path, DatasetError, "dataset") as raw, io.TextIOWrapper(raw, encoding="utf-8-sig") as fh:
+        try:
+            yield fh
+        except UnicodeDecodeError as exc:
+            raise DatasetError(f"{path}: not UTF-8 text ({exc.reason})") from None
+
+
 def read_dataset(path: str | Path, column_map: str | Path | dict | None = None) -> Dataset:
     """Read a measured dataset CSV, optionally through a column map (file or ``{project: csv}`` dict).
 
@@ -146,7 +154,7 @@ def read_dataset(path: str | Path, column_map: str | Path | dict | None = None) 
     else:
         mapping, map_src = None, ""
     try:
-        with path.open() as fh:
+        with _open_text(path) as fh:
             header = [h.strip() for h in fh.readline().strip().split(",")]
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read dataset: {exc}") from None
@@ -175,7 +183,12 @@ def read_dataset(path: str | Path, column_map: str | Path | dict | None = None) 
             else:
                 log.warning("%s: column %r has no unit suffix and is not read (give a column map to use it)", path, h)
     try:
-        data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=sorted(set(wanted.values())), ndmin=2)
+        with _open_text(path) as fh:
+            data = np.loadtxt(fh, delimiter=",", skiprows=1, usecols=sorted(set(wanted.values())), ndmin=2)
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read dataset: {exc}") from None
+    except DatasetError:
+        raise
     except ValueError as exc:
         raise DatasetError(f"{path}: not a numeric CSV: {exc}") from None
     if data.shape[0] == 0:

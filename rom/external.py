@@ -16,12 +16,14 @@ of the variable.
 from __future__ import annotations
 
 import hashlib
+import io
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 
 from hybridcomp.errors import HybridcompError
+from hybridcomp.models.toml import open_regular_file
 from hybridcomp.rom.krylov import ReductionError, ThermalSystem
 
 NAMES = ("E", "A", "B", "C")
@@ -47,6 +49,15 @@ def _files(path: Path) -> dict[str, Path]:
     return out
 
 
+def _read_bytes(path: Path, what: str) -> bytes:
+    """The bytes of a regular file; a named pipe, device or directory is refused at once, naming it."""
+    with open_regular_file(path, MatrixFileError, what) as fh:
+        try:
+            return fh.read()
+        except OSError as exc:
+            raise MatrixFileError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+
+
 def read_matrices(path: str | Path) -> tuple[dict[str, object], str]:
     """Read E, A, B, C from a .mat file or Matrix Market files; returns them and the SHA-256 of the file(s)."""
     path = Path(path)
@@ -56,10 +67,10 @@ def read_matrices(path: str | Path) -> tuple[dict[str, object], str]:
     if path.suffix.lower() == ".mat":
         import scipy.io
 
-        raw = path.read_bytes()
+        raw = _read_bytes(path, "MATLAB file")
         hsh.update(raw)
         try:
-            data = scipy.io.loadmat(path)
+            data = scipy.io.loadmat(io.BytesIO(raw))
         except (ValueError, OSError, NotImplementedError) as exc:
             raise MatrixFileError(f"{path}: cannot read MATLAB file: {exc}") from None
         missing = [v for v in NAMES if v not in data]
@@ -72,9 +83,10 @@ def read_matrices(path: str | Path) -> tuple[dict[str, object], str]:
 
         mats = {}
         for v, p in _files(path).items():
-            hsh.update(p.read_bytes())
+            raw = _read_bytes(p, "Matrix Market file")
+            hsh.update(raw)
             try:
-                mats[v] = scipy.io.mmread(p)
+                mats[v] = scipy.io.mmread(io.BytesIO(raw))
             except (ValueError, OSError) as exc:
                 raise MatrixFileError(f"{p}: cannot read Matrix Market file for {v!r}: {exc}") from None
     return mats, hsh.hexdigest()

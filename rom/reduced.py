@@ -34,6 +34,7 @@ from hybridcomp.errors import HybridcompError
 from hybridcomp.models import jsonio
 from hybridcomp.models.layout import InputLayout, Loads, LoadsColumnError, layout_from_names
 from hybridcomp.models.simulation import SimulationResult, initial_state
+from hybridcomp.models.toml import open_regular_file
 
 log = logging.getLogger(__name__)
 
@@ -420,8 +421,10 @@ def load_rom(path: str | Path, machine=None) -> ReducedModel:
     """
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open_regular_file(path, RomFileError, "reduced model") as fh, np.load(fh, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
+    except RomFileError:
+        raise
     except (OSError, ValueError) as exc:
         raise RomFileError(f"{path}: cannot read reduced model: {exc}") from None
     if "meta_json" not in data:
@@ -462,7 +465,16 @@ def save_state(path: str | Path, state: RomState) -> Path:
 
 def load_state(path: str | Path) -> RomState:
     """Read a reduced state written by :func:`save_state`."""
+    with open_regular_file(path, RomFileError, "reduced state") as fh:
+        try:
+            raw = fh.read()
+        except OSError as exc:
+            raise RomFileError(f"{path}: cannot read reduced state: {exc.strerror or exc}") from None
     try:
-        return RomState.from_json(Path(path).read_text())
-    except (OSError, ValueError, KeyError) as exc:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise RomFileError(f"{path}: not UTF-8 text ({exc.reason})") from None
+    try:
+        return RomState.from_json(text)
+    except (ValueError, KeyError) as exc:
         raise RomFileError(f"{path}: cannot read reduced state: {exc}") from None
