@@ -47,8 +47,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "inputs dropped) per channel (default 16)")
     p.add_argument("--beam", type=int, default=16, help="--data-only: models kept per search step; 1 is greedy forward "
                    "selection (default 16)")
-    p.add_argument("--no-selection-check", action="store_true", help="--data-only: skip the check that repeats the "
-                   "selection on half the validation part and scores it on the other half")
+    p.add_argument("--selection", choices=("held-out", "assisted"), default="held-out",
+                   help="--data-only: 'held-out' (default): every choice by blocked cross-validation on the training "
+                   "rows, so the validation fit is held out; 'assisted': the validation rows take part in choosing the "
+                   "extensions (their fit flatters; the selection check says by how much)")
+    p.add_argument("--folds", type=int, default=3, help="--data-only, --selection held-out: contiguous blocks of the "
+                   "training rows for the cross-validation (default 3)")
+    p.add_argument("--no-selection-check", action="store_true", help="--data-only --selection assisted: skip the check "
+                   "that repeats the selection on half the validation part and scores it on the other half")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 
 
@@ -63,7 +69,11 @@ def run(args: argparse.Namespace) -> int:
     bad = refuse_unused(args, [
         *((opt, args.data_only, model_only) for opt in ("machine", "increment", "rom", "element_size_mm", "effects",
                                                          "max_effects")),
-        *((opt, not args.data_only, data_only) for opt in ("max_terms", "beam", "no_selection_check")),
+        *((opt, not args.data_only, data_only) for opt in ("max_terms", "beam", "no_selection_check", "selection",
+                                                            "folds")),
+        ("no_selection_check", args.selection != "assisted", "applies with --selection assisted only (a held-out "
+         "selection needs no check)"),
+        ("folds", args.selection != "held-out", "applies with --selection held-out only"),
     ])
     if bad:
         print(f"error: {bad}", file=sys.stderr)
@@ -86,10 +96,12 @@ def run(args: argparse.Namespace) -> int:
             from hybridcomp.diagnose.dataonly import diagnose_data_only, write_data_only_report
 
             d = diagnose_data_only(ds, split, max_terms=args.max_terms, beam_width=args.beam,
-                                   selection_check=not args.no_selection_check)
+                                   selection_check=not args.no_selection_check, selection=args.selection,
+                                   folds=args.folds)
             summary = write_data_only_report(d, args.out, dataset_name=args.data.name, plots=not args.no_plots)
             fits = ", ".join(f"{c} {v['after']['fit_percent']:.1f} %" for c, v in summary["channels"].items())
-            print(f"data-only diagnosis: validation fit {fits}; report {args.out / 'report.md'}")
+            kind = "held-out" if args.selection == "held-out" else "selection-assisted validation"
+            print(f"data-only diagnosis: {kind} fit {fits}; report {args.out / 'report.md'}")
             return 0
         from hybridcomp.diagnose.core import diagnose, prepare_model
         from hybridcomp.diagnose.report import write_report
