@@ -48,6 +48,9 @@ class Candidate:
     stage : ``"sim"`` (inputs or h: a new simulation), ``"raw"`` (raw outputs) or ``"out"`` (measured channels)
     apply : changes a setup for given parameters
     grid : trial values of the first parameter for a nonlinear fit's start
+    physical : per parameter, whether its (lower, upper) bound is a physically meaningful value (a time constant
+        of 0: the air reaches the surfaces at once; a power factor of 0: the source gives no heat) rather than the
+        edge of the search range; a fit at a meaningful bound is a result, at an artefact bound the wrong shape
     """
 
     kind: str
@@ -62,6 +65,7 @@ class Candidate:
     stage: str
     apply: Callable = field(compare=False, repr=False)
     grid: tuple[float, ...] | None = None
+    physical: tuple[tuple[bool, bool], ...] = ()
 
     @property
     def key(self) -> tuple[str, str]:
@@ -102,7 +106,7 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
 
         out.append(Candidate("ambient_lag", "", "unmodelled ambient variation: ambient zones follow the workshop air "
                              "through a first-order lag", ("gain [-]", "tau [h]"), (0.0, 0.0), (1.5, 24.0), (0.0, 1.0),
-                             (1.0, 1.0), False, "sim", apply, grid=None))
+                             (1.0, 1.0), False, "sim", apply, grid=None, physical=((False, False), (True, False))))
 
     fixed = [s for s in problem.sources if s.kind == "fixed"]
     if "missing_source" in kinds:
@@ -129,7 +133,7 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
                 s.U[:, cols] *= p[0]
 
             out.append(Candidate("power_scale", si.name, f"mis-scaled power of {si.name}", ("factor [-]",), (0.0,), (5.0,),
-                                 (1.0,), (1.0,), True, "sim", apply))
+                                 (1.0,), (1.0,), True, "sim", apply, physical=((True, False),)))
         if "exponent" in kinds and si.exponent is not None and _varies(si.factor):
             n0 = si.exponent
 
@@ -207,7 +211,7 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
                     (slice(None), drift_rows), Y[:, drift_rows] + (k - 1.0) * Y[:, rows]))
 
             out.append(Candidate("expansion", b, f"wrong expansion coefficient of body {b}", ("alpha [um/(m K)]",),
-                                 (0.0,), (4.0 * a0,), (a0,), (a0,), True, "raw", apply))
+                                 (0.0,), (4.0 * a0,), (a0,), (a0,), True, "raw", apply, physical=((True, False),)))
     return out
 
 

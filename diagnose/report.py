@@ -164,6 +164,10 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
             c = f.candidate
             pars = "; ".join(f"{n} = {_fmt(v, 4)}" for n, v in zip(c.param_names, f.params))
             L.append(f"| {c.label} | {pars} | {100 * f.validation_gain:.1f} % |")
+        worse = [c for c in p.channels if d.after[c]["fit_percent"] < d.before[c]["fit_percent"]]
+        if worse:
+            L += ["", f"Together they make the validation fit worse on {', '.join(worse)} (table below): no improvement "
+                  "there."]
     L += ["", "## Before and after (validation part)", "",
           "| channel | noise σ | RMS before | RMS after | P2P before | P2P after | fit % before | fit % after |",
           "|---|---|---|---|---|---|---|---|"]

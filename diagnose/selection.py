@@ -139,10 +139,16 @@ def fit(problem: Problem, fixed: list, free: list[Candidate], start: list | None
 
 
 def at_bound(c: Candidate, p: np.ndarray, rel: float = 0.01) -> bool:
-    """A fitted parameter pinned to a bound that is not its nominal value: the effect is the wrong shape for the data."""
+    """A fitted parameter pinned to an edge of its search range: the effect is the wrong shape for the data.
+
+    A bound that is the nominal value, or a physically meaningful value (``Candidate.physical``: a time constant of
+    0, a source with no heat), is a result when the fit lands on it, not a sign of the wrong shape.
+    """
     lo, hi, nom = np.asarray(c.lower), np.asarray(c.upper), np.asarray(c.nominal)
+    phys = np.asarray(c.physical, bool).reshape(-1, 2) if c.physical else np.zeros((lo.size, 2), bool)
     tol = rel * (hi - lo)
-    pinned = ((np.abs(p - lo) <= tol) & (np.abs(lo - nom) > tol)) | ((np.abs(p - hi) <= tol) & (np.abs(hi - nom) > tol))
+    pinned = (((np.abs(p - lo) <= tol) & (np.abs(lo - nom) > tol) & ~phys[:, 0])
+              | ((np.abs(p - hi) <= tol) & (np.abs(hi - nom) > tol) & ~phys[:, 1]))
     return bool(pinned.any())
 
 
@@ -354,6 +360,9 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
     else:
         verdict = "unexplained"
         left = [c for c, ok in zip(problem.channels, noise) if not ok]
+        # partial candidates: only those that still improve the validation fit next to the others (one that makes
+        # it worse is no improvement, whatever its training BIC says)
+        chosen = [f for f in chosen if f.validation_gain > 0]
         if chosen:
             partial, chosen = tuple(chosen), []
             msg = ("a structured residual remains on " + ", ".join(left) + " after the best combination of library "

@@ -175,6 +175,26 @@ def test_planted_effect_is_named_and_recovered(kind, machine, fe, rom, loads):
     _check(d.causes[0].params, truth, nominal)
 
 
+def test_ambient_air_reaching_the_surfaces_at_once_is_accepted_at_tau_0(machine, fe, rom, loads):
+    """The workshop air swings and the ambient zones follow it at once (tau = 0, a physically meaningful bound of the
+    lag, not the edge of its search range): the ambient lag is named with gain 1 and tau near 0, not rejected."""
+    t_ref = machine.reference_temperature_degC
+    t, U = loads.time_s, loads.as_inputs(t_ref)
+    tamb = loads.values[:, column(loads, "ambient_degC")]
+    for z in machine.zones:
+        if z.air == "ambient":
+            U[:, column(loads, f"{z.name}_degC")] = tamb - t_ref
+    s, d = fe_run(fe, t, U)
+    # the data: the workshop air measured (Tamb_degC), the ambient zone columns written at the reference
+    at_ref = {f"{z.name}_degC": np.full(t.size, t_ref) for z in machine.zones if z.air == "ambient"}
+    ds = dataset(machine, loads, seed=31, sensors=s, drift=d, columns={"Tamb_degC": tamb, **at_ref})
+    dg = diagnose(machine, ds, "0:60%", rom=rom)
+    assert dg.verdict == "explained", (dg.verdict, dg.message, [f.candidate.label for f in dg.partial])
+    assert [f.candidate.key for f in dg.causes] == [("ambient_lag", "")]
+    gain, tau_h = dg.causes[0].params
+    assert abs(gain - 1.0) <= 0.1 and tau_h <= 0.1, (gain, tau_h)
+
+
 def test_two_effects_at_once(machine, fe, rom, loads):
     t = loads.time_s
     U = loads.as_inputs(machine.reference_temperature_degC)
