@@ -23,16 +23,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "fitted to the dataset alone."
     )
     add_machine_argument(p)
-    p.add_argument("--data", required=True, type=Path, metavar="MEASURED.csv",
+    p.add_argument("--data", required=True, type=Path, nargs="+", metavar="MEASURED.csv",
                    help="measured dataset: time_s, heat inputs <input>_W, zone air <zone>_degC (or Tamb_degC, Tws_degC), "
                    "measured sensors <sensor>_degC and dx_um, dy_um, dz_um (unit-suffix names; other names via --map); "
                    "or a trace (time_s, x_mm ..., spindle_rpm, sensors, drift), turned into heat inputs by the histogram "
-                   "generator")
+                   "generator. With --data-only, several files are a campaign: one run each (its own initial state and "
+                   "zero; no lag crosses a run boundary); a 'run' column does the same in one file")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
     p.add_argument("--map", type=Path, metavar="MAP.toml",
                    help="column map: [columns] project_name = \"csv column\", optional [scale] project_name = factor")
     p.add_argument("--train", default="0:60%", metavar="START:END",
-                   help="training part in %%, s or h of the record (default 0:60%%); validation is the rest")
+                   help="training part in %%, s or h of the record (default 0:60%%); validation is the rest; for a "
+                   "campaign (--data-only with several files, one run each, or a 'run' column) also runs:1-12 or "
+                   "runs:1,3,5-7")
     p.add_argument("--data-only", action="store_true",
                    help="no FE model: diagnose a multiple linear regression of the *_um channels on the *_degC sensors "
                    "(greedy input selection by BIC) with data-side extensions")
@@ -60,7 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``hybridcomp diagnose``; returns the exit code (2: bad input, named on stderr)."""
-    from hybridcomp.diagnose.data import DatasetError, parse_split, read_dataset
+    from hybridcomp.diagnose.data import DatasetError, parse_split, read_campaign
     from hybridcomp.models.machine import MachineFileError
 
     t0 = time.perf_counter()
@@ -80,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         if args.data_only:
-            ds = read_dataset(args.data, args.map)
+            ds = read_campaign(args.data, args.map)
         else:
             from hybridcomp.diagnose.core import read_measured
             from hybridcomp.models.machine import load_machine
@@ -88,8 +91,14 @@ def run(args: argparse.Namespace) -> int:
             if not args.increment > 0:
                 raise DatasetError(f"--increment must be positive, got {args.increment}")
             machine = load_machine(args.machine)
-            ds = read_measured(args.data, machine, args.map, args.increment)
-        split = parse_split(args.train, ds.time_s)
+            if len(args.data) > 1:
+                raise DatasetError("--data: the diagnosis on the machine's model takes one file (campaigns of several "
+                                   "runs: --data-only)")
+            ds = read_measured(args.data[0], machine, args.map, args.increment)
+            if ds.runs is not None:
+                raise DatasetError(f"{args.data[0]}: a campaign of runs (a 'run' column) is diagnosed with --data-only; "
+                                   "the diagnosis on the machine's model takes one series")
+        split = parse_split(args.train, ds.time_s, ds.runs)
         if args.max_effects < 1:
             raise DatasetError(f"--max-effects must be at least 1, got {args.max_effects}")
         if args.data_only:
@@ -98,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
             d = diagnose_data_only(ds, split, max_terms=args.max_terms, beam_width=args.beam,
                                    selection_check=not args.no_selection_check, selection=args.selection,
                                    folds=args.folds)
-            summary = write_data_only_report(d, args.out, dataset_name=args.data.name, plots=not args.no_plots)
+            summary = write_data_only_report(d, args.out, dataset_name=", ".join(p.name for p in args.data),
+                                             plots=not args.no_plots)
             fits = ", ".join(f"{c} {v['after']['fit_percent']:.1f} %" for c, v in summary["channels"].items())
             kind = "held-out" if args.selection == "held-out" else "selection-assisted validation"
             print(f"data-only diagnosis: {kind} fit {fits}; report {args.out / 'report.md'}")
@@ -121,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"preparing the reduced model of {machine.name} ...", file=sys.stderr)
         rom = prepare_model(machine, rom=rom, element_size_mm=args.element_size_mm)
         d = diagnose(machine, ds, split, rom=rom, kinds=kinds, max_effects=args.max_effects, progress=True)
-        write_report(d, args.out, dataset_name=args.data.name, plots=not args.no_plots)
+        write_report(d, args.out, dataset_name=args.data[0].name, plots=not args.no_plots)
     except (DatasetError, MachineFileError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -52,11 +52,14 @@ class Dataset:
     time_s : sample times, strictly increasing [s]
     columns : column name (unit-suffixed project name) → values (unit in the name)
     source : file or description the data came from
+    runs : for a campaign, the run number of each row (1, 2, ...; each run a contiguous block of rows with its own
+        initial state and its own zero), or None for one series
     """
 
     time_s: np.ndarray
     columns: dict
     source: str = "dataset"
+    runs: np.ndarray | None = None
 
     def __post_init__(self):
         t = np.asarray(self.time_s, float)
@@ -73,6 +76,21 @@ class Dataset:
             if not np.all(np.isfinite(v)):
                 k = int(np.flatnonzero(~np.isfinite(v))[0])
                 raise DatasetError(f"{self.source}: column {name!r}, row {k + 1}: value {v[k]} is not finite")
+        if self.runs is not None:
+            r = np.asarray(self.runs)
+            if r.shape != t.shape or not np.all(np.diff(r) >= 0) or r[0] < 1:
+                raise DatasetError(f"{self.source}: the run numbers must be 1, 2, ... in contiguous blocks of rows")
+
+    def run_starts(self) -> np.ndarray:
+        """First row of each run (``[0]`` for one series)."""
+        if self.runs is None:
+            return np.array([0])
+        r = np.asarray(self.runs)
+        return np.r_[0, np.flatnonzero(np.diff(r)) + 1]
+
+    @property
+    def n_runs(self) -> int:
+        return 1 if self.runs is None else int(np.unique(self.runs).size)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -86,7 +104,8 @@ class Dataset:
 
     def subset(self, rows: np.ndarray) -> Dataset:
         """The rows selected by an index or boolean array."""
-        return Dataset(self.time_s[rows], {k: np.asarray(v)[rows] for k, v in self.columns.items()}, self.source)
+        return Dataset(self.time_s[rows], {k: np.asarray(v)[rows] for k, v in self.columns.items()}, self.source,
+                       None if self.runs is None else np.asarray(self.runs)[rows])
 
 
 def read_column_map(path: str | Path) -> tuple[dict[str, str], dict[str, float]]:
@@ -120,8 +139,8 @@ UNIT_SUFFIXES = ("_s", "_degC", "_um", "_rpm", "_mm", "_W", "_mm_min")
 
 
 def check_column_name(name: str, where: str) -> None:
-    """A project column name must end in a known unit suffix."""
-    if not any(name.endswith(s) for s in UNIT_SUFFIXES):
+    """A project column name must end in a known unit suffix (or be the campaign's ``run`` number)."""
+    if name != RUN_COLUMN and not any(name.endswith(s) for s in UNIT_SUFFIXES):
         raise DatasetError(f"{where}: column name {name!r} has no known unit suffix ({', '.join(UNIT_SUFFIXES)})")
 
 
@@ -178,7 +197,7 @@ def read_dataset(path: str | Path, column_map: str | Path | dict | None = None) 
                                "name the columns by the unit-suffix convention or give a column map")
         wanted = {}
         for j, h in enumerate(header):
-            if any(h.endswith(s) for s in UNIT_SUFFIXES):
+            if any(h.endswith(s) for s in UNIT_SUFFIXES) or h == RUN_COLUMN:
                 wanted[h] = j
             else:
                 log.warning("%s: column %r has no unit suffix and is not read (give a column map to use it)", path, h)
@@ -196,7 +215,59 @@ def read_dataset(path: str | Path, column_map: str | Path | dict | None = None) 
     pos = {j: i for i, j in enumerate(sorted(set(wanted.values())))}
     cols = {k: data[:, pos[j]] * scale.get(k, 1.0) for k, j in wanted.items()}
     t = cols.pop("time_s")
-    return Dataset(t, cols, str(path))
+    run_col = cols.pop(RUN_COLUMN, None)
+    if run_col is None:
+        return Dataset(t, cols, str(path))
+    # a campaign in one file: a 'run' column numbers the runs (contiguous blocks); time may restart in each run
+    if not np.all(run_col == np.round(run_col)):
+        raise DatasetError(f"{path}: column {RUN_COLUMN!r} must hold whole run numbers")
+    starts = np.r_[0, np.flatnonzero(np.diff(run_col)) + 1]
+    if np.unique(run_col[starts]).size != starts.size:
+        k = next(i for n, i in enumerate(starts) if run_col[i] in run_col[starts[:n]])
+        raise DatasetError(f"{path}: run {run_col[k]:g} appears again at row {k + 2}: each run must be one block of rows")
+    parts = np.split(np.arange(t.size), starts[1:])
+    return campaign([Dataset(t[ix], {k: v[ix] for k, v in cols.items()}, f"{path} run {run_col[ix[0]]:g}")
+                     for ix in parts], str(path))
+
+
+RUN_COLUMN = "run"
+RUN_GAP_S = 3600.0  # runs whose times restart are laid one after the other with this gap [s]
+
+
+def campaign(runs: list[Dataset], source: str = "campaign") -> Dataset:
+    """Several runs (test days) as one dataset: each its own initial state and zero, numbered 1, 2, ... in order.
+
+    The runs need the same columns. A run whose time does not come after the previous run's end (each file from 0,
+    say) is shifted to start ``RUN_GAP_S`` after it; the time inside a run is kept.
+    """
+    if not runs:
+        raise DatasetError(f"{source}: a campaign needs at least one run")
+    names = runs[0].names
+    for r in runs[1:]:
+        if set(r.names) != set(names):
+            raise DatasetError(f"{r.source}: columns {sorted(r.names)} differ from those of {runs[0].source} "
+                               f"({sorted(names)}): every run of a campaign needs the same columns")
+    times, end = [], -math.inf
+    for r in runs:
+        t = np.asarray(r.time_s, float)
+        if t[0] <= end:
+            t = t - t[0] + end + RUN_GAP_S
+        times.append(t)
+        end = t[-1]
+    return Dataset(np.concatenate(times), {n: np.concatenate([r[n] for r in runs]) for n in names}, source,
+                   np.concatenate([np.full(r.time_s.size, k + 1) for k, r in enumerate(runs)]))
+
+
+def read_campaign(paths, column_map: str | Path | dict | None = None) -> Dataset:
+    """Several dataset files, one run each, as one campaign (:func:`campaign`); one file is read as it is."""
+    paths = [Path(p) for p in paths]
+    if len(paths) == 1:
+        return read_dataset(paths[0], column_map)
+    sets = [read_dataset(p, column_map) for p in paths]
+    if any(d.runs is not None for d in sets):
+        raise DatasetError(f"{next(d.source for d in sets if d.runs is not None)}: a file with a '{RUN_COLUMN}' column "
+                           "is a campaign of its own: give it alone")
+    return campaign(sets, f"{len(paths)} runs: {', '.join(p.name for p in paths)}")
 
 
 # ---------------------------------------------------------------------------------------------- split
@@ -246,8 +317,33 @@ def _bound(text: str, t: np.ndarray, default: float, spec: str) -> float:
     return t[0] + v
 
 
-def parse_split(spec: str, time_s: np.ndarray) -> Split:
+def parse_runs_split(spec: str, runs: np.ndarray | None) -> Split:
+    """Training runs ``runs:1-12`` or ``runs:1,3,5-7`` of a campaign; validation is the other runs."""
+    if runs is None:
+        raise DatasetError(f"split {spec!r}: a split by runs needs a campaign (several files, or a '{RUN_COLUMN}' column)")
+    text = spec.split(":", 1)[1]
+    chosen: set[int] = set()
+    for part in text.split(","):
+        m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
+        if not m:
+            raise DatasetError(f"split {spec!r}: {part!r} is not a run number or a range like 1-12")
+        a, b = int(m.group(1)), int(m.group(2) or m.group(1))
+        if b < a:
+            raise DatasetError(f"split {spec!r}: range {part!r} runs backwards")
+        chosen.update(range(a, b + 1))
+    known = set(int(v) for v in np.unique(runs))
+    if not chosen <= known:
+        raise DatasetError(f"split {spec!r}: run {min(chosen - known)} does not exist (runs 1-{max(known)})")
+    train = np.isin(runs, sorted(chosen))
+    if train.all():
+        raise DatasetError(f"split {spec!r}: every run is a training run: none is left to validate on")
+    return Split(train, ~train, spec)
+
+
+def parse_split(spec: str, time_s: np.ndarray, runs: np.ndarray | None = None) -> Split:
     """Training range ``START:END`` in %, s or h of the record (e.g. ``0:60%``, ``0:24h``); validation is the rest.
+
+    For a campaign (``runs``), ``runs:1-12`` (or ``runs:1,3,5-7``) names the training runs; the other runs validate.
 
     Raises
     ------
@@ -256,6 +352,8 @@ def parse_split(spec: str, time_s: np.ndarray) -> Split:
         ``MIN_VALIDATION_SAMPLES`` samples or ``MIN_VALIDATION_FRACTION`` of the record.
     """
     t = np.asarray(time_s, float)
+    if spec.strip().startswith("runs:"):
+        return parse_runs_split(spec, runs)
     if ":" not in spec:
         raise DatasetError(f"split {spec!r}: expected START:END of the training part, e.g. 0:60% or 0:24h")
     a, b = spec.split(":", 1)

@@ -96,18 +96,37 @@ class DataOnlyDiagnosis:
     selection_check: dict | None = None  # the selection repeated on half the validation part, scored on the other
     selection: str = "held-out"  # "held-out": every choice on the training rows (blocked CV); "assisted": not
     folds: int = 3
+    runs: np.ndarray | None = None  # a campaign's run number per row (Y and the predictions relative to each run's start)
+
+
+def per_run(fn, starts: np.ndarray, time_s: np.ndarray, x: np.ndarray, *args) -> np.ndarray:
+    """``fn(time_s, x, *args)`` on each run separately: no lag or filter state crosses a run boundary."""
+    if len(starts) <= 1:
+        return fn(time_s, x, *args)
+    return np.concatenate([fn(time_s[a:b], x[a:b], *args) for a, b in zip(starts, np.r_[starts[1:], len(x)])])
+
+
+def zero_runs(x: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Each run relative to its first row.
+
+    Each run has its own zero: a dial gauge zeroed at the start, a cold machine at that day's air.
+    """
+    ends = np.r_[starts[1:], len(x)]
+    return x - np.repeat(x[starts], ends - starts)
 
 
 def _activity_signals(ds: Dataset) -> dict[str, np.ndarray]:
     """Normalised activity 0..1: |speed| / max for ``*_rpm``; axis speed |Δx/Δt| / max for ``*_mm``."""
     out = {}
     t = ds.time_s
+    starts = ds.run_starts()
     for n in ds.names:
         v = ds[n]
         if n.endswith("_rpm"):
             a = np.abs(v)
         elif n.endswith("_mm"):
             a = np.r_[0.0, np.abs(np.diff(v)) / np.diff(t)]
+            a[starts] = 0.0  # no axis speed across a run boundary
         else:
             continue
         if a.max() > 0:
@@ -133,26 +152,27 @@ def heating_cooling_lag(time_s: np.ndarray, s: np.ndarray, tau_heat_s: float, ta
 
 
 def candidate_terms(ds: Dataset, temps: list[str]) -> list[Term]:
-    """Every data-side extension regressor of a dataset."""
+    """Every data-side extension regressor of a dataset (lags restart at every run of a campaign)."""
     t = ds.time_s
+    st = ds.run_starts()
     out = []
     for name, s in _activity_signals(ds).items():
         for n in EXPONENTS:
             for tau in LAGS_H:
                 out.append(Term(f"lag({name}^{n}, {tau:g} h)", "activity_lag", {"signal": name, "exponent": n, "tau_h": tau},
-                                first_order_lag(t, s**n, tau * 3600)))
+                                per_run(first_order_lag, st, t, s**n, tau * 3600)))
         for th in SPLIT_LAGS_H:
             for tc in SPLIT_LAGS_H:
                 if th == tc:
                     continue
                 out.append(Term(f"heat/cool({name}, {th:g} h / {tc:g} h)", "heating_cooling",
                                 {"signal": name, "tau_heating_h": th, "tau_cooling_h": tc},
-                                heating_cooling_lag(t, s, th * 3600, tc * 3600)))
+                                per_run(heating_cooling_lag, st, t, s, th * 3600, tc * 3600)))
     for T in temps:
         v = ds[T]
         for tau in SENSOR_LAGS_H:
             out.append(Term(f"lead({T}, {tau:g} h)", "sensor_lag", {"sensor": T, "tau_h": tau},
-                            v - first_order_lag(t, v, tau * 3600)))
+                            v - per_run(first_order_lag, st, t, v, tau * 3600)))
     return out
 
 
@@ -172,17 +192,18 @@ class _Library:
     are made once per lag and kept.
     """
 
-    def __init__(self, time_s: np.ndarray, terms: list[Term]):
+    def __init__(self, time_s: np.ndarray, terms: list[Term], starts: np.ndarray | None = None):
         self.time_s = time_s
         self.terms = terms
+        self.starts = np.array([0]) if starts is None else np.asarray(starts)
         self.index = {tm.name: i for i, tm in enumerate(terms)}
         self._cols = {None: np.column_stack([tm.values for tm in terms])}
 
     def columns(self, ar_tau_h: float | None) -> np.ndarray:
         if ar_tau_h not in self._cols:
             C = self._cols[None]
-            self._cols[ar_tau_h] = np.column_stack([first_order_lag(self.time_s, C[:, j], ar_tau_h * 3600)
-                                                    for j in range(C.shape[1])])
+            self._cols[ar_tau_h] = np.column_stack([per_run(first_order_lag, self.starts, self.time_s, C[:, j],
+                                                            ar_tau_h * 3600) for j in range(C.shape[1])])
         return self._cols[ar_tau_h]
 
     def design(self, idx: tuple[int, ...], ar_tau_h: float | None) -> np.ndarray:
@@ -276,7 +297,8 @@ class _BlockedCV:
     Same interface as :class:`_Scorer`, so the searches take either.
     """
 
-    def __init__(self, lib: _Library, y: np.ndarray, train: np.ndarray, folds: int, channel: str = "channel"):
+    def __init__(self, lib: _Library, y: np.ndarray, train: np.ndarray, folds: int, channel: str = "channel",
+                 runs: np.ndarray | None = None):
         rows = np.flatnonzero(train)
         if folds < 2 or rows.size < 4 * folds:
             raise DatasetError(f"{channel}: {rows.size} training rows cannot be cut into {folds} blocks for the "
@@ -285,7 +307,12 @@ class _BlockedCV:
         self.full = _Scorer(lib, y, train, train, channel, "training rows")
         self.n = self.full.n
         self.parts = []
-        for k, block in enumerate(np.array_split(rows, folds)):
+        train_runs = np.unique(runs[rows]) if runs is not None else np.zeros(0)
+        if train_runs.size >= 2:  # a campaign: the training runs held out in turn
+            blocks = [rows[runs[rows] == r] for r in train_runs]
+        else:
+            blocks = np.array_split(rows, folds)
+        for k, block in enumerate(blocks):
             va = np.zeros_like(train)
             va[block] = True
             self.parts.append(_Scorer(lib, y, train & ~va, va, channel, f"training rows of block {k + 1}"))
@@ -445,7 +472,13 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
     tr, va = split.train, split.validation
     temp_vals = {n: ds[n] for n in temps if np.ptp(ds[n][tr]) > 0}
     cands = candidate_terms(ds, list(temp_vals))
-    lib = _Library(t, [Term(n, "sensor", {"sensor": n}, v) for n, v in temp_vals.items()] + cands)
+    starts = ds.run_starts()
+    if ds.runs is not None:
+        # a campaign: every run relative to its first row (its own zero and its own initial state, a cold machine
+        # at that day's air), regressors and channels alike
+        temp_vals = {n: zero_runs(v, starts) for n, v in temp_vals.items()}
+        cands = [Term(c.name, c.kind, c.params, zero_runs(c.values, starts)) for c in cands]
+    lib = _Library(t, [Term(n, "sensor", {"sensor": n}, v) for n, v in temp_vals.items()] + cands, starts)
     log.info("%d candidate extension terms, beam width %d", len(cands), beam_width)
     # selection check: select on the first half of the validation rows, score on the second half
     va_rows = np.flatnonzero(va)
@@ -454,13 +487,13 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
     va2 = va & ~va1
     reference, base, extended, extensions, Y, check = {}, {}, {}, {}, {}, {}
     for ch in targets:
-        y = ds[ch]
+        y = ds[ch] if ds.runs is None else zero_runs(ds[ch], starts)
         Y[ch] = y
         every = tuple(range(len(temp_vals)))
         droppable = set(every)
         sc = _Scorer(lib, y, tr, va, ch)
         # what chooses: the validation rows themselves (assisted), or a cross-validation on the training rows only
-        chooser = sc if selection == "assisted" else _BlockedCV(lib, y, tr, folds, ch)
+        chooser = sc if selection == "assisted" else _BlockedCV(lib, y, tr, folds, ch, ds.runs)
         _, yh = sc.predict(every, None)
         reference[ch] = {**channel_metrics(y[va], yh[va]), "terms": len(every)}
         start = forward_sensors(chooser, len(temp_vals))
@@ -489,7 +522,7 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
     return DataOnlyDiagnosis(t, Y, split, reference, base, extended, extensions,
                              {"total": time.perf_counter() - t0, "candidates": len(cands), "beam_width": beam_width,
                               "row_stride": stride},
-                             split_check, selection, folds)
+                             split_check, selection, folds, ds.runs)
 
 
 def summary(d: DataOnlyDiagnosis) -> dict:
@@ -517,9 +550,21 @@ def summary(d: DataOnlyDiagnosis) -> dict:
         "after": {c: ch[c]["after"] for c in d.extended},
         "channels": ch,
         "split": d.split.describe(d.time_s),
+        "runs": None if d.runs is None else _per_run_metrics(d),
         "selection_check": d.selection_check,
         "timings_s": d.timings_s,
     }
+
+
+def _per_run_metrics(d: DataOnlyDiagnosis) -> dict:
+    """Per run of a campaign: training or validation, and each channel's metrics of the extended model on it."""
+    out = {}
+    for r in np.unique(d.runs):
+        rows = d.runs == r
+        out[str(int(r))] = {"part": "training" if d.split.train[rows].all() else "validation" if d.split.validation[
+            rows].all() else "both", "hours": float((d.time_s[rows][-1] - d.time_s[rows][0]) / 3600),
+            **{c: channel_metrics(d.Y[c][rows], m.y_hat[rows]) for c, m in d.extended.items()}}
+    return out
 
 
 def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = "", plots: bool = True) -> dict:
@@ -560,6 +605,13 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
         L += ["", f"On the held-out rows the extended model predicts {', '.join(worse)} no better than the model under "
               "test: the extensions found on the training rows do not carry over there (too little variety in the "
               "training rows, or a regime the training rows do not contain)."]
+    if s["runs"]:
+        L += ["", f"## Runs ({len(s['runs'])}: each from its own first row, no lag across a run boundary)", "",
+              "| run | part | hours | " + " | ".join(f"{c} fit %" for c in d.extended) + " |",
+              "|---|---|---|" + "---|" * len(d.extended)]
+        for r, v in s["runs"].items():
+            L.append(f"| {r} | {v['part']} | {v['hours']:.1f} | " + " | ".join(f"{v[c]['fit_percent']:.1f}"
+                                                                           for c in d.extended) + " |")
     L += ["", "## Extensions found", ""]
     for c, v in s["channels"].items():
         L.append(f"**{c}** (inputs {', '.join(v['before']['inputs'])}):")
