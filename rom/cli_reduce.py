@@ -69,8 +69,9 @@ def run(args: argparse.Namespace) -> int:
         ("tol_um", matrices, fe_only + " (exported matrices have no TCP-drift output)"),
         ("h_range", matrices, fe_only + " (exported matrices have no convection coefficients)"),
         ("check_loads", matrices, fe_only + " (the FE check runs on the machine's model)"),
-        ("basis", matrices and args.basis == "h2", "h2 is not available with --matrices yet (use the default krylov)"),
-        ("h2_maxiter", args.basis != "h2" or matrices, "applies with --basis h2 only"),
+        ("basis", matrices and args.basis == "h2" and args.order is None,
+         "h2 with --matrices needs --order (the H2-optimal basis is built for one order; to a tolerance use krylov)"),
+        ("h2_maxiter", args.basis != "h2", "applies with --basis h2 only"),
         ("tol_K", matrices and args.order is not None, "has no effect with --matrices and --order (the order decides)"),
     ])
     if bad:
@@ -92,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
             from hybridcomp.rom.external import reduce_matrices
 
             rom = reduce_matrices(args.matrices, tol=None if args.order else args.tol_K, order=args.order,
-                                  keep_basis=not args.no_basis)
+                                  keep_basis=not args.no_basis, basis=args.basis, progress=True,
+                                  **({} if args.h2_maxiter is None else {"h2_maxiter": args.h2_maxiter}))
         else:
             machine = load_machine(args.machine)
             pose = machine.check_pose(parse_pose(args.pose))
@@ -120,5 +122,10 @@ def run(args: argparse.Namespace) -> int:
                        passed=c["passed"])
     else:
         summary["estimate"] = rom.meta.get("estimate")
+        summary["basis"] = rom.meta.get("basis")
+        summary["h2_error_relative"] = rom.meta.get("h2_error_relative")
+        err = rom.meta.get("h2_error_relative")
+        print(f"relative H2 error of the reduced model: {err:.3g} (exact)" if err is not None else
+              f"relative H2 error: {rom.meta.get('h2_error_note')}", file=sys.stderr)
     print(jsonio.dumps(summary))
     return 0

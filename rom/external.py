@@ -125,6 +125,19 @@ def system_from_matrices(mats: dict[str, object], source: str = "<matrices>") ->
         raise MatrixFileError(f"{source}: {exc}") from None
 
 
+EXACT_ERROR_MAX_STATES = 4000  # up to this size the relative H2 error is computed exactly (dense modal form)
+
+
+def exact_h2_error(system: ThermalSystem, V: np.ndarray) -> float:
+    """Relative H2 error ``‖G − G_r‖₂ / ‖G‖₂`` of the Galerkin projection on ``V``, exactly (dense; unit weights)."""
+    from hybridcomp.rom.h2 import general_h2_error, modal_form
+    from hybridcomp.rom.krylov import project
+
+    form = modal_form(system.M.toarray(), system.stiffness(system.h).toarray(), system.input_matrix(system.h), system.C)
+    P = project(system, V)
+    return general_h2_error(form, -P["K"], P["B"], P["C"], P["M"])
+
+
 def reduce_matrices(
     path: str | Path,
     *,
@@ -132,6 +145,9 @@ def reduce_matrices(
     order: int | None = None,
     fastest_time_s: float = 60.0,
     keep_basis: bool = False,
+    basis: str = "krylov",
+    h2_maxiter: int = 1500,
+    progress: bool = False,
 ):
     """Reduce an exported system to an order or to a tolerance.
 
@@ -143,11 +159,18 @@ def reduce_matrices(
     order : reduce to exactly this order instead
     fastest_time_s : shortest time scale to resolve [s]
     keep_basis : keep V (n × r) for reconstructing full states
+    basis : ``"krylov"`` (greedy rational Krylov) or ``"h2"``: the one-sided basis with the smallest H2 error
+        (:func:`hybridcomp.rom.h2.h2_optimal_basis` inside a large Krylov surrogate; needs ``order``). Without
+        zones to cover, every direction goes to the H2 error: the ``s = 0`` block is not held, so steady states
+        are matched only as well as the H2 optimum matches them
+    h2_maxiter : L-BFGS iterations of the ``h2`` basis
+    progress : a progress bar over the L-BFGS iterations (``h2``)
 
     Returns
     -------
     :class:`~hybridcomp.rom.reduced.ReducedModel` whose ``meta['matrices']``
-    holds the file name and its SHA-256.
+    holds the file name and its SHA-256, and ``meta['h2_error_relative']`` the relative H2 error computed
+    exactly (systems up to :data:`EXACT_ERROR_MAX_STATES` states; None above).
     """
     from hybridcomp.rom.krylov import Reductor, project
     from hybridcomp.rom.reduced import ReducedModel
@@ -156,22 +179,74 @@ def reduce_matrices(
         raise ValueError("give exactly one of tol and order")
     if tol is not None and not tol > 0:
         raise ValueError(f"tol must be positive, got {tol}")
+    if basis not in ("krylov", "h2"):
+        raise ValueError(f"basis must be 'krylov' or 'h2', got {basis!r}")
+    if basis == "h2" and order is None:
+        raise ValueError("--basis h2 with --matrices needs --order (the H2-optimal basis is built for one order; "
+                         "to a tolerance, use the default krylov basis)")
     path = Path(path)
     mats, sha = read_matrices(path)
     system = system_from_matrices(mats, str(path))
     q = system.C.shape[0]
+    if order is not None and not 1 <= order < system.n:
+        raise ValueError(f"--order must be between 1 and {system.n - 1} (the system has {system.n} states), got {order}")
     reductor = Reductor(system, np.full(q, tol if tol is not None else 1.0), np.ones(system.B.shape[1]),
                         np.zeros((1, 0)), fastest_time_s=fastest_time_s)
-    red = reductor.reduce(target=1.0, order=order)
+    if basis == "h2":
+        from hybridcomp.rom.machine import _reduce_h2
+
+        red, method = _reduce_h2(system, reductor, np.zeros((1, 0)), np.ones(system.B.shape[1]), np.ones(q), order,
+                                 order, 1, lambda V: True, fastest_time_s, h2_maxiter, progress=progress,
+                                 hold_steady=False)
+    else:
+        red, method = reductor.reduce(target=1.0, order=order), "greedy rational Krylov"
     P = project(system, red.V)
+    err = exact_h2_error(system, red.V) if system.n <= EXACT_ERROR_MAX_STATES else None
     meta = {
         "matrices": {"file": path.name, "sha256": sha},
         "nodes": system.n,
         "order": red.V.shape[1],
+        "basis": basis,
+        "method": method,
         "tol": tol,
         "estimate": (red.estimate if tol is None else red.estimate * tol) if np.isfinite(red.estimate) else None,
+        "h2_error_relative": err,
+        "h2_error_note": ("exact (dense modal form of the full system)" if err is not None else
+                          f"not computed: more than {EXACT_ERROR_MAX_STATES} states"),
         "expansion_points": [{"s_1_s": p.s, "moments": p.moments, "complete": p.complete} for p in red.points],
     }
     return ReducedModel(M=P["M"], K=P["K"], H=P["H"], h_W_m2K=np.zeros(0), B=P["B"], Hb=P["Hb"], C=P["C"],
                         input_names=system.input_names, output_names=system.output_names,
                         V=red.V if keep_basis else None, meta=meta)
+
+
+def plate_system(n_side: int = 20, seed: int = 0) -> dict[str, object]:
+    """A many-input, many-output heat-conduction system to try the reductors on (``E``, ``A``, ``B``, ``C``).
+
+    A square plate on an ``n_side × n_side`` grid: random conductances between neighbours (0.5–2), convection
+    (0.3) to a zero ambient at the edges, capacities 0.8–1.2; five heated 2 × 2 patches as inputs, four
+    measured points as outputs. Symmetric ``E`` > 0 and ``A`` < 0, ``n_side²`` states. Write it with
+    ``scipy.io.savemat`` to reduce it with ``hybridcomp reduce --matrices``.
+    """
+    if n_side < 20:
+        raise ValueError(f"n_side must be at least 20 (the patches and points are placed on a 20 x 20 layout), got {n_side}")
+    rng = np.random.default_rng(seed)
+    n = n_side * n_side
+    idx = np.arange(n).reshape(n_side, n_side)
+    ia = np.r_[idx[:, :-1].ravel(), idx[:-1, :].ravel()]  # the two ends of every edge between neighbours
+    ib = np.r_[idx[:, 1:].ravel(), idx[1:, :].ravel()]
+    k = rng.uniform(0.5, 2.0, ia.size)
+    G = sp.coo_matrix((np.r_[k, k], (np.r_[ia, ib], np.r_[ib, ia])), shape=(n, n)).tocsr()
+    edge = np.zeros((n_side, n_side))
+    edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = 0.3
+    K = sp.diags(np.asarray(G.sum(axis=1)).ravel() + edge.ravel()) - G
+    E = sp.diags(rng.uniform(800.0, 1200.0, n))  # time constants from about 2 min to hours, as in a machine part
+    s = n_side / 20.0  # the layout scales with the plate
+    B = np.zeros((n, 5))
+    for j, (i0, j0) in enumerate([(3, 3), (3, 15), (10, 10), (16, 4), (15, 15)]):
+        i0, j0 = int(i0 * s), int(j0 * s)
+        B[idx[i0:i0 + 2, j0:j0 + 2].ravel(), j] = 1.0
+    C = np.zeros((4, n))
+    for i, (i0, j0) in enumerate([(5, 5), (5, 14), (12, 8), (18, 18)]):
+        C[i, idx[int(i0 * s), int(j0 * s)]] = 1.0
+    return {"E": E.tocsr(), "A": (-K).tocsr(), "B": B, "C": C}

@@ -191,8 +191,11 @@ def gramian_directions(system: ThermalSystem, V: np.ndarray, h_list, input_scale
 
 
 def _reduce_h2(system, reductor, samples, scale, tol, order, max_order, step, accept, fastest_time_s, maxiter,
-               progress=False):
-    """The H2-optimal one-sided basis (see :func:`reduce_model`): a Reduction and the method text."""
+               progress=False, hold_steady=True):
+    """The H2-optimal one-sided basis (see :func:`reduce_model`): a Reduction and the method text.
+
+    ``hold_steady``: keep the ``s = 0`` block in the basis when the order allows (steady states exact).
+    """
     from hybridcomp.rom.h2 import h2_optimal_basis
 
     h_list = samples[:3]
@@ -211,14 +214,14 @@ def _reduce_h2(system, reductor, samples, scale, tol, order, max_order, step, ac
         if surrogate.shape[1] < N:  # the Krylov bases are nested: build once, grow only when a larger one is needed
             surrogate = sur_red.reduce(order=N).V
         V_big = surrogate[:, :N]
-        fixed = s0 if r >= n_first else None
+        fixed = s0 if hold_steady and r >= n_first else None
         return h2_optimal_basis(system, V_big, r, h_list, scale, 1.0 / tol, maxiter=maxiter, fixed=fixed,
                                 progress=progress)
 
     point = ExpansionPoint(0.0, tuple(float(v) for v in system.h), 1)
     if order is not None:
         V = basis_of(int(order))
-        pts = (point,) if order >= n_first else ()
+        pts = (point,) if hold_steady and order >= n_first else ()
         return Reduction(V, pts, float("nan"), ()), "H2-optimal one-sided basis"
     r = n_first
     while True:

@@ -1,0 +1,93 @@
+"""Reducing exported systems (``reduce --matrices``): the H2-optimal basis, the exact error figure, bad files.
+
+The system is a heat-conduction plate of its own making (a 20 × 20 grid with convection at its edges, five heated
+patches, four measured points): many inputs and outputs, symmetric, 400 states, so every reference is computed
+densely with scipy.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import scipy.io
+import scipy.linalg as la
+
+from hybridcomp.cli import main
+from hybridcomp.rom.external import MatrixFileError, plate_system, reduce_matrices
+
+
+def _h2_error(m: dict, Er, Ar, Br, Cr) -> float:
+    """Relative H2 error by scipy's dense Lyapunov solver on the error system (standard form)."""
+    def std(E, A, B, C):
+        Li = la.inv(la.cholesky(np.asarray(E), lower=True))
+        return Li @ np.asarray(A) @ Li.T, Li @ B, C @ Li.T
+
+    A1, B1, C1 = std(m["E"].toarray(), m["A"].toarray(), m["B"], m["C"])
+    A2, B2, C2 = std(Er, Ar, Br, Cr)
+    P1 = la.solve_continuous_lyapunov(A1, -B1 @ B1.T)
+    A = la.block_diag(A1, A2)
+    B = np.vstack([B1, B2])
+    C = np.hstack([C1, -C2])
+    P = la.solve_continuous_lyapunov(A, -B @ B.T)
+    return float(np.sqrt(max(np.trace(C @ P @ C.T), 0.0) / np.trace(C1 @ P1 @ C1.T)))
+
+
+@pytest.fixture(scope="module")
+def mat(tmp_path_factory):
+    m = plate_system(20)
+    path = tmp_path_factory.mktemp("plate") / "plate.mat"
+    scipy.io.savemat(path, m)
+    return path, m
+
+
+def test_the_h2_basis_changes_the_basis_lowers_the_error_and_the_error_is_exact(mat):
+    from hybridcomp.rom import h2
+
+    path, m = mat
+    r = 10
+    kr = reduce_matrices(path, order=r)
+    opt = reduce_matrices(path, order=r, basis="h2", h2_maxiter=400)
+    assert kr.meta["basis"] == "krylov" and opt.meta["basis"] == "h2" and opt.order == kr.order == r
+    # the stored figure is the exact relative H2 error (checked against scipy's Lyapunov solver)
+    for rom in (kr, opt):
+        ref = _h2_error(m, rom.M, -rom.K, rom.B, rom.C)
+        assert rom.meta["h2_error_relative"] == pytest.approx(ref, rel=1e-6)
+    e_kr, e_opt = kr.meta["h2_error_relative"], opt.meta["h2_error_relative"]
+    assert e_opt < 0.8 * e_kr, (e_opt, e_kr)
+    # against balanced truncation at the same order (dense, two-sided): within a factor 2
+    form = h2.modal_form(m["E"].toarray(), -m["A"].toarray(), m["B"], m["C"])
+    Ar, Br, Cr, _, _ = h2.balanced_truncation(form, r)
+    e_bt = h2.general_h2_error(form, Ar, Br, Cr)
+    assert e_opt <= 2.0 * e_bt, (e_opt, e_bt)
+    assert np.all(opt.poles() < 0)
+
+
+def test_reduce_cli_with_matrices_and_basis_h2(mat, tmp_path, capsys):
+    path, _ = mat
+    out = tmp_path / "m.npz"
+    assert main(["reduce", "--matrices", str(path), "--order", "8", "--basis", "h2", "--h2-maxiter", "200",
+                 "--out", str(out)]) == 0
+    cap = capsys.readouterr()
+    summary = json.loads(cap.out.strip().splitlines()[-1])
+    assert summary["basis"] == "h2" and summary["order"] == 8 and 0 < summary["h2_error_relative"] < 1
+    assert "relative H2 error of the reduced model" in cap.err
+    assert main(["reduce", "--matrices", str(path), "--basis", "h2", "--out", str(tmp_path / "x.npz")]) == 2
+    assert "needs --order" in capsys.readouterr().err
+
+
+def test_corrupted_or_wrongly_shaped_files_are_named(mat, tmp_path, capsys):
+    path, m = mat
+    bad = tmp_path / "garbage.mat"
+    bad.write_bytes(b"MATLAB 5.0 MAT-file" + bytes(range(256)) * 4)
+    with pytest.raises(MatrixFileError, match=r"garbage\.mat"):
+        reduce_matrices(bad, order=5)
+    scipy.io.savemat(tmp_path / "shape.mat", {**m, "B": m["B"][:-3]})
+    with pytest.raises(MatrixFileError, match=r"shape\.mat: variable 'B' has shape 397, expected 400"):
+        reduce_matrices(tmp_path / "shape.mat", order=5)
+    with pytest.raises(ValueError, match="--order must be between 1 and 399"):
+        reduce_matrices(path, order=400)
+    assert main(["reduce", "--matrices", str(bad), "--order", "5", "--out", str(tmp_path / "o.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "garbage.mat" in err and "Traceback" not in err
