@@ -1003,7 +1003,6 @@ async def run_monitor(
     jobs: set[asyncio.Task] = set()
     attempt = 0
     last_beat = -math.inf
-    last_renew = clock.monotonic()
     applied_unix: float | None = None
     bad_seen: dict[str, int] = {}
     lost: list[str] = []
@@ -1032,7 +1031,7 @@ async def run_monitor(
             t.add_done_callback(jobs.discard)
 
     def beat(force: bool = False, running: bool = True) -> None:
-        nonlocal last_beat, last_renew
+        nonlocal last_beat
         now = clock.monotonic()
         if force or now - last_beat >= heartbeat_s:
             last_beat = now
@@ -1042,9 +1041,6 @@ async def run_monitor(
                  "active": monitor.s.active_ids, "degraded": monitor.status()["degraded"],
                  "regeneration_running": monitor.regeneration_running, "store_backlog": monitor.store.backlog(),
                  "stale_after_s": cfg.stale_after_s}))
-        if running and now - last_renew >= cfg.lease_s / 3.0:
-            last_renew = now
-            renew()
 
     def source_faults(r: Reading) -> None:
         """Values the source could not read as numbers (a String node where a number belongs): an event per node."""
@@ -1099,9 +1095,16 @@ async def run_monitor(
                 attempt += 1
                 await clock.sleep(delay)
 
+    async def keep_lease() -> None:
+        """Renew the lease every third of its length, whether data come or not."""
+        while True:
+            await clock.sleep(cfg.lease_s / 3.0)
+            renew()
+
     start_jobs()
     consumer = asyncio.create_task(consume())
     stopper = asyncio.create_task(stop.wait())
+    leaser = asyncio.create_task(keep_lease())
     try:
         await asyncio.wait({consumer, stopper}, return_when=asyncio.FIRST_COMPLETED)
         if consumer.done():
@@ -1119,6 +1122,7 @@ async def run_monitor(
                 pass
     finally:
         stopper.cancel()
+        leaser.cancel()
         if not consumer.done():
             consumer.cancel()
             try:

@@ -468,3 +468,48 @@ def test_replay_traces_with_a_bom_binary_garbage_or_a_fifo(machine, tmp_path):
     os.mkfifo(tmp_path / "fifo")
     with pytest.raises(SourceFileError, match=r"fifo: cannot open replay trace: it is a named pipe"):
         list(read_replay(tmp_path / "fifo", machine))
+
+
+class _SilentSource(ListSource):
+    """A few readings, then silence (the machine's data stop) until ``release`` is set."""
+
+    time_scale = None
+
+    def __init__(self, readings, release):
+        super().__init__(readings)
+        self.release = release
+
+    async def readings(self, start_after_s=None):
+        for r in self._readings:
+            if start_after_s is None or r.time_s > start_after_s:
+                yield r
+        while not self.release.is_set():
+            await asyncio.sleep(0.02)
+        self.finished = True
+
+
+@pytest.mark.slow
+def test_the_lease_is_renewed_while_the_data_are_silent(machine, rom, rom_file, trace, tmp_path):
+    from hybridcomp.monitor.store import lease_owner
+
+    path, s, T = trace
+    readings = list(read_replay(path, machine))[:20]
+    db, _ = make_db(tmp_path / "cd.db", machine, T)
+    cfg = config(rom_file, path, tmp_path, monitor={"lease_s": 0.6})
+    other = MonitorStore(db)
+    refused = []
+
+    async def go():
+        release = asyncio.Event()
+        mon = Monitor(cfg, machine, rom, db, PKEY)
+        task = asyncio.create_task(run_monitor(cfg, mon, _SilentSource(readings, release), MemorySink()))
+        while mon.s.last_time_s != readings[-1].time_s:
+            await asyncio.sleep(0.01)
+        for _ in range(10):  # 2 s of silence: more than three lease lengths
+            await asyncio.sleep(0.2)
+            refused.append(other.acquire_lease(mon.key, lease_owner() | {"host": "elsewhere"}, 0.6, time.time()))
+        release.set()
+        await task
+
+    asyncio.run(go())
+    assert all(h is not None for h in refused)  # held all along: renewed without data
