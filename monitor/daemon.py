@@ -183,6 +183,7 @@ class Monitor:
         self._outbox: list[dict] = []
         self._eval_failed_logged = False
         self._nonfinite_logged = False
+        self._invalid_after: float | None = -math.inf  # last_time_s of the last invalid-stamp event
         self._snap: dict | None = None
         self.rewind: deque[StepRecord] = deque()  # the recent model steps (not persisted: a restart cannot rewind)
         self.restore()
@@ -306,6 +307,13 @@ class Monitor:
                                f"{self.cfg.time.confirm_samples} samples confirm it",
                 }, f"jump@{_t(s.last_time_s)}")
                 log.warning("implausible time stamp %r s after %.3f s: dropped", r.time_s, s.last_time_s)
+            elif chk.verdict == "invalid" and self._invalid_after != s.last_time_s:
+                self._invalid_after = s.last_time_s  # one event per run of invalid stamps
+                self.event("time", s.last_time_s, {
+                    "status": "invalid time stamp", "source_time_s": _finite(r.time_s), "last_time_s": s.last_time_s,
+                    "message": f"time stamp {r.time_s!r} s is not a time (not finite, or beyond ±1e10 s): dropped"},
+                    f"invalid@{_t(s.last_time_s) if s.last_time_s is not None else 'start'}")
+                log.warning("invalid time stamp %r s: dropped", r.time_s)
             return None
         if chk.verdict in ("gap", "resync"):
             msg = (f"the data resumed {chk.time_s - s.last_time_s:.6g} s after the last sample (a gap: the machine time "

@@ -111,6 +111,9 @@ def accept_time(last_time_s: float | None, time_s: float) -> str:
     return "repeated" if time_s == last_time_s else "backwards"
 
 
+MAX_ABS_TIME_S = 1e10  # a time stamp beyond ±317 years is invalid (Unix time in seconds is 1.8e9), even the first
+
+
 @dataclass(frozen=True)
 class TimeRules:
     """Plausibility of the machine's time stamps.
@@ -189,7 +192,7 @@ def check_time(
     wall_elapsed_s : wall time since the last accepted sample [s] (None: unknown)
     time_scale : machine seconds per wall second of the source (1 for a live machine; None: no clock)
     """
-    if not math.isfinite(source_time_s):
+    if not (math.isfinite(source_time_s) and abs(source_time_s) <= MAX_ABS_TIME_S):
         return TimeCheck("invalid", math.nan, offset_s, tuple(candidates))
     t = source_time_s + offset_s
     if last_time_s is None:

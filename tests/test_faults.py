@@ -47,12 +47,15 @@ DT = 10.0  # the trace's sample interval [s]
 def test_a_single_corrupt_stamp_is_dropped_and_the_time_line_goes_on():
     rules = TimeRules(max_step_s=600.0, confirm_samples=3)
     assert check_time(100.0, 1e6, 0.0, (), rules).verdict == "jump"
-    assert check_time(100.0, 1e308, 0.0, (), rules).verdict == "jump"
+    assert check_time(100.0, 1e308, 0.0, (), rules).verdict == "invalid"  # no time at all (beyond ±1e10 s)
     c = check_time(100.0, 1e6, 0.0, (), rules)
     after = check_time(100.0, 110.0, 0.0, c.candidates, rules)
     assert (after.verdict, after.time_s, after.candidates) == ("ok", 110.0, ())
     assert check_time(100.0, math.nan, 0.0, (), rules).verdict == "invalid"
     assert check_time(100.0, math.inf, 0.0, (), rules).verdict == "invalid"
+    # a corrupt first stamp cannot become the origin of the time line (everything after it would be "backwards")
+    assert check_time(None, 1e308, 0.0, (), rules).verdict == "invalid"
+    assert check_time(None, 1.8e9, 0.0, (), rules).verdict == "ok"  # Unix time in seconds is a time line
 
 
 def test_a_confirmed_new_time_line_is_a_gap_when_the_wall_clock_backs_it_else_a_resync():
@@ -119,9 +122,11 @@ def test_a_corrupt_future_time_stamp_is_named_and_compensation_goes_on(machine, 
     assert b[-1, 0] == clean[-1].time_s  # to the end of the data
     assert np.all(np.isfinite(b[:, 1:]))
     assert _gaps_ok(b, [r for r in messy if r.time_s != bad])
-    (ev,) = [e[2] for e in events(db_b, "time") if e[2].get("status") == "implausible time stamp"]
+    # 1e6 s is a time, far ahead: implausible until confirmed; 1e308 s is no time at all
+    status = "implausible time stamp" if bad < 1e10 else "invalid time stamp"
+    (ev,) = [e[2] for e in events(db_b, "time") if e[2].get("status") == status]
     assert ev["source_time_s"] == bad and ev["last_time_s"] == clean[k - 1].time_s
-    assert mon.counters.dropped_jump == 1
+    assert (mon.counters.dropped_jump, mon.counters.dropped_invalid) == ((1, 0) if bad < 1e10 else (0, 1))
     # the compensation after the corrupt sample is the clean run's (one sample less in one model step's histogram)
     assert np.max(np.abs(b[k:, 1:] - a[k + 1:, 1:])) < 0.05
 
