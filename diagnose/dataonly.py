@@ -567,6 +567,27 @@ def _per_run_metrics(d: DataOnlyDiagnosis) -> dict:
     return out
 
 
+def _plot_runs(d: DataOnlyDiagnosis, path: Path, plt) -> None:
+    """One panel per channel, every run over its own time axis: measured (solid) and the extended model (dashed)."""
+    n = len(d.extended)
+    fig, axes = plt.subplots(n, 1, figsize=(11, 2.2 * n + 0.5), sharex=True, squeeze=False)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, (c, m) in zip(axes[:, 0], d.extended.items()):
+        for k, r in enumerate(np.unique(d.runs)):
+            rows = d.runs == r
+            th = (d.time_s[rows] - d.time_s[rows][0]) / 3600
+            val = bool(d.split.validation[rows].all())
+            col = colors[k % len(colors)]
+            ax.plot(th, d.Y[c][rows], color=col, lw=1.6 if val else 0.7, label=f"run {int(r)}{' (validation)' if val else ''}")
+            ax.plot(th, m.y_hat[rows], color=col, lw=1.6 if val else 0.7, ls="--")
+        ax.set_ylabel(c, fontsize=8)
+    axes[0, 0].legend(fontsize=6, ncol=4)
+    axes[-1, 0].set_xlabel("time since the run's start [h]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = "", plots: bool = True) -> dict:
     """``report.md`` (with a plot), ``summary.json`` of a data-only diagnosis."""
     out = Path(out_dir)
@@ -654,6 +675,10 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
             fig.savefig(out / "channels.png", dpi=90)
             plt.close(fig)
             L += ["![channels](channels.png)", ""]
+            if d.runs is not None:
+                _plot_runs(d, out / "runs.png", plt)
+                L += ["Per run (time since its start; each run from its own zero; dashed: the extended model; "
+                      "thick: validation runs):", "", "![runs](runs.png)", ""]
         except ImportError:
             log.warning("matplotlib is not installed: no plots (pip install 'hybridcomp[plot]')")
     (out / "report.md").write_text("\n".join(L) + "\n")

@@ -440,7 +440,7 @@ def test_no_lag_crosses_a_run_boundary_and_every_run_has_its_own_zero():
     assert z[0] == 0 and z[10] == 0 and z[19] == 9
 
 
-def test_campaign_diagnosis_holds_out_runs_and_beats_one_series():
+def test_campaign_diagnosis_holds_out_runs_and_beats_one_series(tmp_path):
     """Runs with different air levels and gauge zeros: treated as runs, the planted lag generalises to held-out runs;
     as one series, the offsets between runs spoil the fit."""
     rng = np.random.default_rng(5)
@@ -463,3 +463,9 @@ def test_campaign_diagnosis_holds_out_runs_and_beats_one_series():
     va = split.validation
     assert s["held_out"]["dz_um"]["fit_percent"] > fit_percent(one.Y["dz_um"][va], one.extended["dz_um"].y_hat[va]) + 20
     assert [v["part"] for v in s["runs"].values()] == ["training"] * 3 + ["validation"] * 2
+    pytest.importorskip("matplotlib")
+    from hybridcomp.diagnose.dataonly import write_data_only_report
+
+    write_data_only_report(aware, tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert "## Runs (5:" in report and "![runs](runs.png)" in report and (tmp_path / "runs.png").stat().st_size > 10_000
