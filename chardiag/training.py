@@ -40,7 +40,7 @@ from hybridcomp.histogram.signature import signatures
 from hybridcomp.histogram.trace import AMBIENT
 from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.models.machine import Machine
-from hybridcomp.models.toml import open_regular_file
+from hybridcomp.models.toml import open_regular_file, read_text
 
 log = logging.getLogger(__name__)
 
@@ -200,15 +200,7 @@ def _read_text(path: Path, what: str) -> str:
 
     Errors name the file.
     """
-    with open_regular_file(path, TrainingDataError, what) as raw:
-        try:
-            data = raw.read()
-        except OSError as exc:
-            raise TrainingDataError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
-    try:
-        return data.decode("utf-8-sig").replace("\r\n", "\n").replace("\r", "\n")
-    except UnicodeDecodeError as exc:
-        raise TrainingDataError(f"{path}: not UTF-8 text ({exc.reason})") from None
+    return read_text(path, TrainingDataError, what).replace("\r\n", "\n").replace("\r", "\n")
 
 
 # --------------------------------------------------------------------------- the table

@@ -49,7 +49,7 @@ from hybridcomp.histogram.increments import (
 )
 from hybridcomp.histogram.trace import Samples, TraceFileError
 from hybridcomp.models.machine import Machine
-from hybridcomp.models.toml import open_regular_file
+from hybridcomp.models.toml import read_text
 
 CHORD_TOLERANCE_MM = 1e-3
 ARC_RADIUS_TOLERANCE_MM = 2e-3
@@ -356,15 +356,7 @@ def _arc(err, ln, mode, plane, letters, pos, target, words, scale, feed, axes, v
 def read_gcode(path: str | Path, machine: Machine, start_mm: dict[str, float] | None = None) -> Motion:
     """Read and run a G-code file (see :func:`parse_gcode`)."""
     path = Path(path)
-    with open_regular_file(path, GcodeError, "G-code") as fh:
-        try:
-            raw = fh.read()
-        except OSError as exc:
-            raise GcodeError(f"{path}: cannot read G-code: {exc.strerror or exc}") from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise GcodeError(f"{path}: not UTF-8 text ({exc.reason})") from None
+    text = read_text(path, GcodeError, "G-code")
     return parse_gcode(text, machine, source=str(path), start_mm=start_mm)
 
 

@@ -67,6 +67,19 @@ def open_regular_file(path: str | Path, error: type[Exception] = ValueError, wha
         raise
 
 
+def read_text(path: str | Path, error: type[Exception] = ValueError, what: str = "file") -> str:
+    """The UTF-8 text of a regular file (a leading byte-order mark dropped); anything else is ``error`` naming it."""
+    with open_regular_file(path, error, what) as fh:
+        try:
+            raw = fh.read()
+        except OSError as exc:
+            raise error(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not UTF-8 text ({exc.reason})") from None
+
+
 def _depth(data: Any) -> int:
     """Nesting depth of parsed TOML: 0 for a scalar, 1 for a flat table or array (iterative, any depth)."""
     deepest, todo = 0, [(data, 1)]

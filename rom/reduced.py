@@ -34,7 +34,7 @@ from hybridcomp.errors import HybridcompError
 from hybridcomp.models import jsonio
 from hybridcomp.models.layout import InputLayout, Loads, LoadsColumnError, layout_from_names
 from hybridcomp.models.simulation import SimulationResult, initial_state
-from hybridcomp.models.toml import open_regular_file
+from hybridcomp.models.toml import open_regular_file, read_text
 
 log = logging.getLogger(__name__)
 
@@ -465,15 +465,7 @@ def save_state(path: str | Path, state: RomState) -> Path:
 
 def load_state(path: str | Path) -> RomState:
     """Read a reduced state written by :func:`save_state`."""
-    with open_regular_file(path, RomFileError, "reduced state") as fh:
-        try:
-            raw = fh.read()
-        except OSError as exc:
-            raise RomFileError(f"{path}: cannot read reduced state: {exc.strerror or exc}") from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise RomFileError(f"{path}: not UTF-8 text ({exc.reason})") from None
+    text = read_text(path, RomFileError, "reduced state")
     try:
         return RomState.from_json(text)
     except (ValueError, KeyError) as exc:

@@ -229,13 +229,15 @@ def test_malformed_node_ids_are_a_configuration_error_not_a_retry_loop(machine):
 
 
 class _PacedSource(ListSource):
-    """The trace at ``per_s`` readings per wall second."""
+    """The trace at ``per_s`` readings per wall second; then, with ``release``, silence (the machine's data stop)
+    until it is set."""
 
     time_scale = None
 
-    def __init__(self, readings, per_s):
+    def __init__(self, readings, per_s, release=None):
         super().__init__(readings)
         self.per_s = per_s
+        self.release = release
 
     async def readings(self, start_after_s=None):
         t0 = time.monotonic()
@@ -244,6 +246,8 @@ class _PacedSource(ListSource):
                 continue
             await asyncio.sleep(max(0.0, t0 + i / self.per_s - time.monotonic()))
             yield r
+        while self.release is not None and not self.release.is_set():
+            await asyncio.sleep(0.02)
         self.finished = True
 
 
@@ -475,24 +479,6 @@ def test_replay_traces_with_a_bom_binary_garbage_or_a_fifo(machine, tmp_path):
         list(read_replay(tmp_path / "fifo", machine))
 
 
-class _SilentSource(ListSource):
-    """A few readings, then silence (the machine's data stop) until ``release`` is set."""
-
-    time_scale = None
-
-    def __init__(self, readings, release):
-        super().__init__(readings)
-        self.release = release
-
-    async def readings(self, start_after_s=None):
-        for r in self._readings:
-            if start_after_s is None or r.time_s > start_after_s:
-                yield r
-        while not self.release.is_set():
-            await asyncio.sleep(0.02)
-        self.finished = True
-
-
 @pytest.mark.slow
 def test_the_lease_is_renewed_while_the_data_are_silent(machine, rom, rom_file, trace, tmp_path):
     from hybridcomp.monitor.store import lease_owner
@@ -507,7 +493,7 @@ def test_the_lease_is_renewed_while_the_data_are_silent(machine, rom, rom_file, 
     async def go():
         release = asyncio.Event()
         mon = Monitor(cfg, machine, rom, db, PKEY)
-        task = asyncio.create_task(run_monitor(cfg, mon, _SilentSource(readings, release), MemorySink()))
+        task = asyncio.create_task(run_monitor(cfg, mon, _PacedSource(readings, 1000.0, release), MemorySink()))
         while mon.s.last_time_s != readings[-1].time_s:
             await asyncio.sleep(0.01)
         for _ in range(10):  # 2 s of silence: more than three lease lengths
