@@ -525,6 +525,33 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
                              split_check, selection, folds, ds.runs)
 
 
+def _structure_name(tm: Term) -> str:
+    """A term in the words of the thermal-error literature."""
+    p = tm.params
+    if tm.kind == "sensor":
+        return f"static regression on {tm.name} (MLR)"
+    if tm.kind == "activity_lag":
+        return (f"first-order transfer function of the heat from {p['signal']} (speed^{p['exponent']:g}), "
+                f"time constant {p['tau_h']:g} h")
+    if tm.kind == "heating_cooling":
+        return (f"transfer function of {p['signal']} with separate heating and cooling time constants "
+                f"({p['tau_heating_h']:g} h heating, {p['tau_cooling_h']:g} h cooling)")
+    if tm.kind == "sensor_lag":
+        return f"sensor lead of {p['sensor']}: the structure leads the sensor by a first-order lag of {p['tau_h']:g} h"
+    return tm.name
+
+
+def model_structure(m: ChannelModel) -> dict:
+    """The extended model of a channel as model structures with their fitted gains.
+
+    A gain is in the channel's unit per unit of its term (µm/K for a sensor, µm per unit of a normalised activity).
+    """
+    terms = [{"term": tm.name, "structure": _structure_name(tm), "gain": float(g)} for tm, g in zip(m.terms, m.coef[1:])]
+    return {"offset": float(m.coef[0]), "terms": terms,
+            "output_lag": None if m.ar_tau_h is None else
+            f"output-error AR(1): every term through a first-order lag of {m.ar_tau_h:g} h"}
+
+
 def summary(d: DataOnlyDiagnosis) -> dict:
     """The JSON-ready summary of a data-only diagnosis (validation metrics per channel and the extensions)."""
     va = d.split.validation
@@ -532,7 +559,7 @@ def summary(d: DataOnlyDiagnosis) -> dict:
     for c, m in d.extended.items():
         after = channel_metrics(d.Y[c][va], m.y_hat[va])
         ch[c] = {"reference_all_temperatures": d.reference[c], "before": d.base[c], "after": after,
-                 "extensions": d.extensions[c]}
+                 "extensions": d.extensions[c], "model": model_structure(m)}
     causes = [{"channel": c, **e} for c in d.extended for e in d.extensions[c]]
     held_out = {c: {k: ch[c]["after"][k] for k in ("fit_percent", "rms", "p2p")} for c in d.extended}
     return {
@@ -642,6 +669,14 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
                      f"{e['gain']['bic_drop_train']:.0f}")
         if not v["extensions"]:
             L.append("* none")
+        L.append("")
+        ms = v["model"]
+        L.append("Model structure and fitted gains:")
+        L.append("")
+        for t in ms["terms"]:
+            L.append(f"* {t['structure']}: gain {t['gain']:.4g}")
+        if ms["output_lag"]:
+            L.append(f"* {ms['output_lag']}")
         L.append("")
     if d.selection_check:
         sc = d.selection_check

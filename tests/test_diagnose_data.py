@@ -268,6 +268,10 @@ def test_held_out_selection_never_sees_the_validation_rows():
     assert s["held_out"]["dz_um"]["fit_percent"] > 90.0 and d.extensions["dz_um"]
     assert all("cv_fit_points" in x["gain"] for x in d.extensions["dz_um"])
     assert d.selection_check is None and s["selection"].startswith("held-out")
+    # the model in the literature's words, with the fitted gains (the planted heat reaches the drift through a lag)
+    structures = [t["structure"] for t in s["channels"]["dz_um"]["model"]["terms"]]
+    assert any(x.startswith(("first-order transfer function", "transfer function", "sensor lead")) for x in structures)
+    assert len(structures) == len(d.extended["dz_um"].terms) == d.extended["dz_um"].coef.size - 1
     # the assisted selection does look at them: the poisoned rows change its choice
     a = diagnose_data_only(ds, split, selection="assisted", selection_check=False)
     b = diagnose_data_only(poisoned, split, selection="assisted", selection_check=False)
