@@ -111,6 +111,7 @@ def accept_time(last_time_s: float | None, time_s: float) -> str:
     return "repeated" if time_s == last_time_s else "backwards"
 
 
+WALL_JITTER_S = 2.0  # wall time a sample may arrive late or early in a burst [s]
 MAX_ABS_TIME_S = 1e10  # a time stamp beyond ±317 years is invalid (Unix time in seconds is 1.8e9), even the first
 
 
@@ -177,8 +178,9 @@ def check_time(
     before; compensation never stops because one stamp was wrong. A stamp that leaves the time line is suspect:
     when ``rules.confirm_samples`` consecutive samples continue from it (each within ``max_step_s`` of the one
     before), the new time line is real. Ahead of the last sample it is a gap in the data (the machine time is
-    kept) if the wall clock has moved as far — ``wall_elapsed_s × time_scale`` at least half the jump — or if the
-    source has no clock to ask (``time_scale`` None: a replay as fast as possible); otherwise, and always when it
+    kept) if the wall clock has moved as far — ``(wall_elapsed_s + WALL_JITTER_S) × time_scale`` at least half the
+    jump — or if the source has no clock to ask (``time_scale`` None: a replay as fast as possible); otherwise, and
+    always when it
     goes backwards, the control's clock was set, and the monitor's time continues from the last sample with the
     new line's step (``offset_s`` changes).
 
@@ -202,7 +204,10 @@ def check_time(
         return TimeCheck("ok", t, offset_s)
     if dt == 0:
         return TimeCheck("repeated", math.nan, offset_s, tuple(candidates))
-    if dt > 0 and time_scale is not None and wall_elapsed_s is not None and wall_elapsed_s * time_scale >= 0.5 * dt:
+    # the wall clock backs a jump ahead if it moved at least half as far; WALL_JITTER_S absorbs samples that arrive in
+    # a burst after a pause of the reading loop (on a live machine it is a few seconds against a jump of minutes)
+    if (dt > 0 and time_scale is not None and wall_elapsed_s is not None
+            and (wall_elapsed_s + WALL_JITTER_S) * time_scale >= 0.5 * dt):
         return TimeCheck("gap", t, offset_s)  # the wall clock has moved as far: the data stopped for a while
     step = source_time_s - candidates[-1] if candidates else math.nan
     cand = (*candidates, source_time_s) if 0 < step <= rules.max_step_s else (source_time_s,)
