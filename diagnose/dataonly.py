@@ -9,6 +9,7 @@ extensions are data-side, each a named, parametrised regressor or model structur
 | ``activity_lag`` | signal, exponent n, τ [h] | first-order lag of an activity signal (``*_rpm`` speed, ``*_mm`` axis speed), normalised, to the power n |
 | ``heating_cooling`` | signal, τ heating, τ cooling [h] | a lag whose time constant differs while the signal rises (heating) and falls (cooling) |
 | ``sensor_lag`` | sensor, τ [h] | ``T − lag_τ(T)``: the sensor lags the structure it stands for (a lead term) |
+| ``ambient_tf`` | air column, τ [h] | ``lag_τ(T_air)``: the structure follows the air through a first-order lag (the ambient model) |
 | ``autoregressive`` | τ [h] | output-error AR(1): ``ŷ_k = a ŷ_{k−1} + (1 − a) x_kᵀβ``, i.e. every regressor through one lag |
 | ``add_input`` / ``drop_input`` | sensor | a temperature input the BIC selection left out / took in |
 
@@ -170,10 +171,23 @@ def candidate_terms(ds: Dataset, temps: list[str]) -> list[Term]:
                                 per_run(heating_cooling_lag, st, t, s, th * 3600, tc * 3600)))
     for T in temps:
         v = ds[T]
+        if is_air(T):
+            # the ambient model: the structure follows the air through a first-order lag. (An air sensor leads no
+            # structure: it gets no lead terms, which would span the same with the air itself under another name.)
+            for tau in LAGS_H:
+                out.append(Term(f"air TF({T}, {tau:g} h)", "ambient_tf", {"air": T, "tau_h": tau},
+                                per_run(first_order_lag, st, t, v, tau * 3600)))
+            continue
         for tau in SENSOR_LAGS_H:
             out.append(Term(f"lead({T}, {tau:g} h)", "sensor_lag", {"sensor": T, "tau_h": tau},
                             v - per_run(first_order_lag, st, t, v, tau * 3600)))
     return out
+
+
+def is_air(name: str) -> bool:
+    """A temperature column of the air (``Tamb_degC``, ``ambient_degC``, ``hall_air_degC`` ...), not of the structure."""
+    n = name.lower()
+    return n.endswith("_degc") and ("amb" in n or "air" in n)
 
 
 def _bic_rss(rss, n: int, k: int):
@@ -536,6 +550,8 @@ def _structure_name(tm: Term) -> str:
     if tm.kind == "heating_cooling":
         return (f"transfer function of {p['signal']} with separate heating and cooling time constants "
                 f"({p['tau_heating_h']:g} h heating, {p['tau_cooling_h']:g} h cooling)")
+    if tm.kind == "ambient_tf":
+        return f"first-order transfer function of the air {p['air']} (the ambient model), time constant {p['tau_h']:g} h"
     if tm.kind == "sensor_lag":
         return f"sensor lead of {p['sensor']}: the structure leads the sensor by a first-order lag of {p['tau_h']:g} h"
     return tm.name

@@ -473,3 +473,23 @@ def test_campaign_diagnosis_holds_out_runs_and_beats_one_series(tmp_path):
     write_data_only_report(aware, tmp_path)
     report = (tmp_path / "report.md").read_text()
     assert "## Runs (5:" in report and "![runs](runs.png)" in report and (tmp_path / "runs.png").stat().st_size > 10_000
+
+
+def test_the_ambient_model_is_found_as_a_transfer_function_of_the_air():
+    """The drift follows the workshop air through a 2 h lag (the ambient model): named as a first-order transfer
+    function of the air with its time constant and gain, not as a 'lead' of the air sensor."""
+    rng = np.random.default_rng(2)
+    t = np.arange(0, 72 * 3600, 120.0)
+    amb = 20 + 1.5 * np.sin(2 * np.pi * t / 86400) + np.cumsum(rng.normal(0, 0.02, t.size))
+    T1 = first_order_lag(t, amb, 6 * 3600) + rng.normal(0, 0.01, t.size)  # a massive part's sensor
+    dz = 8 * (first_order_lag(t, amb, 2 * 3600) - 20) + rng.normal(0, 0.2, t.size)
+    ds = Dataset(t, {"Tamb_degC": amb + rng.normal(0, 0.01, t.size), "T1_degC": T1, "dz_um": dz})
+    d = diagnose_data_only(ds, parse_split("0:60%", t))
+    from hybridcomp.diagnose.dataonly import summary
+
+    s = summary(d)
+    assert s["held_out"]["dz_um"]["fit_percent"] > 95.0 > s["before"]["dz_um"]["fit_percent"] + 20
+    (tf,) = [x for x in s["channels"]["dz_um"]["model"]["terms"] if x["term"].startswith("air TF")]
+    assert tf["term"] == "air TF(Tamb_degC, 2 h)" and "ambient model" in tf["structure"]
+    assert tf["gain"] == pytest.approx(8.0, rel=0.1)
+    assert not any(x["term"].startswith("lead(Tamb") for x in s["channels"]["dz_um"]["model"]["terms"])
