@@ -21,7 +21,6 @@ Bundled load cases (:func:`standard_load_cases`):
 from __future__ import annotations
 
 import csv
-import io
 import logging
 import math
 from collections.abc import Mapping, Sequence
@@ -40,7 +39,7 @@ from hybridcomp.histogram.signature import signatures
 from hybridcomp.histogram.trace import AMBIENT
 from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.models.machine import Machine
-from hybridcomp.models.toml import open_regular_file, read_text
+from hybridcomp.models.toml import open_text, read_text
 
 log = logging.getLogger(__name__)
 
@@ -179,12 +178,9 @@ def load_case_from_file(machine: Machine, path: str | Path, increment_s: float =
         raise TrainingDataError(f"{p}: no such file")
     if p.suffix.lower() in (".nc", ".gcode", ".ngc", ".mpf", ".tap"):
         return load_case_from_gcode(machine, p.stem, _read_text(p, "G-code"), increment_s, source=str(p))
-    with open_regular_file(p, TrainingDataError, "load case") as raw, \
-            io.TextIOWrapper(raw, encoding="utf-8-sig", newline="") as fh:
+    with open_text(p, TrainingDataError, "load case", newline="") as fh:
         try:
             header = next(csv.reader(fh), [])
-        except UnicodeDecodeError as exc:
-            raise TrainingDataError(f"{p}: not UTF-8 text ({exc.reason})") from None
         except csv.Error as exc:
             raise TrainingDataError(f"{p}: line 1: not a readable CSV header: {exc}") from None
         except OSError as exc:

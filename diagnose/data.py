@@ -18,19 +18,16 @@ in the CSV); without one, every column is read under its own name.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import logging
 import math
 import re
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.toml import open_regular_file, read_toml
+from hybridcomp.models.toml import open_text, read_toml
 
 log = logging.getLogger(__name__)
 
@@ -144,16 +141,6 @@ def check_column_name(name: str, where: str) -> None:
         raise DatasetError(f"{where}: column name {name!r} has no known unit suffix ({', '.join(UNIT_SUFFIXES)})")
 
 
-@contextlib.contextmanager
-def _open_text(path: Path) -> Iterator[io.TextIOWrapper]:
-    """A regular UTF-8 text file (a leading byte-order mark is dropped); decoding errors name the file."""
-    with open_regular_file(path, DatasetError, "dataset") as raw, io.TextIOWrapper(raw, encoding="utf-8-sig") as fh:
-        try:
-            yield fh
-        except UnicodeDecodeError as exc:
-            raise DatasetError(f"{path}: not UTF-8 text ({exc.reason})") from None
-
-
 def read_dataset(path: str | Path, column_map: str | Path | dict | None = None) -> Dataset:
     """Read a measured dataset CSV, optionally through a column map (file or ``{project: csv}`` dict).
 
@@ -173,7 +160,7 @@ def read_dataset(path: str | Path, column_map: str | Path | dict | None = None) 
     else:
         mapping, map_src = None, ""
     try:
-        with _open_text(path) as fh:
+        with open_text(path, DatasetError, "dataset") as fh:
             header = [h.strip() for h in fh.readline().strip().split(",")]
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read dataset: {exc}") from None
@@ -202,7 +189,7 @@ def read_dataset(path: str | Path, column_map: str | Path | dict | None = None) 
             else:
                 log.warning("%s: column %r has no unit suffix and is not read (give a column map to use it)", path, h)
     try:
-        with _open_text(path) as fh:
+        with open_text(path, DatasetError, "dataset") as fh:
             data = np.loadtxt(fh, delimiter=",", skiprows=1, usecols=sorted(set(wanted.values())), ndmin=2)
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read dataset: {exc}") from None

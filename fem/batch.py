@@ -45,7 +45,6 @@ import concurrent.futures as cf
 import contextlib
 import dataclasses
 import hashlib
-import io
 import json
 import logging
 import multiprocessing
@@ -67,7 +66,7 @@ from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.loads import Loads, LoadsFileError, in_model_order, input_columns, read_loads, write_outputs
 from hybridcomp.models.layout import LoadsColumnError
 from hybridcomp.models.machine import Machine
-from hybridcomp.models.toml import open_regular_file
+from hybridcomp.models.toml import open_text
 
 log = logging.getLogger(__name__)
 
@@ -306,14 +305,11 @@ def write_case_atomically(out_dir: Path, result: CaseResult) -> Path:
 def read_case(path: Path, name: str, sensor_names: tuple[str, ...]) -> CaseResult:
     """An outputs CSV written by :func:`write_case_atomically` back as a result (values as written, 6 decimals)."""
     expected = ["time_s", *(f"{s}_degC" for s in sensor_names), "dx_um", "dy_um", "dz_um"]
-    with open_regular_file(path, ValueError, "outputs") as raw, io.TextIOWrapper(raw, encoding="utf-8-sig") as fh:
-        try:
-            header = fh.readline().strip().split(",")
-            if header != expected:
-                raise ValueError(f"{path}: header {header} is not the outputs of this machine ({expected})")
-            data = np.loadtxt(fh, delimiter=",", ndmin=2)
-        except UnicodeDecodeError as exc:
-            raise ValueError(f"{path}: not UTF-8 text ({exc.reason})") from None
+    with open_text(path, ValueError, "outputs") as fh:
+        header = fh.readline().strip().split(",")
+        if header != expected:
+            raise ValueError(f"{path}: header {header} is not the outputs of this machine ({expected})")
+        data = np.loadtxt(fh, delimiter=",", ndmin=2)
     ns = len(sensor_names)
     return CaseResult(name=name, time_s=data[:, 0], sensor_names=tuple(sensor_names), sensors_degC=data[:, 1:1 + ns],
                       drift_um=data[:, 1 + ns:], worker="file", built_model=False, compute_s=0.0, cpu_s=0.0, path=path)

@@ -21,14 +21,12 @@ the largest offset step per compensation cycle.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import csv
-import io
 import logging
 import math
 import shutil
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +36,7 @@ from hybridcomp.errors import HybridcompError
 from hybridcomp.metrics import DIRS, drift_metrics, largest_step_um, metrics_table
 from hybridcomp.models import jsonio
 from hybridcomp.models.layout import PROBE_COLUMNS
-from hybridcomp.models.toml import open_regular_file
+from hybridcomp.models.toml import open_text
 
 log = logging.getLogger(__name__)
 
@@ -49,16 +47,6 @@ NAMES = {"hybrid": "hybrid monitor", "observer": "observer"}
 
 class ScenarioFileError(HybridcompError, ValueError):
     """A trace file of a scenario cannot be read; the message names the file."""
-
-
-@contextlib.contextmanager
-def _open_text(path: Path, what: str) -> Iterator[io.TextIOWrapper]:
-    """A regular UTF-8 text file (a leading byte-order mark is dropped); decoding errors name the file."""
-    with open_regular_file(path, ScenarioFileError, what) as raw, io.TextIOWrapper(raw, encoding="utf-8-sig") as fh:
-        try:
-            yield fh
-        except UnicodeDecodeError as exc:
-            raise ScenarioFileError(f"{path}: not UTF-8 text ({exc.reason})") from None
 
 
 @dataclass(frozen=True)
@@ -515,7 +503,7 @@ def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, 
 
     Returns the measured sensors at the samples and their low-pass (the daemon's filter), per sample time.
     """
-    with _open_text(src, "trace") as fi:
+    with open_text(src, ScenarioFileError, "trace") as fi:
         header = fi.readline().strip().split(",")
         ti = header.index("time_s")
         rows, next_t = [], -math.inf
@@ -566,7 +554,7 @@ def at_times(times: np.ndarray, X: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def _write_recorded(trace: Path, dst: Path, res, sensor_names) -> None:
     """The monitor's trace (without probe columns) plus the real machine's drift: a measuring campaign's file."""
-    with _open_text(trace, "trace") as fi, dst.open("w") as fo:
+    with open_text(trace, ScenarioFileError, "trace") as fi, dst.open("w") as fo:
         header = fi.readline().strip().split(",")
         keep = [i for i, h in enumerate(header) if h not in PROBE_COLUMNS]
         ti = header.index("time_s")

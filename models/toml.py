@@ -11,19 +11,23 @@ arrays of tables, inline tables in lists); it refuses a non-finite number.
 
 Reading any input file: :func:`open_regular_file` opens a file only when it is
 a regular file (never blocking on a named pipe, never reading a device or a
-directory), for the project's TOML and CSV readers.
+directory), for the project's TOML and CSV readers; :func:`read_bytes`,
+:func:`read_text` and :func:`open_text` build on it and name the file in every
+error.
 """
 
 from __future__ import annotations
 
+import contextlib
 import difflib
+import io
 import json
 import math
 import os
 import re
 import stat
 import tomllib
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Iterator, Mapping
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -67,17 +71,40 @@ def open_regular_file(path: str | Path, error: type[Exception] = ValueError, wha
         raise
 
 
-def read_text(path: str | Path, error: type[Exception] = ValueError, what: str = "file") -> str:
-    """The UTF-8 text of a regular file (a leading byte-order mark dropped); anything else is ``error`` naming it."""
+def read_bytes(path: str | Path, error: type[Exception] = ValueError, what: str = "file",
+               limit: int | None = None) -> bytes:
+    """The bytes of a regular file; a read error is ``error`` naming the file.
+
+    With ``limit``, at most ``limit`` + 1 bytes are read: enough to tell an oversize file without reading it all.
+    """
     with open_regular_file(path, error, what) as fh:
         try:
-            raw = fh.read()
+            return fh.read() if limit is None else fh.read(limit + 1)
         except OSError as exc:
             raise error(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+
+
+def read_text(path: str | Path, error: type[Exception] = ValueError, what: str = "file") -> str:
+    """The UTF-8 text of a regular file (a leading byte-order mark dropped); anything else is ``error`` naming it."""
+    raw = read_bytes(path, error, what)
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise error(f"{path}: not UTF-8 text ({exc.reason})") from None
+
+
+@contextlib.contextmanager
+def open_text(path: str | Path, error: type[Exception] = ValueError, what: str = "file",
+              newline: str | None = None) -> Iterator[io.TextIOWrapper]:
+    """A regular file as UTF-8 text to read line by line (a leading byte-order mark dropped).
+
+    Bytes that are not UTF-8 are ``error`` naming the file.
+    """
+    with open_regular_file(path, error, what) as raw, io.TextIOWrapper(raw, encoding="utf-8-sig", newline=newline) as fh:
+        try:
+            yield fh
+        except UnicodeDecodeError as exc:
+            raise error(f"{path}: not UTF-8 text ({exc.reason})") from None
 
 
 def _depth(data: Any) -> int:
@@ -101,11 +128,7 @@ def read_toml(path: str | Path, error: type[Exception] = ValueError) -> tuple[di
     tables and arrays deeper than :data:`MAX_TOML_DEPTH`.
     """
     path = Path(path)
-    with open_regular_file(path, error, "the file") as fh:
-        try:
-            raw = fh.read(MAX_TOML_BYTES + 1)
-        except OSError as exc:
-            raise error(f"{path}: cannot read the file: {exc.strerror or exc}") from None
+    raw = read_bytes(path, error, "the file", limit=MAX_TOML_BYTES)
     if len(raw) > MAX_TOML_BYTES:
         raise error(f"{path}: the file is larger than the limit of {MAX_TOML_BYTES} bytes for a TOML file")
     too_deep = f"{path}: not valid TOML: tables and arrays nested more than {MAX_TOML_DEPTH} levels deep"
@@ -294,4 +317,4 @@ def dumps_toml(data: dict) -> str:
 
 
 __all__ = ["MAX_TOML_BYTES", "MAX_TOML_DEPTH", "StrictTable", "did_you_mean", "dumps_toml", "open_regular_file",
-           "read_toml"]
+           "open_text", "read_bytes", "read_text", "read_toml"]

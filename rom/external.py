@@ -23,7 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.toml import open_regular_file
+from hybridcomp.models.toml import read_bytes
 from hybridcomp.rom.krylov import ReductionError, ThermalSystem
 
 NAMES = ("E", "A", "B", "C")
@@ -49,15 +49,6 @@ def _files(path: Path) -> dict[str, Path]:
     return out
 
 
-def _read_bytes(path: Path, what: str) -> bytes:
-    """The bytes of a regular file; a named pipe, device or directory is refused at once, naming it."""
-    with open_regular_file(path, MatrixFileError, what) as fh:
-        try:
-            return fh.read()
-        except OSError as exc:
-            raise MatrixFileError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
-
-
 def read_matrices(path: str | Path) -> tuple[dict[str, object], str]:
     """Read E, A, B, C from a .mat file or Matrix Market files; returns them and the SHA-256 of the file(s)."""
     path = Path(path)
@@ -67,7 +58,7 @@ def read_matrices(path: str | Path) -> tuple[dict[str, object], str]:
     if path.suffix.lower() == ".mat":
         import scipy.io
 
-        raw = _read_bytes(path, "MATLAB file")
+        raw = read_bytes(path, MatrixFileError, "MATLAB file")
         hsh.update(raw)
         try:
             data = scipy.io.loadmat(io.BytesIO(raw))
@@ -83,7 +74,7 @@ def read_matrices(path: str | Path) -> tuple[dict[str, object], str]:
 
         mats = {}
         for v, p in _files(path).items():
-            raw = _read_bytes(p, "Matrix Market file")
+            raw = read_bytes(p, MatrixFileError, "Matrix Market file")
             hsh.update(raw)
             try:
                 mats[v] = scipy.io.mmread(io.BytesIO(raw))
