@@ -50,23 +50,19 @@ def guard_offsets(offsets_um: Mapping[str, float], *, clamp_um: float = DEFAULT_
     """
     if not (isinstance(clamp_um, (int, float)) and math.isfinite(clamp_um) and clamp_um > 0):
         raise ValueError(f"guard_offsets: clamp_um must be a finite positive number [µm], got {clamp_um!r}")
-    out: dict[str, float] = {}
-    for key, value in offsets_um.items():
-        try:
-            v = float(value)
-        except (TypeError, ValueError):
-            raise OffsetGuardError(f"{source}: offset {key} = {value!r} is not a number; nothing written") from None
-        if not math.isfinite(v):
-            raise OffsetGuardError(f"{source}: offset {key} = {v} µm is not finite; nothing written")
+    out = guard_finite(offsets_um, source=source, unit="µm", what="offset ")
+    for key, v in out.items():
         if abs(v) > clamp_um:
             raise OffsetGuardError(f"{source}: offset {key} = {v:.6g} µm is beyond the clamp of ±{clamp_um:g} µm; "
                                    "nothing written")
-        out[key] = v
     return out
 
 
-def guard_finite(values: Mapping[str, float], *, source: str = "values", unit: str = "") -> dict[str, float]:
+def guard_finite(values: Mapping[str, float], *, source: str = "values", unit: str = "",
+                 what: str = "") -> dict[str, float]:
     """The values as floats, after checking each is finite (slopes, reference positions of a CNC export).
+
+    ``what`` is put before each key in a message (``"offset "``), ``unit`` after its value.
 
     Raises
     ------
@@ -78,9 +74,10 @@ def guard_finite(values: Mapping[str, float], *, source: str = "values", unit: s
         try:
             v = float(value)
         except (TypeError, ValueError):
-            raise OffsetGuardError(f"{source}: {key} = {value!r} is not a number; nothing written") from None
+            raise OffsetGuardError(f"{source}: {what}{key} = {value!r} is not a number; nothing written") from None
         if not math.isfinite(v):
-            raise OffsetGuardError(f"{source}: {key} = {v}{' ' + unit if unit else ''} is not finite; nothing written")
+            raise OffsetGuardError(f"{source}: {what}{key} = {v}{' ' + unit if unit else ''} is not finite; "
+                                   "nothing written")
         out[key] = v
     return out
 

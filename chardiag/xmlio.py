@@ -27,6 +27,7 @@ from lxml import etree
 from hybridcomp.chardiag.cd import CDError, CDInput, CharDiagram, Term
 from hybridcomp.errors import HybridcompError
 from hybridcomp.models.toml import open_regular_file
+from hybridcomp.safeio import write_bytes_atomic
 
 NS = "urn:hybridcomp:characteristic-diagram:1"
 FORMAT_VERSION = 1
@@ -99,14 +100,8 @@ def cd_to_bytes(cd: CharDiagram) -> bytes:
 
 
 def write_cd(path: str | Path, cd: CharDiagram) -> Path:
-    """Write a CD file (atomically: a temporary file renamed into place)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data = cd_to_bytes(cd)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-    return path
+    """Write a CD file (atomically: a temporary file renamed into place, removed if the write fails)."""
+    return write_bytes_atomic(path, cd_to_bytes(cd))
 
 
 def _check_raw(data: bytes, source: str, max_bytes: int) -> None:

@@ -67,6 +67,7 @@ from hybridcomp.fem.loads import Loads, LoadsFileError, in_model_order, input_co
 from hybridcomp.models.layout import LoadsColumnError
 from hybridcomp.models.machine import Machine
 from hybridcomp.models.toml import open_text
+from hybridcomp.safeio import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -316,12 +317,7 @@ def read_case(path: Path, name: str, sensor_names: tuple[str, ...]) -> CaseResul
 
 
 def _write_json_atomically(path: Path, info: dict) -> None:
-    tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex}.tmp"
-    try:
-        tmp.write_text(json.dumps(info, indent=2))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_text_atomic(path, json.dumps(info, indent=2))
 
 
 def _resumable(out: Path, settings: dict, cases, sensor_names) -> dict[str, CaseResult]:
