@@ -269,8 +269,11 @@ class _Scorer:
         coef, *_ = np.linalg.lstsq(X[self.tr], self.y[self.tr], rcond=None)
         return coef, X @ coef
 
-    def additions(self, idx, ar_tau_h) -> tuple[np.ndarray, np.ndarray]:
-        """Training BIC and validation fit of the model plus each library column (inf / -inf where not a new column)."""
+    def _extensions(self, idx, ar_tau_h, scored: bool = True):
+        """The model plus each library column, in closed form: which columns are new, the training BICs.
+
+        With ``scored``, also the scored rows' sums of squared errors (None without).
+        """
         X = self.lib.design(idx, ar_tau_h)
         C = self.lib.columns(ar_tau_h)
         Xt, Ct = X[self.tr], C[self.tr]
@@ -286,13 +289,28 @@ class _Scorer:
         rc = r @ Cp
         gain = rc / norm2  # coefficient of the new column
         rss = r @ r - rc**2 / norm2
+        bic = _bic_rss(rss, self.n, X.shape[1] + 1 + (ar_tau_h is not None))
+        if not scored:
+            return new, bic, None
         proj = np.linalg.lstsq(R, P, rcond=None)[0]  # the new column's projection on the model, as model coefficients
         E = (self.yv - X[self.va] @ coef)[:, None] - (C[self.va] - X[self.va] @ proj) * gain[None, :]
-        sse = np.einsum("ij,ij->j", E, E)
+        return new, bic, np.einsum("ij,ij->j", E, E)
+
+    def additions(self, idx, ar_tau_h) -> tuple[np.ndarray, np.ndarray]:
+        """Training BIC and validation fit of the model plus each library column (inf / -inf where not a new column)."""
+        new, bic, sse = self._extensions(idx, ar_tau_h)
         fit = 100.0 * (1.0 - np.sqrt(sse) / self.den)
-        bic = _bic_rss(rss, self.n, X.shape[1] + 1 + (ar_tau_h is not None))
-        self.last_sse = np.where(new, sse, np.inf)
         return np.where(new, bic, np.inf), np.where(new, fit, -np.inf)
+
+    def addition_bics(self, idx, ar_tau_h) -> np.ndarray:
+        """Training BIC of the model plus each library column (inf where not a new column); no scoring."""
+        new, bic, _ = self._extensions(idx, ar_tau_h, scored=False)
+        return np.where(new, bic, np.inf)
+
+    def addition_sses(self, idx, ar_tau_h) -> np.ndarray:
+        """Scored rows' sum of squared errors of the model plus each library column (inf where not a new column)."""
+        new, _, sse = self._extensions(idx, ar_tau_h)
+        return np.where(new, sse, np.inf)
 
     def sse(self, idx, ar_tau_h) -> float:
         """Sum of squared errors on the scored rows of the model fitted on the training rows."""
@@ -344,12 +362,8 @@ class _BlockedCV:
 
     def additions(self, idx, ar_tau_h) -> tuple[np.ndarray, np.ndarray]:
         """Training BIC and pooled cross-validation fit of each one-column extension (closed form per block)."""
-        bic, _ = self.full.additions(idx, ar_tau_h)
-        sse = 0.0
-        for p in self.parts:
-            p.additions(idx, ar_tau_h)
-            sse = sse + p.last_sse
-        fit = self._fit(sse)
+        bic = self.full.addition_bics(idx, ar_tau_h)
+        fit = self._fit(sum(p.addition_sses(idx, ar_tau_h) for p in self.parts))
         return bic, np.where(np.isfinite(bic) & np.isfinite(fit), fit, -np.inf)
 
 

@@ -97,20 +97,6 @@ def blend_offsets(
 # --------------------------------------------------------------------------- time stamps
 
 
-def accept_time(last_time_s: float | None, time_s: float) -> str:
-    """Whether a sample's time stamp can be processed after ``last_time_s`` (order only; see :func:`check_time`).
-
-    Returns
-    -------
-    ``"ok"``, ``"repeated"`` (equal to the last), ``"backwards"`` (before the last) or ``"invalid"`` (NaN/inf)
-    """
-    if not math.isfinite(time_s):
-        return "invalid"
-    if last_time_s is None or time_s > last_time_s:
-        return "ok"
-    return "repeated" if time_s == last_time_s else "backwards"
-
-
 WALL_JITTER_S = 2.0  # wall time a sample may arrive late or early in a burst [s]
 MAX_ABS_TIME_S = 1e10  # a time stamp beyond ±317 years is invalid (Unix time in seconds is 1.8e9), even the first
 

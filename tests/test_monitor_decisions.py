@@ -12,11 +12,12 @@ from hybridcomp.monitor.decisions import (
     SensorRules,
     SensorState,
     SetError,
+    TimeRules,
     Validity,
-    accept_time,
     backoff_delay,
     blend_offsets,
     check_sensor,
+    check_time,
     compensation_error_um,
     decide,
     limit_offsets,
@@ -68,12 +69,14 @@ def test_blend_offsets_continues_then_decays_exponentially():
 # --------------------------------------------------------------------------- time
 
 
-def test_accept_time():
-    assert accept_time(None, 0.0) == "ok"
-    assert accept_time(1.0, 2.0) == "ok"
-    assert accept_time(2.0, 2.0) == "repeated"
-    assert accept_time(2.0, 1.0) == "backwards"
-    assert accept_time(2.0, math.nan) == "invalid"
+def test_check_time_orders_the_stamps():
+    rules = TimeRules()
+    verdict = lambda last, t: check_time(last, t, 0.0, (), rules).verdict  # noqa: E731
+    assert verdict(None, 0.0) == "ok"
+    assert verdict(1.0, 2.0) == "ok"
+    assert verdict(2.0, 2.0) == "repeated"
+    assert verdict(2.0, 1.0) == "backwards"
+    assert verdict(2.0, math.nan) == "invalid"
 
 
 # --------------------------------------------------------------------------- sensors
