@@ -1012,7 +1012,7 @@ async def run_monitor(
     attempt = 0
     last_beat = -math.inf
     applied_unix: float | None = None
-    bad_seen: dict[str, int] = {}
+    reported: set[str] = set()  # source nodes whose non-numeric values have an event
     lost: list[str] = []
 
     def renew() -> None:
@@ -1052,18 +1052,14 @@ async def run_monitor(
 
     def source_faults(r: Reading) -> None:
         """Values the source could not read as numbers (a String node where a number belongs): an event per node."""
-        bad = getattr(source, "bad_values", None)
-        if not bad:
-            return
-        for node, n in bad.items():
-            if n > bad_seen.get(node, 0):
-                if node not in bad_seen:
-                    monitor.event("source", r.time_s, {"status": "not a number", "node": node, "count": n,
-                                                       "message": f"{node}: a value that is not a number was read as "
-                                                       "missing (a sensor fault for a temperature)"},
-                                  f"nan-value@{node}@{_t(r.time_s) if math.isfinite(r.time_s) else 'nan'}")
-                    log.warning("source value %s is not a number: read as missing", node)
-                bad_seen[node] = n
+        for node, n in (getattr(source, "bad_values", None) or {}).items():
+            if node not in reported:
+                reported.add(node)
+                monitor.event("source", r.time_s, {"status": "not a number", "node": node, "count": n,
+                                                   "message": f"{node}: a value that is not a number was read as "
+                                                   "missing (a sensor fault for a temperature)"},
+                              f"nan-value@{node}@{_t(r.time_s) if math.isfinite(r.time_s) else 'nan'}")
+                log.warning("source value %s is not a number: read as missing", node)
 
     async def consume() -> str:
         nonlocal attempt, applied_unix
