@@ -44,6 +44,8 @@ _names, __getattr__, __dir__ = lazy_exports(__name__, {
     # fem: the FE model and its files
     "fem.model": ("build_model", "ThermoElasticModel"),
     "fem.loads": ("read_loads", "write_loads", "write_outputs", "example_loads"),
+    "fem.drives": ("build_screw",),
+    "fem.iso230": ("moving_axis_test", "etve_test"),
     # rom: the structure model
     "rom.machine": ("reduce_model",),
     "rom.reduced": ("ReducedModel", "save_rom", "load_rom"),

@@ -24,6 +24,8 @@ SUBCOMMANDS = {
     "diagnose": ("hybridcomp.diagnose.cli",
                  "diagnose measured data: residuals, named physical causes, extended machine file, gain"),
     "batch": ("hybridcomp.fem.cli_batch", "run a directory of load cases on the FE model: local process pool or Dask cluster"),
+    "iso230": ("hybridcomp.fem.cli_iso230",
+               "ISO 230-3 thermal tests, simulated: moving linear axis (feed drives) and ETVE"),
     "monitor": ("hybridcomp.monitor.cli", "the monitoring daemon: run, status, example-config, and the hybrid scenario"),
 }
 

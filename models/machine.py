@@ -30,6 +30,10 @@ log = logging.getLogger(__name__)
 Vec3 = tuple[float, float, float]
 FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
 AIR_KINDS = ("ambient", "workspace")
+#: position feedback of a feed drive: semi-closed loop (motor encoder) or closed loop (linear scale)
+FEEDBACKS = ("rotary_encoder", "linear_scale")
+#: ball-screw mountings: one axially fixed bearing, or both fixed with the screw pre-stretched
+MOUNTINGS = ("fixed-floating", "pre-stretched")
 SPINDLE = "spindle"
 GEOMETRY_TOLERANCE_MM = 1e-6
 
@@ -147,6 +151,43 @@ class HeatSource:
 
 
 @dataclass(frozen=True)
+class Drive:
+    """A ball-screw feed drive of an axis and its position feedback (``[[drives]]``, ``models/README.md``).
+
+    The screw runs along the axis between the positions of two heat sources, its fixed bearing and its other
+    bearing (floating, or the second fixed one of a pre-stretched screw); the nut moves with the axis.  The
+    heat that enters the screw is given per source at load factor 1 (``*_screw_W``), in addition to the
+    source's own ``power_W``, which enters the structure: it follows that source's loads column in proportion.
+
+    Axial coordinates (``*_at_mm``) are global coordinates along the axis direction at the reference pose.
+    A linear scale lies on the carrier body along the line ``scale_from_mm`` → ``scale_to_mm``, fixed at
+    ``scale_fixed_at_mm``; its reading head, on the moving body, is at ``scale_head_at_mm`` at the reference pose.
+    """
+
+    axis: str
+    feedback: str
+    screw_diameter_mm: float
+    screw_lead_mm: float
+    screw_material: str
+    mounting: str
+    prestretch_um: float | None
+    fixed_bearing: str
+    floating_bearing: str
+    nut: str
+    fixed_bearing_screw_W: float
+    floating_bearing_screw_W: float
+    nut_screw_W: float
+    screw_h_W_m2K: float
+    screw_zone: str
+    scale_body: str | None = None
+    scale_from_mm: Vec3 | None = None
+    scale_to_mm: Vec3 | None = None
+    scale_fixed_at_mm: float | None = None
+    scale_head_at_mm: float | None = None
+    scale_expansion_1_K: float | None = None
+
+
+@dataclass(frozen=True)
 class Surface:
     """Part of a convection zone: faces of a box body (optionally clipped) or a mesh group."""
 
@@ -223,6 +264,7 @@ class Machine:
     table_reference: Point
     supports: tuple[Support, ...]
     mesh: MeshSettings
+    drives: tuple[Drive, ...] = ()
 
     def body(self, name: str) -> Body:
         for b in self.bodies:
@@ -234,6 +276,16 @@ class Machine:
         for a in self.axes:
             if a.name == name:
                 return a
+        raise KeyError(name)
+
+    def drive(self, axis: str) -> Drive | None:
+        """The feed drive of an axis, None when the file gives none."""
+        return next((d for d in self.drives if d.axis == axis), None)
+
+    def heat_source(self, name: str) -> HeatSource:
+        for s in self.heat_sources:
+            if s.name == name:
+                return s
         raise KeyError(name)
 
     def default_pose_mm(self) -> dict[str, float]:
@@ -333,7 +385,7 @@ def load_machine(name_or_path: str | Path) -> Machine:
 
 KEYS = {
     "top": ("machine", "spindle", "mesh", "materials", "bodies", "axes", "heat_sources", "zones", "sensors", "tcp",
-            "table_reference", "supports"),
+            "table_reference", "supports", "drives"),
     "machine": ("name", "description", "reference_temperature_degC"),
     "spindle": ("max_speed_rpm",),
     "mesh": ("element_size_mm", "file", "max_elements"),
@@ -349,6 +401,10 @@ KEYS = {
     "anchor": ("body", "position_mm"),
     "support": ("name", "body", "position_mm", "directions"),
     "box": ("lo", "hi"),
+    "drive": ("axis", "feedback", "screw_diameter_mm", "screw_lead_mm", "screw_material", "mounting", "prestretch_um",
+              "fixed_bearing", "floating_bearing", "nut", "fixed_bearing_screw_W", "floating_bearing_screw_W",
+              "nut_screw_W", "screw_h_W_m2K", "screw_zone", "scale_body", "scale_from_mm", "scale_to_mm",
+              "scale_fixed_at_mm", "scale_head_at_mm", "scale_expansion_1_K"),
 }
 
 
@@ -665,7 +721,10 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         supports=tuple(supports),
         mesh=MeshSettings(h_mm, mesh_path, max_el),
     )
-    return _validate_geometry(machine)
+    machine = _validate_geometry(machine)  # the drives build on checked sources and bodies
+    drives = tuple(_drive(machine, where, t) for where, t in top.tables("drives", required=False))
+    _unique(source, "drives[].axis", [d.axis for d in drives])
+    return dataclasses.replace(machine, drives=drives)
 
 
 def _power(r: _Reader) -> float:
@@ -673,6 +732,109 @@ def _power(r: _Reader) -> float:
     if p > MAX_HEAT_POWER_W:
         raise r.err("power_W", f"must be at most {MAX_HEAT_POWER_W:g} W (a plausible heat source), got {p!r}")
     return p
+
+
+#: default heat-transfer coefficient of a turning ball screw to the air around it [W/(m^2 K)] (forced convection
+#: at a few hundred rpm; Xu et al. 2007 report 20-50)
+SCREW_H_W_M2K = 20.0
+
+
+def _drive(machine: Machine, where: str, t: dict) -> Drive:
+    """One ``[[drives]]`` table, checked against the machine's axes, sources, zones and bodies."""
+    r = _Reader(machine.source, where, t, "drive")
+    axis_name = r.string("axis")
+    try:
+        axis = machine.axis(axis_name)
+    except KeyError:
+        raise r.err("axis", f"names an unknown axis {axis_name!r} (axes: {[a.name for a in machine.axes]})") from None
+    d = axis.direction
+    carrier = machine.body(axis.moves).mounted_on
+    feedback = r.string("feedback", choices=FEEDBACKS)
+    mounting = r.string("mounting", "fixed-floating", choices=MOUNTINGS)
+    prestretch = r.number("prestretch_um", None, nonneg=True)
+    if prestretch is not None and mounting != "pre-stretched":
+        raise r.err("prestretch_um", f"= {prestretch!r} is only for mounting = 'pre-stretched', not {mounting!r}")
+    material = r.string("screw_material")
+    if material not in machine.materials:
+        raise r.err("screw_material", f"names an unknown material {material!r} (defined: {sorted(machine.materials)})")
+
+    def source(key: str, kind: str) -> HeatSource:
+        name = r.string(key)
+        try:
+            s = machine.heat_source(name)
+        except KeyError:
+            raise r.err(key, f"names an unknown heat source {name!r}") from None
+        if kind == "fixed" and (s.kind != "fixed" or s.body != carrier):
+            raise r.err(key, f"= {name!r} must be a fixed heat source on {carrier!r}, the body carrying axis "
+                             f"{axis.name}'s rail (it is a {s.kind} source on {s.body!r})")
+        if kind == "moving" and (s.kind != "moving" or s.axis != axis.name):
+            raise r.err(key, f"= {name!r} must be a moving heat source of axis {axis.name} (the nut)")
+        return s
+
+    fixed, floating, nut = source("fixed_bearing", "fixed"), source("floating_bearing", "fixed"), source("nut", "moving")
+    s_fixed, s_float = fixed.position_mm[d], floating.position_mm[d]
+    if abs(s_float - s_fixed) < 1.0:
+        raise r.err("floating_bearing", f"= {floating.name!r} lies {abs(s_float - s_fixed):g} mm from the fixed bearing "
+                                        f"along {COORDINATES[d]}: the screw between them must be at least 1 mm long")
+    lo, hi = sorted((s_fixed, s_float))
+    nut_lo, nut_hi = nut.position_mm[d] + axis.travel_mm[0], nut.position_mm[d] + axis.travel_mm[1]
+    if nut_lo < lo - GEOMETRY_TOLERANCE_MM or nut_hi > hi + GEOMETRY_TOLERANCE_MM:
+        raise r.err("nut", f"= {nut.name!r} travels over {COORDINATES[d]} = [{nut_lo:g}, {nut_hi:g}] mm, beyond the "
+                           f"screw between its bearings [{lo:g}, {hi:g}] mm")
+    heat = {}
+    for key, s in (("fixed_bearing_screw_W", fixed), ("floating_bearing_screw_W", floating), ("nut_screw_W", nut)):
+        heat[key] = r.number(key, 0.0, nonneg=True)
+        if heat[key] > MAX_HEAT_POWER_W:
+            raise r.err(key, f"must be at most {MAX_HEAT_POWER_W:g} W, got {heat[key]!r}")
+        if heat[key] > 0 and s.power_W <= 0:
+            raise r.err(key, f"= {heat[key]!r} W follows source {s.name!r}, whose power_W is 0: give that source a power")
+    rest = [z.name for z in machine.zones if z.rest]
+    zone = r.string("screw_zone", rest[0] if rest else None)
+    if zone is None:
+        raise r.err("screw_zone", "is required: the machine has no rest zone to default to")
+    if zone not in [z.name for z in machine.zones]:
+        raise r.err("screw_zone", f"names an unknown zone {zone!r} (zones: {[z.name for z in machine.zones]})")
+    drive = Drive(
+        axis=axis.name, feedback=feedback,
+        screw_diameter_mm=r.number("screw_diameter_mm", positive=True),
+        screw_lead_mm=r.number("screw_lead_mm", positive=True),
+        screw_material=material, mounting=mounting, prestretch_um=prestretch,
+        fixed_bearing=fixed.name, floating_bearing=floating.name, nut=nut.name, **heat,
+        screw_h_W_m2K=r.number("screw_h_W_m2K", SCREW_H_W_M2K, positive=True), screw_zone=zone,
+    )
+    scale_keys = [k for k in KEYS["drive"] if k.startswith("scale_") and k in t]
+    if feedback == "rotary_encoder":
+        if scale_keys:
+            raise r.err(scale_keys[0], "is only for feedback = 'linear_scale' (this drive reads a rotary encoder)")
+        return drive
+    return dataclasses.replace(drive, **_scale(r, machine, axis, carrier, nut))
+
+
+def _scale(r: _Reader, machine: Machine, axis: Axis, carrier: str, nut: HeatSource) -> dict:
+    """The linear-scale fields of a drive: a line along the axis on the carrier body, its fixed point and head."""
+    d = axis.direction
+    body = r.string("scale_body", carrier)
+    if body != carrier:
+        raise r.err("scale_body", f"must be {carrier!r}, the body carrying axis {axis.name} (its reading head rides "
+                                  f"on {axis.moves!r}), got {body!r}")
+    a, b = r.vec3("scale_from_mm"), r.vec3("scale_to_mm")
+    off = [i for i in range(3) if i != d and abs(a[i] - b[i]) > GEOMETRY_TOLERANCE_MM]
+    if off or b[d] <= a[d]:
+        raise r.err("scale_to_mm", f"must lie along {COORDINATES[d]} from scale_from_mm {list(a)} (equal in the other "
+                                   f"coordinates, larger in {COORDINATES[d]}), got {list(b)}")
+    box = machine.body(body).box_mm
+    for key, p in (("scale_from_mm", a), ("scale_to_mm", b)):
+        if box is not None and not _inside(box, p):
+            raise r.err(key, f"= {list(p)} mm is outside the scale's body {body!r}")
+    fixed = r.number("scale_fixed_at_mm", a[d])
+    head = r.number("scale_head_at_mm", nut.position_mm[d])
+    if not a[d] - GEOMETRY_TOLERANCE_MM <= fixed <= b[d] + GEOMETRY_TOLERANCE_MM:
+        raise r.err("scale_fixed_at_mm", f"= {fixed!r} mm is off the scale [{a[d]:g}, {b[d]:g}] mm")
+    if head + axis.travel_mm[0] < a[d] - GEOMETRY_TOLERANCE_MM or head + axis.travel_mm[1] > b[d] + GEOMETRY_TOLERANCE_MM:
+        raise r.err("scale_head_at_mm", f"= {head!r} mm: the reading head travels over [{head + axis.travel_mm[0]:g}, "
+                                        f"{head + axis.travel_mm[1]:g}] mm, beyond the scale [{a[d]:g}, {b[d]:g}] mm")
+    return dict(scale_body=body, scale_from_mm=a, scale_to_mm=b, scale_fixed_at_mm=fixed, scale_head_at_mm=head,
+                scale_expansion_1_K=r.number("scale_expansion_1_K", nonneg=True))
 
 
 def bodies_by(bodies) -> dict[str, Body]:

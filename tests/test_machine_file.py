@@ -197,7 +197,7 @@ mounted_on = "bed"
 BAD_CASES = {
     # unknown keys, with did-you-mean
     "typo_required_body_key": (
-        edit('material = "steel"', 'matrial = "steel"'),
+        edit('name = "spindle"\nmaterial = "steel"', 'name = "spindle"\nmatrial = "steel"'),
         ["field 'bodies[5].matrial'", "is not a known field", "did you mean 'material'?"],
     ),
     "typo_optional_body_key": (
@@ -226,7 +226,7 @@ BAD_CASES = {
     ),
     # references
     "unknown_material": (
-        edit('material = "steel"', 'material = "stainless"'),
+        edit('name = "spindle"\nmaterial = "steel"', 'name = "spindle"\nmaterial = "stainless"'),
         ["field 'bodies[5].material'", "unknown material 'stainless'", "['cast_iron', 'steel']"],
     ),
     "unknown_mounted_on": (
