@@ -11,6 +11,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
@@ -48,6 +50,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--h2-maxiter", type=int, metavar="N",
                    help="with --basis h2: L-BFGS iterations per basis (default 1500); more iterations, smaller H2 error "
                    "(150 mm mesh, --order 80: about 30 s per 1,000 iterations)")
+    p.add_argument("--poses", choices=("star", "grid"),
+                   help="also give the drift at every pose: a reduced model per support pose (star: every axis at its "
+                   "travel ends with the others at --pose, 2n+1 poses; grid: all 3^n), each on its own FE model, "
+                   "outputs dx@k, dy@k, dz@k beside the model pose's; interpolated by hybridcomp.rom.poses.drift_along. "
+                   "The written model keeps no basis")
+    p.add_argument("--pose-enrich", type=int, metavar="N",
+                   help="with --poses: Krylov directions of each support pose's own system added to the carried basis "
+                   "(default 20)")
     p.add_argument("--no-basis", action="store_true",
                    help="do not store the basis V (smaller file, no full-field reconstruction)")
 
@@ -73,11 +83,16 @@ def run(args: argparse.Namespace) -> int:
          "h2 with --matrices needs --order (the H2-optimal basis is built for one order; to a tolerance use krylov)"),
         ("h2_maxiter", args.basis != "h2", "applies with --basis h2 only"),
         ("tol_K", matrices and args.order is not None, "has no effect with --matrices and --order (the order decides)"),
+        ("poses", matrices, fe_only),
+        ("pose_enrich", args.poses is None, "applies with --poses only"),
+        ("no_basis", args.poses is not None, "has no effect with --poses (a pose-aware model keeps no basis)"),
     ])
     if bad:
         print(f"error: {bad}", file=sys.stderr)
         return 2
     try:
+        if args.pose_enrich is not None and args.pose_enrich < 0:
+            raise ValueError(f"--pose-enrich must be a non-negative integer, got {args.pose_enrich}")
         if args.order is not None and args.order < 1:
             raise ValueError(f"--order must be a positive integer, got {args.order}")
         if args.h2_maxiter is not None and args.h2_maxiter < 0:
@@ -98,6 +113,10 @@ def run(args: argparse.Namespace) -> int:
         else:
             machine = load_machine(args.machine)
             pose = machine.check_pose(parse_pose(args.pose))
+            ends = [a.name for a in machine.axes if args.poses and pose[a.name] in a.travel_mm]
+            if ends:
+                raise ValueError(f"--poses needs the model's pose inside the travel: --pose puts {ends[0]} at a travel "
+                                 "end, where the support poses would coincide")
             check = read_loads(args.check_loads, machine) if args.check_loads else None
             if check is not None and len(check.time_s) < 2:
                 raise LoadsFileError(f"{args.check_loads}: needs at least two rows")
@@ -114,8 +133,17 @@ def run(args: argparse.Namespace) -> int:
         rom = reduce_model(model, tol_K=args.tol_K, tol_um=args.tol_um, order=args.order, h_range=args.h_range,
                            check_loads=check, keep_basis=not args.no_basis, basis=args.basis, progress=True,
                            **({} if args.h2_maxiter is None else {"h2_maxiter": args.h2_maxiter}))
+        if args.poses is not None:
+            from hybridcomp.rom.poses import DEFAULT_ENRICH, reduce_at_poses
+
+            print(f"reducing at the {args.poses} support poses ...", file=sys.stderr)
+            scale = None if check is None else np.abs(check.as_inputs(machine.reference_temperature_degC)).max(axis=0)
+            rom = reduce_at_poses(model, rom, args.poses, DEFAULT_ENRICH if args.pose_enrich is None else args.pose_enrich,
+                                  input_scale=scale, progress=True)
     save_rom(args.out, rom)
     summary = {"out": str(args.out), "order": rom.order, "seconds": round(time.perf_counter() - t0, 2)}
+    if rom.meta.get("poses"):
+        summary["support_poses"] = len(rom.meta["poses"]["poses"])
     if "check" in rom.meta:
         c = rom.meta["check"]
         summary.update(max_sensor_error_K=max(c["max_sensor_error_K"]), max_drift_error_um=max(c["max_drift_error_um"]),

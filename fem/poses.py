@@ -1,0 +1,209 @@
+"""The drift at any pose from one thermal model: drift rows at support poses and their interpolation.
+
+The thermal model is built at one pose (mid travel by default).  Its temperature field moves with the bodies: a
+body's field at another pose is the same field, carried along with the body.  At a support pose ``P`` the
+machine is meshed again and its elastic drift rows ``G_P`` (TCP minus table, three adjoint solves) are computed;
+the field of the thermal model is carried onto that mesh body by body (``Π_P``: each node of body b at ``P``
+takes the temperature of the same body point at the model's pose), so that ``R_P = G_P Π_P`` gives the drift at
+``P`` for the model's state.  Between support poses the rows are interpolated per axis with quadratic Lagrange
+polynomials through the travel's ends and the model's pose:
+
+* ``"star"`` (default, ``2 n + 1`` poses for ``n`` axes): each axis at its two ends with the others at the
+  model's pose; the pose dependence is taken as a sum over axes (no products of two axes' positions);
+* ``"grid"`` (``3^n`` poses): the full tensor grid, products included.
+
+What moves with the pose and what does not: the elastic problem (where each body sits, and so the lever arms of
+every tilt and the supports' reactions) is solved at each support pose; the temperature field is the model's,
+carried with the bodies, so the change of the heat paths between a moving body and its carrier with the pose is
+left out.  ``benchmarks/pose_drift.py`` measures both against FE models built at off-grid poses.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from hybridcomp.models.machine import Machine, MachineFileError
+
+SCHEMES = ("star", "grid")
+
+
+def _lagrange3(x: float, nodes: tuple[float, float, float]) -> np.ndarray:
+    """Quadratic Lagrange weights at ``x`` for three distinct nodes."""
+    a, b, c = nodes
+    return np.array([(x - b) * (x - c) / ((a - b) * (a - c)), (x - a) * (x - c) / ((b - a) * (b - c)),
+                     (x - a) * (x - b) / ((c - a) * (c - b))])
+
+
+@dataclass(frozen=True)
+class PoseGrid:
+    """Support poses over the workspace and the interpolation between them.
+
+    Attributes
+    ----------
+    axes : the axis names, in machine order
+    levels_mm : per axis (travel min, the model's pose, travel max) [mm]
+    scheme : ``"star"`` or ``"grid"`` (module docstring)
+    poses : the support poses, as level indices per axis (0 min, 1 model's pose, 2 max); the model's pose first
+    """
+
+    axes: tuple[str, ...]
+    levels_mm: tuple[tuple[float, float, float], ...]
+    scheme: str
+    poses: tuple[tuple[int, ...], ...]
+
+    def pose_mm(self, k: int) -> dict[str, float]:
+        """Support pose ``k`` in mm."""
+        return {a: self.levels_mm[i][j] for i, (a, j) in enumerate(zip(self.axes, self.poses[k]))}
+
+    def weights(self, pose_mm: dict[str, float]) -> np.ndarray:
+        """Interpolation weight of each support pose at ``pose_mm`` (axes left out: the model's pose); sum 1."""
+        unknown = set(pose_mm) - set(self.axes)
+        if unknown:
+            raise ValueError(f"pose names axes {sorted(unknown)} the machine has not (axes: {list(self.axes)})")
+        L = []
+        for a, lv in zip(self.axes, self.levels_mm):
+            x = float(pose_mm.get(a, lv[1]))
+            if not lv[0] - 1e-9 <= x <= lv[2] + 1e-9:
+                raise ValueError(f"pose {a} = {x:g} mm is outside the travel [{lv[0]:g}, {lv[2]:g}] mm")
+            L.append(_lagrange3(x, lv))
+        w = np.zeros(len(self.poses))
+        for k, levels in enumerate(self.poses):
+            if self.scheme == "grid":
+                w[k] = np.prod([L[i][j] for i, j in enumerate(levels)])
+            else:
+                moved = [i for i, j in enumerate(levels) if j != 1]
+                w[k] = L[moved[0]][levels[moved[0]]] if moved else 0.0
+        if self.scheme == "star":
+            w[0] = 1.0 - w.sum()
+        return w
+
+    def weights_along(self, positions_mm: np.ndarray) -> np.ndarray:
+        """Weights (nt × poses) for axis positions per row (nt × axes, machine order) [mm]."""
+        P = np.atleast_2d(np.asarray(positions_mm, float))
+        if P.shape[1] != len(self.axes):
+            raise ValueError(f"positions need one column per axis {list(self.axes)}, got shape {P.shape}")
+        return np.array([self.weights(dict(zip(self.axes, row))) for row in P])
+
+    def as_dict(self) -> dict:
+        return {"axes": list(self.axes), "levels_mm": [list(v) for v in self.levels_mm], "scheme": self.scheme,
+                "poses": [list(p) for p in self.poses]}
+
+    @staticmethod
+    def from_dict(d: dict) -> PoseGrid:
+        return PoseGrid(tuple(d["axes"]), tuple(tuple(float(x) for x in v) for v in d["levels_mm"]), d["scheme"],
+                        tuple(tuple(int(j) for j in p) for p in d["poses"]))
+
+
+def pose_grid(model, scheme: str = "star") -> PoseGrid:
+    """The support poses of an FE model's machine around the model's pose.
+
+    Raises
+    ------
+    MachineFileError
+        an imported mesh (it is drawn at one pose), or a model whose pose puts an axis at a travel end
+    """
+    machine: Machine = model.machine
+    if machine.mesh.file is not None:
+        raise MachineFileError(f"{machine.source}: the drift at other poses needs box bodies; an imported mesh is "
+                               "drawn at one pose")
+    levels = []
+    for a in machine.axes:
+        lo, hi = a.travel_mm
+        mid = float(model.mesh.pose_mm[a.name])
+        if not lo < mid < hi:
+            raise MachineFileError(f"{machine.source}: the model is built at {a.name} = {mid:g} mm, a travel end: the "
+                                   f"support poses need it inside ({lo:g}, {hi:g}) mm")
+        levels.append((float(lo), mid, float(hi)))
+    return PoseGrid(tuple(a.name for a in machine.axes), tuple(levels), scheme,
+                    support_poses(len(machine.axes), scheme))
+
+
+@dataclass(frozen=True)
+class PoseDrift:
+    """Drift rows of one thermal model's state at the support poses of a grid (the carried field).
+
+    ``rows`` (poses × 3 × n) [m/K]: the drift at support pose k is ``rows[k] @ x`` for the model's state ``x``.
+    """
+
+    grid: PoseGrid
+    rows: np.ndarray
+
+    def drift_rows(self, pose_mm: dict[str, float]) -> np.ndarray:
+        """Drift rows at a pose (3 × n) [m/K]: ``drift = rows @ x`` for the model's state ``x``."""
+        return np.tensordot(self.grid.weights(pose_mm), self.rows, axes=1)
+
+
+def support_poses(n_axes: int, scheme: str) -> tuple[tuple[int, ...], ...]:
+    """Level indices of the support poses: the model's pose first."""
+    if scheme not in SCHEMES:
+        raise ValueError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+    base = (1,) * n_axes
+    if scheme == "grid":
+        return (base,) + tuple(p for p in itertools.product((0, 1, 2), repeat=n_axes) if p != base)
+    out = [base]
+    for i in range(n_axes):
+        for j in (0, 2):
+            out.append(tuple(j if k == i else 1 for k in range(n_axes)))
+    return tuple(out)
+
+
+def carry_field(model, mm_pose) -> sp.csr_matrix:
+    """``Π`` (n_pose × n): the model's temperature field carried body by body onto a mesh at another pose."""
+    from hybridcomp.fem import assembly
+
+    machine: Machine = model.machine
+    src = model.mesh
+    rows, cols, vals = [], [], []
+    done = np.zeros(mm_pose.n_nodes, bool)
+    basis = assembly.cell_basis(src.mesh)
+    for bi, body in enumerate(mm_pose.body_names):
+        nodes = np.unique(mm_pose.mesh.t[:, mm_pose.body_of_element == bi])
+        nodes = nodes[~done[nodes]]
+        if nodes.size == 0:
+            continue
+        shift = (machine.body_offset_mm(body, src.pose_mm) - machine.body_offset_mm(body, mm_pose.pose_mm)) * 1e-3
+        pts = mm_pose.mesh.p[:, nodes] + shift[:, None]
+        cells = src.find_elements(pts, body=body)
+        if (cells < 0).any():
+            bad = pts[:, cells < 0][:, 0] * 1e3
+            raise MachineFileError(f"{machine.source}: body {body!r} at pose {mm_pose.pose_mm} has a node that is not "
+                                   f"in its mesh at pose {src.pose_mm} ({bad.round(3).tolist()} mm)")
+        P = assembly.probe_matrix(basis, pts, cells).tocoo()
+        rows.append(nodes[P.row])
+        cols.append(P.col)
+        vals.append(P.data)
+        done[nodes] = True
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(mm_pose.n_nodes, model.n))
+
+
+def pose_drift(model, scheme: str = "star", progress: bool = False) -> PoseDrift:
+    """The drift rows of an FE model's thermal state at the support poses of ``scheme``.
+
+    The model's field is carried with the bodies (module docstring).
+    """
+    from hybridcomp.fem import assembly
+    from hybridcomp.fem.mesh import mesh_machine
+    from hybridcomp.fem.model import _material_arrays, drift_rows
+
+    machine: Machine = model.machine
+    grid = pose_grid(model, scheme)
+    rows = np.empty((len(grid.poses), 3, model.n))
+    rows[0] = model.G
+    for k in _progress(range(1, len(grid.poses)), progress):
+        mm = mesh_machine(machine, grid.pose_mm(k), machine.mesh.element_size_mm)
+        G, _ = drift_rows(machine, mm, assembly.cell_basis(mm.mesh), _material_arrays(machine, mm))
+        rows[k] = np.asarray((carry_field(model, mm).T @ G.T).T)
+    return PoseDrift(grid, rows)
+
+
+def _progress(it, show: bool):
+    if not show:
+        return it
+    from tqdm import tqdm
+
+    return tqdm(it, unit="pose", desc="support poses", leave=False)

@@ -1,0 +1,130 @@
+"""A reduced structure model that gives the drift at every pose: one reduced model per support pose.
+
+The drift at a pose depends on where the moving bodies sit twice: in the elastic problem (lever arms, supports)
+and in the heat paths (the headstock heats the column where it touches it).  Carrying one thermal model's field
+with the bodies (:func:`hybridcomp.fem.poses.pose_drift`) gets the first and misses the second: on vmc800 its
+z error reaches 2.7 µm at off-grid poses (``benchmarks/pose_drift.py``).  Here every support pose of a
+:class:`~hybridcomp.fem.poses.PoseGrid` gets its own FE model (thermal and elastic, built at that pose) and its own
+reduced model, cheaply: the basis is the model-pose reduced model's basis carried with the bodies onto that pose's
+mesh (:func:`~hybridcomp.fem.poses.carry_field`), extended by ``enrich`` rational Krylov directions of that pose's
+own system (its steady state exact), and the pose's operators are projected on it (one-sided Galerkin: symmetric
+and stable like every reduced model here).  No FE check runs per pose: the benchmark checks the result.
+
+The result is one :class:`~hybridcomp.rom.reduced.ReducedModel`, block diagonal: the model pose's reduced model
+first, unchanged (its sensors and drift are the first outputs, so everything that reads a reduced model reads this
+one), then per further support pose its drift ``dx@k``, ``dy@k``, ``dz@k``.  ``meta["poses"]`` holds the grid;
+:func:`drift_along` interpolates the drift at the axis positions of every time.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.linalg as la
+
+from hybridcomp.fem.poses import PoseGrid, carry_field, pose_grid
+from hybridcomp.models.layout import DRIFT_OUTPUTS
+from hybridcomp.rom.krylov import Reductor, orthonormal_extension, project
+from hybridcomp.rom.reduced import ReducedModel, RomInputError
+
+#: Krylov directions of a support pose's own system added to the carried basis
+DEFAULT_ENRICH = 20
+
+
+def pose_output_names(k: int) -> tuple[str, ...]:
+    """Output names of the drift at support pose ``k`` (k ≥ 1)."""
+    return tuple(f"{d}@{k}" for d in DRIFT_OUTPUTS)
+
+
+def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int = DEFAULT_ENRICH,
+                    input_scale: np.ndarray | None = None, progress: bool = False) -> ReducedModel:
+    """The pose-aware reduced model of an FE model and its reduced model (module docstring).
+
+    Parameters
+    ----------
+    model : the FE model ``rom`` was reduced from (:class:`~hybridcomp.fem.model.ThermoElasticModel`)
+    rom : its reduced model, with its basis ``V``
+    scheme : the support poses, ``"star"`` (2 n + 1) or ``"grid"`` (3^n)
+    enrich : Krylov directions of each support pose's own system added to the carried basis
+    input_scale : typical magnitude per input (W, K) for choosing those directions (default: 16 h example day)
+    progress : a progress bar over the support poses (stderr)
+    """
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.rom.machine import h_samples, system_from_model
+
+    if rom.V is None:
+        raise RomInputError("the pose-aware model carries the reduced model's basis: reduce with the basis kept")
+    if rom.V.shape[0] != model.n:
+        raise RomInputError(f"the reduced model's basis has {rom.V.shape[0]} rows, the FE model {model.n} nodes")
+    if rom.meta.get("poses"):
+        raise RomInputError("this reduced model is pose-aware already")
+    t0 = time.perf_counter()
+    machine = model.machine
+    grid = pose_grid(model, scheme)
+    if input_scale is None:
+        from hybridcomp.fem.loads import example_loads
+
+        U = example_loads(machine, 16.0, 60.0).as_inputs(machine.reference_temperature_degC)
+        input_scale = np.abs(U).max(axis=0)
+    scale = np.where(np.asarray(input_scale) > 0, input_scale, 1.0)
+    ns = len(model.sensor_names)
+    tol = np.r_[np.full(ns, rom.meta.get("tol_K", 0.05)), np.full(3, rom.meta.get("tol_um", 0.2) * 1e-6)]
+    blocks, names, orders = [], [], [rom.order]
+    poses = range(1, len(grid.poses))
+    if progress:
+        from tqdm import tqdm
+
+        poses = tqdm(poses, unit="pose", desc="support poses", leave=False)
+    for k in poses:
+        fe = build_model(machine, grid.pose_mm(k), machine.mesh.element_size_mm)
+        system = system_from_model(fe)
+        V = la.qr(carry_field(model, fe.mesh) @ rom.V, mode="economic")[0]
+        if enrich > 0:
+            own = Reductor(system, tol, scale, h_samples(fe.h_W_m2K, tuple(rom.meta.get("h_range", (0.5, 2.0)))))
+            V = np.hstack([V, orthonormal_extension(V, own.reduce(order=enrich).V)])
+        P = project(system, V)
+        blocks.append((P["M"], P["K"], P["H"], P["B"], P["Hb"], P["C"][ns:ns + 3]))
+        names += pose_output_names(k)
+        orders.append(V.shape[1])
+    M = la.block_diag(rom.M, *(b[0] for b in blocks))
+    K = la.block_diag(rom.K, *(b[1] for b in blocks))
+    H = np.array([la.block_diag(rom.H[i], *(b[2][i] for b in blocks)) for i in range(len(rom.h_W_m2K))])
+    H = H.reshape(len(rom.h_W_m2K), M.shape[0], M.shape[0])
+    B = np.vstack([rom.B] + [b[3] for b in blocks])
+    Hb = np.vstack([rom.Hb] + [b[4] for b in blocks])
+    C = la.block_diag(rom.C, *(b[5] for b in blocks))
+    meta = {**rom.meta, "poses": grid.as_dict() | {"orders": orders, "enrich": enrich,
+                                                   "build_s": time.perf_counter() - t0}}
+    return ReducedModel(M=M, K=K, H=H, h_W_m2K=np.asarray(rom.h_W_m2K, float), B=B, Hb=Hb, C=C,
+                        input_names=rom.input_names, output_names=tuple(rom.output_names) + tuple(names), meta=meta)
+
+
+def grid_of(rom: ReducedModel) -> PoseGrid:
+    """The support poses of a pose-aware reduced model."""
+    d = rom.meta.get("poses")
+    if not d:
+        raise RomInputError("this reduced model knows one pose only (reduce with --poses)")
+    return PoseGrid.from_dict(d)
+
+
+def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray) -> np.ndarray:
+    """The drift [µm] (nt × 3) at the axis positions of every row, from a pose-aware model's outputs ``Y``.
+
+    Parameters
+    ----------
+    rom : a pose-aware reduced model (:func:`reduce_at_poses`)
+    Y : its outputs (nt × q), from :meth:`~hybridcomp.rom.reduced.ReducedModel.integrate`
+    positions_mm : axis positions per row (nt × axes, machine order), or one row for every time [mm]
+    """
+    grid = grid_of(rom)
+    ns = int(rom.meta["n_sensors"])
+    idx = [list(range(ns, ns + 3))] + [[rom.output_names.index(n) for n in pose_output_names(k)]
+                                       for k in range(1, len(grid.poses))]
+    D = np.stack([Y[:, i] for i in idx], axis=1) * 1e6  # nt × poses × 3
+    W = grid.weights_along(positions_mm)
+    if W.shape[0] == 1:
+        W = np.repeat(W, Y.shape[0], axis=0)
+    if W.shape[0] != Y.shape[0]:
+        raise ValueError(f"{W.shape[0]} rows of positions for {Y.shape[0]} rows of outputs")
+    return np.einsum("tk,tkd->td", W, D)
