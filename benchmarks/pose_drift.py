@@ -109,7 +109,7 @@ def main(argv=None) -> int:
         rng_um = np.ptp(ref, axis=0)
         limit = np.maximum(0.3, 0.05 * rng_um)
         cand = {"mid pose only": base.drift_um,
-                "pose-aware ROM (star)": drift_along(prom, Y, np.array([[pose[n] for n in grid.axes]]))}
+                "pose-aware ROM (star)": drift_along(prom, Y, np.array([[pose[n] for n in grid.axes]]), feedback=False)}
         cand |= {f"carried field ({scheme})": X @ pd.drift_rows(pose).T * 1e6 for scheme, pd in schemes.items()}
         if pose_runs is not None:
             cand["FE at the support poses (star)"] = np.tensordot(grid.weights(pose), np.array(pose_runs), axes=1)

@@ -106,7 +106,8 @@ class ScrewModel:
     """The 1D thermal model of one ball screw (SI operators on the nodes ``s_mm``).
 
     ``M x' + A x = Bu u`` with ``x`` the temperature rise [K] and ``u`` the machine's inputs in layout order
-    (heat inputs [W], zone air rises [K]).
+    (heat inputs [W], zone air rises [K]); ``A = K + H``: conduction along the screw and convection from its
+    surface at ``screw_h_W_m2K``.
     """
 
     drive: Drive
@@ -114,6 +115,8 @@ class ScrewModel:
     M: sp.csr_matrix
     A: sp.csr_matrix
     Bu: np.ndarray
+    K: sp.csr_matrix
+    H: sp.csr_matrix
     alpha_1_K: float
     s_fixed_mm: float
     s_other_mm: float
@@ -219,7 +222,7 @@ def build_screw(machine: Machine, drive: Drive, element_mm: float = SCREW_ELEMEN
             Bu[:, cols[k]] += drive.nut_screw_W / nut.power_W * _interval_column(s, nut_at + a, nut_at + b)
     zone = layout.zones.index(drive.screw_zone)
     Bu[:, len(layout.heat_inputs) + zone] = H @ np.ones(s.size)
-    return ScrewModel(drive=drive, s_mm=s, M=M, A=(K + H).tocsr(), Bu=Bu, alpha_1_K=mat.expansion_1_K,
+    return ScrewModel(drive=drive, s_mm=s, M=M, A=(K + H).tocsr(), Bu=Bu, K=K, H=H, alpha_1_K=mat.expansion_1_K,
                       s_fixed_mm=s_fixed, s_other_mm=s_other, nut_at_mm=nut_at, layout=layout)
 
 

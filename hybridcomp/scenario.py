@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import csv
+import dataclasses
 import logging
 import math
 import shutil
@@ -185,7 +186,8 @@ class Models:
     """What the scenario's monitor knows, built once per machine file and mesh.
 
     The FE model, the structure model (saved), the default CDs of the basic load cases and a CD database holding
-    them (activated).
+    them (activated); with ``poses`` also the pose-aware structure model (:mod:`hybridcomp.rom.poses`: the drift at
+    every pose and the feed drives' errors) for the evaluation along the path.
     """
 
     machine: object
@@ -197,10 +199,11 @@ class Models:
     train: object
     database: Path
     timings_s: dict
+    pose_rom: object | None = None
 
 
 def build_models(out_dir, machine_name: str = "vmc800", element_size_mm: float = 80.0, rom_order: int | None = None,
-                 basic_hours: float = 8.0, dt_s: float = 60.0, keep_basis: bool = False) -> Models:
+                 basic_hours: float = 8.0, dt_s: float = 60.0, keep_basis: bool = False, poses: bool = False) -> Models:
     """The models of a scenario (see :class:`Models`), written into ``out_dir``."""
     from hybridcomp.chardiag.cd import pose_key
     from hybridcomp.chardiag.db import CDDatabase
@@ -218,7 +221,16 @@ def build_models(out_dir, machine_name: str = "vmc800", element_size_mm: float =
     timings = {}
     t0 = time.perf_counter()
     model = build_model(machine, pose, element_size_mm)
-    rom = reduce_model(model, order=rom_order, keep_basis=keep_basis)
+    rom = reduce_model(model, order=rom_order, keep_basis=keep_basis or poses)
+    pose_rom = None
+    if poses:
+        from hybridcomp.rom.poses import reduce_at_poses
+
+        t1 = time.perf_counter()
+        pose_rom = reduce_at_poses(model, rom, "star")
+        timings["pose_reduction_s"] = time.perf_counter() - t1
+        if not keep_basis:
+            rom = dataclasses.replace(rom, V=None, _cache={})
     rom_path = save_rom(out / "structure.rom.npz", rom)
     timings["reduction_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -234,7 +246,7 @@ def build_models(out_dir, machine_name: str = "vmc800", element_size_mm: float =
         db.activate(machine.name, pose_key(pose), db.add_set(default, "basic"), "default CDs of the basic load cases", 0.0)
     finally:
         db.close()
-    return Models(machine, pose, model, rom, rom_path, default, train, database, timings)
+    return Models(machine, pose, model, rom, rom_path, default, train, database, timings, pose_rom)
 
 
 @dataclass(frozen=True)
@@ -278,7 +290,7 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
                  trace_rate_hz: float = 1.0, sensor_noise_K: float = 0.02, probe_every_h: float | None = 4.0,
                  probe_noise_um: float = 0.3, strategies: Sequence[str] = STRATEGIES, plot: bool = True,
                  keep_basis: bool = False, seed: int = 0, monitor_overrides: dict | None = None,
-                 models: Models | None = None) -> ScenarioResult:
+                 models: Models | None = None, along_path: bool = False) -> ScenarioResult:
     """Run the hybrid scenario end to end (see the module docstring) and write table, plot and events.
 
     Parameters
@@ -304,6 +316,10 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     monitor_overrides : extra sections for the daemon's configuration (``{"validity": {...}}``)
     models : the models, built by :func:`build_models` (default: built here, into ``out_dir``); several
         disturbances of one machine share them
+    along_path : also judge every strategy at the commanded position of the trace at each time, where the drift
+        depends on the pose and the feed drives' errors on the axis positions (needs the models' pose-aware
+        structure model: built here when ``models`` has none); adds ``table_along_path.md`` and the summary's
+        ``along_path``
 
     Besides the table, plot and events, ``recorded.csv`` holds what a measuring campaign would have recorded
     on the real machine: the trace (positions, spindle speed, workshop air), the sensors and the drift.
@@ -326,7 +342,9 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     t_all = time.perf_counter()
     rng = np.random.default_rng(seed)
     if models is None:
-        models = build_models(out, machine_name, element_size_mm, rom_order, basic_hours, dt_s, keep_basis)
+        models = build_models(out, machine_name, element_size_mm, rom_order, basic_hours, dt_s, keep_basis, along_path)
+    if along_path and models.pose_rom is None:
+        raise ValueError("along_path needs the models' pose-aware structure model: build_models(..., poses=True)")
     timings = dict(models.timings_s)
     machine, pose, model, rom = models.machine, models.pose_mm, models.model, models.rom
     pkey = pose_key(pose)
@@ -404,6 +422,11 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
         m["largest_step_um"] = r["largest_step_um"]
         m["generations"] = r["generations"]
     table = metrics_table(metrics)
+    path_summary = None
+    if along_path:
+        t0 = time.perf_counter()
+        path_summary = _along_path(out, models, controller, t, loads, real_loads, truth, preds)
+        timings["along_path_s"] = time.perf_counter() - t0
 
     # 7. files: table, per-minute residuals, events, plot
     (out / "table.md").write_text(table + "\n")
@@ -428,12 +451,63 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
         "largest_step_um": {s: r["largest_step_um"] for s, r in runs.items()},
         "timings_s": {**timings, "total": time.perf_counter() - t_all},
     }
+    if path_summary is not None:
+        summary["along_path"] = path_summary
     (out / "summary.json").write_text(jsonio.dumps(summary, indent=1))
     return ScenarioResult(metrics, table, all_events,
                           {"table": out / "table.md", "plot": plot_path, "events": out / "events.json",
                            "residuals": out / "residuals.csv", "recorded": recorded, "rom": models.rom_path,
                            "controller": controller, "trace": trace},
                           summary)
+
+
+PATH_STRATEGY = "ROM direct along the path"
+
+
+def trace_positions(machine, trace: Path, t: np.ndarray) -> np.ndarray:
+    """The commanded axis positions of a trace at the times ``t`` (the last sample at or before each) (nt × axes)."""
+    from hybridcomp.histogram.trace import read_trace_chunks
+
+    chunks = list(read_trace_chunks(trace, machine))
+    ts = np.concatenate([c.time_s for c in chunks])
+    P = np.vstack([c.position_mm for c in chunks])
+    k = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 1)
+    return P[k]
+
+
+def _along_path(out: Path, models: Models, controller: Path, t, loads, real_loads, truth, preds) -> dict:
+    """Judge the strategies at the trace's commanded positions (``run_scenario(along_path=True)``).
+
+    The true drift along the path is the real machine's at the model's pose plus what the pose adds: the pose-aware
+    structure model driven by the real machine's loads (its disturbance's heat and air, for the inputs the models
+    know) gives the drift at the path's pose, the drives' errors included, less its drift at the model's pose.
+    Every single-pose strategy compensates at the model's pose; ``ROM direct along the path`` is the pose-aware
+    model on the models' loads at the path's pose.
+    """
+    from hybridcomp.rom.poses import drift_along
+
+    prom = models.pose_rom
+    machine = models.machine
+    positions = trace_positions(machine, controller, t)
+    layout = prom.layout()
+    known = [j for j, n in enumerate(real_loads.names) if n in layout.columns]
+    values = np.column_stack([np.interp(t, real_loads.time_s, real_loads.values[:, j]) for j in known])
+    Y_real, _ = prom.integrate(t, layout.inputs([real_loads.names[j] for j in known], values, "real machine"))
+    ns = len(layout.sensors)
+    added = drift_along(prom, Y_real, positions) - Y_real[:, ns:ns + 3] * 1e6
+    truth_path = truth + added
+    Y, _ = prom.integrate(t, layout.inputs(loads.names, loads.values, "loads"))
+    path_preds = {k: p for k, p in preds.items() if k != BOUND} | {PATH_STRATEGY: drift_along(prom, Y, positions)}
+    m = {k: drift_metrics(t, truth_path - p) for k, p in path_preds.items()}
+    (out / "table_along_path.md").write_text(metrics_table(m) + "\n")
+    return {
+        "rms_3d_um": {k: v["3d"]["rms_um"] for k, v in m.items()},
+        "p2p_3d_um": {k: v["3d"]["p2p_um"] for k, v in m.items()},
+        "position_dependent_um": {d: float(np.ptp(added[:, j])) for j, d in enumerate(DIRS)},
+        "positions_mm": {a.name: [float(positions[:, i].min()), float(positions[:, i].max())]
+                         for i, a in enumerate(machine.axes)},
+        "metrics": m,
+    }
 
 
 def _fresh_db(path: Path) -> None:

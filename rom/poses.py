@@ -10,10 +10,17 @@ mesh (:func:`~hybridcomp.fem.poses.carry_field`), extended by ``enrich`` rationa
 own system (its steady state exact), and the pose's operators are projected on it (one-sided Galerkin: symmetric
 and stable like every reduced model here).  No FE check runs per pose: the benchmark checks the result.
 
+The feed drives (``[[drives]]``) come along: a screw's 1D thermal model is a block of its own (full order, a
+hundred-odd nodes; its convection enters as part of its zone's, scaled to the screw's coefficient, so a changed
+zone coefficient scales both alike), a linear scale's error is an output of the model pose's block (its carrier's
+field at the model's pose).  Their outputs are the positioning errors ``e<AXIS>@<x>`` [m] at ``FEEDBACK_POINTS``
+positions over each axis' travel.
+
 The result is one :class:`~hybridcomp.rom.reduced.ReducedModel`, block diagonal: the model pose's reduced model
 first, unchanged (its sensors and drift are the first outputs, so everything that reads a reduced model reads this
-one), then per further support pose its drift ``dx@k``, ``dy@k``, ``dz@k``.  ``meta["poses"]`` holds the grid;
-:func:`drift_along` interpolates the drift at the axis positions of every time.
+one), then per further support pose its drift ``dx@k``, ``dy@k``, ``dz@k``, then the screws.  ``meta["poses"]``
+holds the grid, ``meta["feedback"]`` the drives; :func:`drift_along` gives the drift, TCP minus table, at the axis
+positions of every time: the support poses interpolated plus every drive's error at its axis' position.
 """
 
 from __future__ import annotations
@@ -23,6 +30,8 @@ import time
 import numpy as np
 import scipy.linalg as la
 
+from hybridcomp.fem.drives import build_screw, scale_line
+from hybridcomp.fem.iso230 import axis_sign
 from hybridcomp.fem.poses import PoseGrid, carry_field, pose_grid
 from hybridcomp.models.layout import DRIFT_OUTPUTS
 from hybridcomp.rom.krylov import Reductor, orthonormal_extension, project
@@ -30,6 +39,8 @@ from hybridcomp.rom.reduced import ReducedModel, RomInputError
 
 #: Krylov directions of a support pose's own system added to the carried basis
 DEFAULT_ENRICH = 20
+#: positions over each axis' travel at which a drive's positioning error is an output (linear between them)
+FEEDBACK_POINTS = 17
 
 
 def pose_output_names(k: int) -> tuple[str, ...]:
@@ -38,7 +49,7 @@ def pose_output_names(k: int) -> tuple[str, ...]:
 
 
 def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int = DEFAULT_ENRICH,
-                    input_scale: np.ndarray | None = None, progress: bool = False) -> ReducedModel:
+                    input_scale: np.ndarray | None = None, drives: bool = True, progress: bool = False) -> ReducedModel:
     """The pose-aware reduced model of an FE model and its reduced model (module docstring).
 
     Parameters
@@ -48,6 +59,7 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     scheme : the support poses, ``"star"`` (2 n + 1) or ``"grid"`` (3^n)
     enrich : Krylov directions of each support pose's own system added to the carried basis
     input_scale : typical magnitude per input (W, K) for choosing those directions (default: 16 h example day)
+    drives : include the machine's feed drives (their positioning errors)
     progress : a progress bar over the support poses (stderr)
     """
     from hybridcomp.fem.model import build_model
@@ -71,6 +83,7 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     ns = len(model.sensor_names)
     tol = np.r_[np.full(ns, rom.meta.get("tol_K", 0.05)), np.full(3, rom.meta.get("tol_um", 0.2) * 1e-6)]
     blocks, names, orders = [], [], [rom.order]
+    mid_C, mid_names, feedback = rom.C, (), {}
     poses = range(1, len(grid.poses))
     if progress:
         from tqdm import tqdm
@@ -87,17 +100,39 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
         blocks.append((P["M"], P["K"], P["H"], P["B"], P["Hb"], P["C"][ns:ns + 3]))
         names += pose_output_names(k)
         orders.append(V.shape[1])
+    for drive in machine.drives if drives else ():
+        positions = np.linspace(*machine.axis(drive.axis).travel_mm, FEEDBACK_POINTS)
+        out = tuple(f"e{drive.axis}@{p:g}" for p in positions)
+        feedback[drive.axis] = {"feedback": drive.feedback, "positions_mm": positions.tolist(), "outputs": list(out),
+                                "direction": machine.axis(drive.axis).direction,
+                                "sign": axis_sign(machine, drive.axis)}
+        if drive.feedback == "linear_scale":  # the carrier's field at the model's pose: rows of the first block
+            mid_C = np.vstack([mid_C, scale_line(model, drive).error_rows(positions) @ rom.V * 1e-6])
+            mid_names += out
+            continue
+        screw = build_screw(machine, drive)
+        z = machine.layout().zones.index(drive.screw_zone)
+        h_zone = float(rom.h_W_m2K[z])
+        Hs = np.zeros((len(rom.h_W_m2K),) + screw.M.shape)
+        Hs[z] = screw.H.toarray() / h_zone  # so that h_zone * Hs[z] is the screw's own convection
+        m = len(machine.layout().heat_inputs)
+        blocks.append((screw.M.toarray(), screw.K.toarray(), Hs, screw.Bu[:, :m], Hs.sum(axis=2).T,
+                       screw.error_rows(positions) * 1e-6))
+        names += out
+        orders.append(screw.s_mm.size)
     M = la.block_diag(rom.M, *(b[0] for b in blocks))
     K = la.block_diag(rom.K, *(b[1] for b in blocks))
     H = np.array([la.block_diag(rom.H[i], *(b[2][i] for b in blocks)) for i in range(len(rom.h_W_m2K))])
     H = H.reshape(len(rom.h_W_m2K), M.shape[0], M.shape[0])
     B = np.vstack([rom.B] + [b[3] for b in blocks])
     Hb = np.vstack([rom.Hb] + [b[4] for b in blocks])
-    C = la.block_diag(rom.C, *(b[5] for b in blocks))
+    C = la.block_diag(mid_C, *(b[5] for b in blocks))
     meta = {**rom.meta, "poses": grid.as_dict() | {"orders": orders, "enrich": enrich,
-                                                   "build_s": time.perf_counter() - t0}}
+                                                   "build_s": time.perf_counter() - t0},
+            "feedback": feedback}
     return ReducedModel(M=M, K=K, H=H, h_W_m2K=np.asarray(rom.h_W_m2K, float), B=B, Hb=Hb, C=C,
-                        input_names=rom.input_names, output_names=tuple(rom.output_names) + tuple(names), meta=meta)
+                        input_names=rom.input_names,
+                        output_names=tuple(rom.output_names) + mid_names + tuple(names), meta=meta)
 
 
 def grid_of(rom: ReducedModel) -> PoseGrid:
@@ -108,14 +143,18 @@ def grid_of(rom: ReducedModel) -> PoseGrid:
     return PoseGrid.from_dict(d)
 
 
-def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray) -> np.ndarray:
-    """The drift [µm] (nt × 3) at the axis positions of every row, from a pose-aware model's outputs ``Y``.
+def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray, feedback: bool = True) -> np.ndarray:
+    """The drift [µm] (nt × 3), TCP minus table, at the axis positions of every row, from a pose-aware model.
+
+    The structure's drift interpolated between the support poses, plus (``feedback``) every drive's positioning
+    error at its axis' position (linear between its output positions), with the sign of the side the axis moves.
 
     Parameters
     ----------
     rom : a pose-aware reduced model (:func:`reduce_at_poses`)
     Y : its outputs (nt × q), from :meth:`~hybridcomp.rom.reduced.ReducedModel.integrate`
     positions_mm : axis positions per row (nt × axes, machine order), or one row for every time [mm]
+    feedback : add the drives' positioning errors
     """
     grid = grid_of(rom)
     ns = int(rom.meta["n_sensors"])
@@ -127,4 +166,14 @@ def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray) -> n
         W = np.repeat(W, Y.shape[0], axis=0)
     if W.shape[0] != Y.shape[0]:
         raise ValueError(f"{W.shape[0]} rows of positions for {Y.shape[0]} rows of outputs")
-    return np.einsum("tk,tkd->td", W, D)
+    drift = np.einsum("tk,tkd->td", W, D)
+    if feedback:
+        P = np.atleast_2d(np.asarray(positions_mm, float))
+        P = np.repeat(P, Y.shape[0], axis=0) if P.shape[0] == 1 else P
+        for axis, fb in rom.meta.get("feedback", {}).items():
+            cols = [rom.output_names.index(n) for n in fb["outputs"]]
+            x = P[:, grid.axes.index(axis)]
+            E = Y[:, cols] * 1e6
+            e = np.array([np.interp(x[t], fb["positions_mm"], E[t]) for t in range(Y.shape[0])])
+            drift[:, fb["direction"]] += fb["sign"] * e
+    return drift

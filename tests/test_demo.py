@@ -43,4 +43,12 @@ def test_short_demo_names_the_planted_cause_and_hybrid_beats_static(tmp_path, mo
     report = (out / "report.md").read_text()
     assert "| hybrid after diagnosis |" in report and "spindle_bearing_front" in report
     assert (out / "diagnosis" / "machine_extended.toml").is_file()
+    # along the path the screws' elongation is tens of µm a one-pose compensation cannot see; the pose-aware
+    # structure model, with the drives, can
+    p = s["along_path"]
+    assert p["position_dependent_um"]["dx_um"] > 10 and p["position_dependent_um"]["dy_um"] > 10
+    a = p["residual_3d"]
+    assert a["ROM direct"]["rms_um"] > r["ROM direct"]["rms_um"] + 5  # one pose: blind to the screws
+    assert a["ROM direct along the path"]["rms_um"] < r["ROM direct"]["rms_um"] + 1.0  # as good as at its own pose
+    assert "## Along the path" in report
     assert main(["demo", "--out", str(out), "--day-hours", "17"]) == 2

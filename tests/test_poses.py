@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 
 from hybridcomp.cli import main
+from hybridcomp.fem.drives import build_screw, scale_line
 from hybridcomp.fem.loads import example_loads
 from hybridcomp.fem.mesh import mesh_machine
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.poses import PoseGrid, carry_field, pose_drift, support_poses
 from hybridcomp.models import load_machine
 from hybridcomp.rom.machine import reduce_model
-from hybridcomp.rom.poses import drift_along, grid_of, reduce_at_poses
+from hybridcomp.rom.poses import FEEDBACK_POINTS, drift_along, grid_of, reduce_at_poses
 from hybridcomp.rom.reduced import load_rom, save_rom
 
 H_MM = 200.0
@@ -27,7 +28,17 @@ def vmc():
 
 @pytest.fixture(scope="module")
 def model(vmc):
-    return build_model(vmc, None, H_MM)
+    return pose_rom_model(vmc)
+
+
+_MODELS: dict = {}
+
+
+def pose_rom_model(vmc):
+    """The FE model at mid travel (built once per module)."""
+    if "mid" not in _MODELS:
+        _MODELS["mid"] = build_model(vmc, None, H_MM)
+    return _MODELS["mid"]
 
 
 @pytest.fixture(scope="module")
@@ -104,7 +115,34 @@ def test_pose_aware_rom_keeps_the_model_pose_outputs(pose_rom, loads):
     a, b = rom.simulate(loads), pr.simulate(loads)
     np.testing.assert_allclose(b.drift_um, a.drift_um, atol=1e-9)
     np.testing.assert_allclose(b.sensors_degC, a.sensors_degC, atol=1e-12)
-    assert pr.order == sum(pr.meta["poses"]["orders"]) and len(pr.output_names) == rom.C.shape[0] + 18
+    assert pr.order == sum(pr.meta["poses"]["orders"])
+    assert len(pr.output_names) == rom.C.shape[0] + 18 + 3 * FEEDBACK_POINTS  # 6 poses' drift, 3 drives' errors
+
+
+def test_pose_aware_rom_carries_the_drives_exactly(vmc, pose_rom, loads):
+    rom, pr = pose_rom
+    u = pr.layout().inputs(loads.names, loads.values)[25]
+    y = pr.outputs(pr.steady_state(u))
+    x_mid = pr.steady_state(u)[:rom.order]
+    for axis in "XYZ":
+        fb = pr.meta["feedback"][axis]
+        got = y[[pr.output_names.index(n) for n in fb["outputs"]]] * 1e6
+        if fb["feedback"] == "rotary_encoder":  # the screw's own block: its steady state is the screw model's
+            screw = build_screw(vmc, vmc.drive(axis))
+            want = screw.error_rows(fb["positions_mm"]) @ screw.steady(u)
+        else:  # the scale on the model pose's field
+            want = scale_line(pose_rom_model(vmc), vmc.drive(axis)).error_rows(fb["positions_mm"]) @ (rom.V @ x_mid)
+        np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-9)
+    # along a path the drift is the structure's plus each drive's error, signed by the side the axis moves
+    Y = y[None, :]
+    at = np.array([[123.0, -40.0, 77.0]])
+    with_fb, without = drift_along(pr, Y, at), drift_along(pr, Y, at, feedback=False)
+    fb = pr.meta["feedback"]["X"]
+    e_x = np.interp(123.0, fb["positions_mm"], y[[pr.output_names.index(n) for n in fb["outputs"]]] * 1e6)
+    fb_z = pr.meta["feedback"]["Z"]
+    e_z = np.interp(77.0, fb_z["positions_mm"], y[[pr.output_names.index(n) for n in fb_z["outputs"]]] * 1e6)
+    assert with_fb[0, 0] - without[0, 0] == pytest.approx(-e_x, rel=1e-12)  # X moves the table
+    assert with_fb[0, 2] - without[0, 2] == pytest.approx(e_z, rel=1e-12)  # Z moves the tool
 
 
 def test_pose_aware_rom_matches_fe_at_a_support_pose_and_beats_the_model_pose_off_grid(vmc, pose_rom, loads):
@@ -115,11 +153,11 @@ def test_pose_aware_rom_matches_fe_at_a_support_pose_and_beats_the_model_pose_of
     k = 2  # X at its upper end
     at = grid.pose_mm(k)
     fe = build_model(vmc, at, H_MM).simulate(loads, theta=0.5).drift_um
-    got = drift_along(pr, Y, np.array([[at[a] for a in grid.axes]]))
+    got = drift_along(pr, Y, np.array([[at[a] for a in grid.axes]]), feedback=False)  # FE knows the structure only
     assert np.abs(got - fe).max() < pr.meta["tol_um"]
     off = {"X": 250.0, "Y": -180.0, "Z": 160.0}
     fe = build_model(vmc, off, H_MM).simulate(loads, theta=0.5).drift_um
-    got = drift_along(pr, Y, np.array([[off[a] for a in grid.axes]]))
+    got = drift_along(pr, Y, np.array([[off[a] for a in grid.axes]]), feedback=False)
     mid_only = pr.simulate(loads).drift_um
     # on this coarse mesh the grid itself changes with the pose (the FE models at support poses, interpolated,
     # miss by as much): the accuracy criterion is benchmarks/pose_drift.py's, on finer meshes
