@@ -60,6 +60,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"  heat inputs ({len(m.heat_inputs())}): {', '.join(f'{q}_W' for q in m.heat_inputs())}")
     print(f"  zones: {', '.join(f'{z.name}_degC (h = {z.h_W_m2K} W/m2K, {z.air})' for z in m.zones)}")
     print(f"  sensors: {', '.join(s.name + '@' + s.body for s in m.sensors)}")
+    for d in m.drives:
+        where = f"scale on {d.scale_body}, {d.scale_expansion_1_K:g} 1/K" if d.feedback == "linear_scale" else \
+            f"screw {d.screw_diameter_mm:g} x {d.screw_lead_mm:g} mm, {d.mounting}"
+        print(f"  drive {d.axis}: {d.feedback.replace('_', ' ')} ({where}; bearings {d.fixed_bearing}, "
+              f"{d.floating_bearing}; nut {d.nut})")
     if args.mesh:
         from hybridcomp.fem.mesh import mesh_machine
 

@@ -57,6 +57,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     c.add_argument("--day-hours", type=float, default=None, help="replay only the first hours of the day (default 16)")
     c.add_argument("--rom-order", type=int, default=None, help="order of the structure model (default: to tolerance)")
     c.add_argument("--basic-hours", type=float, default=8.0, help="heating hours of each basic load case (default 8)")
+    c.add_argument("--along-path", action="store_true",
+                   help="also judge every strategy at the trace's commanded position at each time, where the drift "
+                   "depends on the pose and the feed drives' errors on the axis positions (builds the pose-aware "
+                   "structure model; writes table_along_path.md, summary 'along_path')")
 
 
 def _disturbance_names() -> list[str]:
@@ -94,8 +98,10 @@ def run(args: argparse.Namespace) -> int:
                                  f"{', '.join(DISTURBANCES)})")
             res = run_scenario(args.out, disturbance=DISTURBANCES[args.disturbance],
                                element_size_mm=args.element_size_mm, rom_order=args.rom_order,
-                               basic_hours=args.basic_hours, day_hours=args.day_hours)
+                               basic_hours=args.basic_hours, day_hours=args.day_hours, along_path=args.along_path)
             print(res.table)
+            if args.along_path:
+                print("\nalong the path:\n" + (Path(res.files["table"]).parent / "table_along_path.md").read_text())
             print(jsonio.dumps(res.summary))
             return 0
     except (ConfigError, ValueError, OSError, HybridcompError) as exc:

@@ -58,6 +58,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pose-enrich", type=int, metavar="N",
                    help="with --poses: Krylov directions of each support pose's own system added to the carried basis "
                    "(default 20)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="with --poses: build and reduce the support poses as an FE batch on N local worker processes "
+                   "(default 1: here, one after another)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="with --poses: run the support poses on a Dask cluster instead: 'local' (a LocalCluster of "
+                   "--workers processes) or a scheduler address tcp://HOST:PORT (needs the dask extra)")
     p.add_argument("--no-basis", action="store_true",
                    help="do not store the basis V (smaller file, no full-field reconstruction)")
 
@@ -85,12 +91,18 @@ def run(args: argparse.Namespace) -> int:
         ("tol_K", matrices and args.order is not None, "has no effect with --matrices and --order (the order decides)"),
         ("poses", matrices, fe_only),
         ("pose_enrich", args.poses is None, "applies with --poses only"),
+        ("workers", args.poses is None, "applies with --poses only (the support poses run as an FE batch)"),
+        ("scheduler", args.poses is None, "applies with --poses only (the support poses run as an FE batch)"),
         ("no_basis", args.poses is not None, "has no effect with --poses (a pose-aware model keeps no basis)"),
     ])
     if bad:
         print(f"error: {bad}", file=sys.stderr)
         return 2
     try:
+        if args.workers is not None and args.workers < 1:
+            raise ValueError(f"--workers must be at least 1, got {args.workers}")
+        if args.scheduler is not None and args.scheduler != "local" and not args.scheduler.startswith("tcp://"):
+            raise ValueError(f"--scheduler must be 'local' or tcp://HOST:PORT, got {args.scheduler!r}")
         if args.pose_enrich is not None and args.pose_enrich < 0:
             raise ValueError(f"--pose-enrich must be a non-negative integer, got {args.pose_enrich}")
         if args.order is not None and args.order < 1:
@@ -139,7 +151,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"reducing at the {args.poses} support poses ...", file=sys.stderr)
             scale = None if check is None else np.abs(check.as_inputs(machine.reference_temperature_degC)).max(axis=0)
             rom = reduce_at_poses(model, rom, args.poses, DEFAULT_ENRICH if args.pose_enrich is None else args.pose_enrich,
-                                  input_scale=scale, progress=True)
+                                  input_scale=scale, workers=args.workers or 1, scheduler=args.scheduler or "process",
+                                  progress=True)
     save_rom(args.out, rom)
     summary = {"out": str(args.out), "order": rom.order, "seconds": round(time.perf_counter() - t0, 2)}
     if rom.meta.get("poses"):

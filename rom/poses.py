@@ -49,7 +49,8 @@ def pose_output_names(k: int) -> tuple[str, ...]:
 
 
 def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int = DEFAULT_ENRICH,
-                    input_scale: np.ndarray | None = None, drives: bool = True, progress: bool = False) -> ReducedModel:
+                    input_scale: np.ndarray | None = None, drives: bool = True, workers: int = 1,
+                    scheduler: str = "process", progress: bool = False) -> ReducedModel:
     """The pose-aware reduced model of an FE model and its reduced model (module docstring).
 
     Parameters
@@ -60,17 +61,19 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     enrich : Krylov directions of each support pose's own system added to the carried basis
     input_scale : typical magnitude per input (W, K) for choosing those directions (default: 16 h example day)
     drives : include the machine's feed drives (their positioning errors)
+    workers, scheduler : where the support poses' FE models are built and reduced, as an FE batch
+        (:mod:`hybridcomp.fem.batch`): one worker and ``"process"``: here, one after another; more workers: a
+        local process pool (one BLAS thread each); ``"local"`` or a Dask scheduler address: a Dask cluster
     progress : a progress bar over the support poses (stderr)
     """
-    from hybridcomp.fem.model import build_model
-    from hybridcomp.rom.machine import h_samples, system_from_model
-
     if rom.V is None:
         raise RomInputError("the pose-aware model carries the reduced model's basis: reduce with the basis kept")
     if rom.V.shape[0] != model.n:
         raise RomInputError(f"the reduced model's basis has {rom.V.shape[0]} rows, the FE model {model.n} nodes")
     if rom.meta.get("poses"):
         raise RomInputError("this reduced model is pose-aware already")
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
     t0 = time.perf_counter()
     machine = model.machine
     grid = pose_grid(model, scheme)
@@ -84,22 +87,12 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     tol = np.r_[np.full(ns, rom.meta.get("tol_K", 0.05)), np.full(3, rom.meta.get("tol_um", 0.2) * 1e-6)]
     blocks, names, orders = [], [], [rom.order]
     mid_C, mid_names, feedback = rom.C, (), {}
-    poses = range(1, len(grid.poses))
-    if progress:
-        from tqdm import tqdm
-
-        poses = tqdm(poses, unit="pose", desc="support poses", leave=False)
-    for k in poses:
-        fe = build_model(machine, grid.pose_mm(k), machine.mesh.element_size_mm)
-        system = system_from_model(fe)
-        V = la.qr(carry_field(model, fe.mesh) @ rom.V, mode="economic")[0]
-        if enrich > 0:
-            own = Reductor(system, tol, scale, h_samples(fe.h_W_m2K, tuple(rom.meta.get("h_range", (0.5, 2.0)))))
-            V = np.hstack([V, orthonormal_extension(V, own.reduce(order=enrich).V)])
-        P = project(system, V)
-        blocks.append((P["M"], P["K"], P["H"], P["B"], P["Hb"], P["C"][ns:ns + 3]))
+    h_range = tuple(rom.meta.get("h_range", (0.5, 2.0)))
+    jobs = [(model, rom.V, grid.pose_mm(k), enrich, tol, scale, h_range, ns) for k in range(1, len(grid.poses))]
+    for k, block in enumerate(_run_jobs(jobs, workers, scheduler, progress), start=1):
+        blocks.append(block)
         names += pose_output_names(k)
-        orders.append(V.shape[1])
+        orders.append(block[0].shape[0])
     for drive in machine.drives if drives else ():
         positions = np.linspace(*machine.axis(drive.axis).travel_mm, FEEDBACK_POINTS)
         out = tuple(f"e{drive.axis}@{p:g}" for p in positions)
@@ -133,6 +126,62 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     return ReducedModel(M=M, K=K, H=H, h_W_m2K=np.asarray(rom.h_W_m2K, float), B=B, Hb=Hb, C=C,
                         input_names=rom.input_names,
                         output_names=tuple(rom.output_names) + mid_names + tuple(names), meta=meta)
+
+
+def pose_block(model, V_mid: np.ndarray, pose_mm: dict, enrich: int, tol: np.ndarray, scale: np.ndarray,
+               h_range: tuple[float, float], n_sensors: int) -> tuple[np.ndarray, ...]:
+    """The reduced operators (M, K, H, B, Hb, drift rows C) of one support pose (a job of :func:`reduce_at_poses`).
+
+    Builds the FE model at ``pose_mm``, carries the model pose's basis ``V_mid`` onto its mesh, extends it by
+    ``enrich`` Krylov directions of that pose's system and projects.
+    """
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.rom.machine import h_samples, system_from_model
+
+    machine = model.machine
+    fe = build_model(machine, pose_mm, machine.mesh.element_size_mm)
+    system = system_from_model(fe)
+    V = la.qr(carry_field(model, fe.mesh) @ V_mid, mode="economic")[0]
+    if enrich > 0:
+        own = Reductor(system, tol, scale, h_samples(fe.h_W_m2K, h_range))
+        V = np.hstack([V, orthonormal_extension(V, own.reduce(order=enrich).V)])
+    P = project(system, V)
+    return P["M"], P["K"], P["H"], P["B"], P["Hb"], P["C"][n_sensors:n_sensors + 3]
+
+
+def _run_jobs(jobs: list[tuple], workers: int, scheduler: str, progress: bool):
+    """:func:`pose_block` of every job, in order: here (one worker), on a process pool or on a Dask cluster."""
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs), unit="pose", desc="support poses", leave=False)
+    try:
+        if workers <= 1 and scheduler == "process":
+            for job in jobs:
+                yield pose_block(*job)
+                if bar is not None:
+                    bar.update()
+            return
+        from hybridcomp.fem.batch import dask_client, process_pool
+
+        if scheduler == "process":
+            with process_pool(workers) as ex:
+                futures = [ex.submit(pose_block, *job) for job in jobs]
+                for f in futures:
+                    yield f.result()
+                    if bar is not None:
+                        bar.update()
+            return
+        with dask_client(scheduler, workers) as client:
+            futures = [client.submit(pose_block, *job, pure=False) for job in jobs]
+            for f in futures:
+                yield f.result()
+                if bar is not None:
+                    bar.update()
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def grid_of(rom: ReducedModel) -> PoseGrid:

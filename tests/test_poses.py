@@ -196,4 +196,17 @@ def test_reduce_cli_refuses_pose_options_that_would_be_ignored(capsys, tmp_path)
     assert main(["reduce", "--poses", "star", "--pose", "Z=275", "--out", str(tmp_path / "r.npz")]) == 2
     assert "travel end" in capsys.readouterr().err
     assert main(["reduce", "--poses", "star", "--no-basis", "--out", str(tmp_path / "r.npz")]) == 2
+    assert main(["reduce", "--workers", "2", "--out", str(tmp_path / "r.npz")]) == 2
+    assert "--workers applies with --poses only" in capsys.readouterr().err
+    assert main(["reduce", "--poses", "star", "--scheduler", "udp://x", "--out", str(tmp_path / "r.npz")]) == 2
     assert not (tmp_path / "r.npz").exists()
+
+
+def test_support_poses_run_as_a_batch_on_a_process_pool(model, pose_rom, loads):
+    rom, serial = pose_rom
+    pooled = reduce_at_poses(model, rom, "star", input_scale=np.abs(loads.as_inputs(20.0)).max(axis=0), workers=2)
+    # the same arithmetic in worker processes with one BLAS thread each: round-off apart
+    assert pooled.meta["poses"]["orders"] == serial.meta["poses"]["orders"]
+    for name in ("M", "K", "B", "C"):
+        a, b = getattr(pooled, name), getattr(serial, name)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-8 * np.abs(b).max(), err_msg=name)
