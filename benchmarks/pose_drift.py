@@ -25,21 +25,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.poses import pose_drift
-from hybridcomp.histogram.bcs import boundary_conditions
-from hybridcomp.histogram.gcode import increments_from_motion, parse_gcode
-from hybridcomp.histogram.scenarios import AMBIENT, jobshop_ambient, jobshop_program
+from hybridcomp.histogram.scenarios import jobshop_loads
 from hybridcomp.models import jsonio, load_machine
 from hybridcomp.rom.machine import reduce_model
 from hybridcomp.rom.poses import drift_along, grid_of, reduce_at_poses
 
 from _table import table
-
-
-def jobshop_loads(machine):
-    """The bundled job-shop day's loads (as ``hybridcomp scenario jobshop`` writes them)."""
-    motion = parse_gcode(jobshop_program(machine), machine, source="jobshop.nc")
-    inc = increments_from_motion(machine, motion, air_degC={AMBIENT: jobshop_ambient(machine)})
-    return boundary_conditions(machine, inc)
 
 
 def random_poses(machine, n: int, seed: int) -> list[dict[str, float]]:

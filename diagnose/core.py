@@ -37,6 +37,9 @@ def prepare_model(machine, *, rom=None, model=None, element_size_mm: float | Non
     from hybridcomp.rom.machine import reduce_model
 
     t0 = time.perf_counter()
+    if rom is not None and rom.meta.get("poses"):
+        raise ValueError("a pose-aware reduced model (reduce --poses) cannot be diagnosed: give the diagnosis the "
+                         "model pose's reduced model (reduce without --poses)")
     if rom is not None and any("@" in n for n in rom.output_names):
         body_rows = False  # already has per-body drift rows
     if model is None and (rom is None or (body_rows and rom.V is not None)):

@@ -314,6 +314,13 @@ def jobshop_ambient(machine: Machine):
 # --------------------------------------------------------------------------- writing
 
 
+def jobshop_loads(machine: Machine, increment_s: float = DEFAULT_INCREMENT_S, power: str = "mean") -> Loads:
+    """The bundled job-shop day's loads, from the programme's exact motion (what :func:`write_scenario` writes)."""
+    motion = parse_gcode(jobshop_program(machine), machine, source="jobshop.nc")
+    inc = increments_from_motion(machine, motion, increment_s, air_degC={AMBIENT: jobshop_ambient(machine)})
+    return boundary_conditions(machine, inc, power)
+
+
 def scenario_files(name: str, machine: Machine) -> list[str]:
     """The file names :func:`write_scenario` writes for a scenario and machine, in the order written."""
     if name not in SCENARIOS:

@@ -120,6 +120,9 @@ def open_everything(cfg):
 
     machine = load_machine(cfg.machine)
     rom = load_rom(cfg.rom, machine)
+    if rom.meta.get("poses"):
+        raise ConfigError(f"{cfg.source_file}: monitor.rom {cfg.rom} is a pose-aware reduced model (reduce --poses); the "
+                          "daemon compensates at one pose: give it the model pose's reduced model (reduce without --poses)")
     rom_pose = {k: float(v) for k, v in (rom.meta.get("pose_mm") or {}).items()}
     pose = machine.check_pose(dict(cfg.pose_mm or rom_pose))
     if rom_pose and any(abs(pose[k] - rom_pose.get(k, math.nan)) > 1e-9 for k in pose):

@@ -210,3 +210,10 @@ def test_support_poses_run_as_a_batch_on_a_process_pool(model, pose_rom, loads):
     for name in ("M", "K", "B", "C"):
         a, b = getattr(pooled, name), getattr(serial, name)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-8 * np.abs(b).max(), err_msg=name)
+
+
+def test_a_pose_aware_model_is_refused_where_one_pose_is_meant(vmc, pose_rom):
+    from hybridcomp.diagnose import prepare_model
+
+    with pytest.raises(ValueError, match="pose-aware reduced model"):
+        prepare_model(vmc, rom=pose_rom[1])
