@@ -318,8 +318,8 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
         disturbances of one machine share them
     along_path : also judge every strategy at the commanded position of the trace at each time, where the drift
         depends on the pose and the feed drives' errors on the axis positions (needs the models' pose-aware
-        structure model: built here when ``models`` has none); adds ``table_along_path.md`` and the summary's
-        ``along_path``
+        structure model: built here when ``models`` is not given, and given models must have it:
+        ``build_models(..., poses=True)``); adds ``table_along_path.md`` and the summary's ``along_path``
 
     Besides the table, plot and events, ``recorded.csv`` holds what a measuring campaign would have recorded
     on the real machine: the trace (positions, spindle speed, workshop air), the sensors and the drift.
