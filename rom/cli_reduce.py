@@ -47,6 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="krylov: greedy rational Krylov basis, then its Gramian compression (default); h2: the "
                    "one-sided basis with the smallest H2 error (L-BFGS inside a large Krylov surrogate), keeping "
                    "the s = 0 block when the order allows; both keep the model symmetric, stable and affine in h")
+    p.add_argument("--h2-tol", type=float, metavar="REL",
+                   help="with --matrices --basis h2, instead of --order: grow the order by 5 until the H2-optimal "
+                   "basis's exact relative H2 error is at most REL (systems up to 4,000 states)")
     p.add_argument("--h2-maxiter", type=int, metavar="N",
                    help="with --basis h2: L-BFGS iterations per basis (default 1500); more iterations, smaller H2 error "
                    "(150 mm mesh, --order 80: about 30 s per 1,000 iterations)")
@@ -85,10 +88,14 @@ def run(args: argparse.Namespace) -> int:
         ("tol_um", matrices, fe_only + " (exported matrices have no TCP-drift output)"),
         ("h_range", matrices, fe_only + " (exported matrices have no convection coefficients)"),
         ("check_loads", matrices, fe_only + " (the FE check runs on the machine's model)"),
-        ("basis", matrices and args.basis == "h2" and args.order is None,
-         "h2 with --matrices needs --order (the H2-optimal basis is built for one order; to a tolerance use krylov)"),
+        ("basis", matrices and args.basis == "h2" and args.order is None and args.h2_tol is None,
+         "h2 with --matrices needs --order or --h2-tol (the H2-optimal basis is built for one order, or grown until "
+         "its exact relative H2 error is reached)"),
+        ("h2_tol", not (matrices and args.basis == "h2"), "applies with --matrices --basis h2 only"),
+        ("h2_tol", args.order is not None, "cannot be combined with --order (the order decides)"),
         ("h2_maxiter", args.basis != "h2", "applies with --basis h2 only"),
-        ("tol_K", matrices and args.order is not None, "has no effect with --matrices and --order (the order decides)"),
+        ("tol_K", matrices and (args.order is not None or args.h2_tol is not None),
+         "has no effect with --matrices and --order or --h2-tol (those decide)"),
         ("poses", matrices, fe_only),
         ("pose_enrich", args.poses is None, "applies with --poses only"),
         ("workers", args.poses is None, "applies with --poses only (the support poses run as an FE batch)"),
@@ -119,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
         if args.matrices is not None:
             from hybridcomp.rom.external import reduce_matrices
 
-            rom = reduce_matrices(args.matrices, tol=None if args.order else args.tol_K, order=args.order,
+            rom = reduce_matrices(args.matrices, tol=None if args.order or args.h2_tol else args.tol_K, order=args.order,
+                                  h2_tol=args.h2_tol,
                                   keep_basis=not args.no_basis, basis=args.basis, progress=True,
                                   **({} if args.h2_maxiter is None else {"h2_maxiter": args.h2_maxiter}))
         else:
@@ -165,6 +173,11 @@ def run(args: argparse.Namespace) -> int:
         summary["estimate"] = rom.meta.get("estimate")
         summary["basis"] = rom.meta.get("basis")
         summary["h2_error_relative"] = rom.meta.get("h2_error_relative")
+        if rom.meta.get("h2_tol") is not None:
+            summary["h2_tol_met"] = rom.meta["h2_tol_met"]
+            if not rom.meta["h2_tol_met"]:
+                print(f"warning: relative H2 error {rom.meta['h2_error_relative']:.3g} above --h2-tol "
+                      f"{rom.meta['h2_tol']:g} at the largest order tried", file=sys.stderr)
         err = rom.meta.get("h2_error_relative")
         print(f"relative H2 error of the reduced model: {err:.3g} (exact)" if err is not None else
               f"relative H2 error: {rom.meta.get('h2_error_note')}", file=sys.stderr)

@@ -138,6 +138,8 @@ def reduce_matrices(
     keep_basis: bool = False,
     basis: str = "krylov",
     h2_maxiter: int = 1500,
+    h2_tol: float | None = None,
+    h2_step: int = 5,
     progress: bool = False,
 ):
     """Reduce an exported system to an order or to a tolerance.
@@ -155,6 +157,10 @@ def reduce_matrices(
         zones to cover, every direction goes to the H2 error: the ``s = 0`` block is not held, so steady states
         are matched only as well as the H2 optimum matches them
     h2_maxiter : L-BFGS iterations of the ``h2`` basis
+    h2_tol : with ``basis="h2"`` instead of ``order``: the relative H2 error to reach, exactly computed; the
+        order grows by ``h2_step`` (5, 10, 15 …) until the H2-optimal basis of that order reaches it (systems up
+        to :data:`EXACT_ERROR_MAX_STATES` states, where the error is exact)
+    h2_step : order step of ``h2_tol``
     progress : a progress bar over the L-BFGS iterations (``h2``)
 
     Returns
@@ -166,33 +172,60 @@ def reduce_matrices(
     from hybridcomp.rom.krylov import Reductor, project
     from hybridcomp.rom.reduced import ReducedModel
 
-    if (tol is None) == (order is None):
-        raise ValueError("give exactly one of tol and order")
-    if tol is not None and not tol > 0:
-        raise ValueError(f"tol must be positive, got {tol}")
     if basis not in ("krylov", "h2"):
         raise ValueError(f"basis must be 'krylov' or 'h2', got {basis!r}")
-    if basis == "h2" and order is None:
-        raise ValueError("--basis h2 with --matrices needs --order (the H2-optimal basis is built for one order; "
-                         "to a tolerance, use the default krylov basis)")
+    if basis == "h2":
+        if (order is None) == (h2_tol is None):
+            raise ValueError("--basis h2 with --matrices needs --order or --h2-tol (exactly one): the H2-optimal "
+                             "basis is built for one order, or grown until its exact relative H2 error is reached")
+        if h2_tol is not None and not 0 < h2_tol < 1:
+            raise ValueError(f"--h2-tol must be a relative H2 error in (0, 1), got {h2_tol}")
+        if h2_step < 1:
+            raise ValueError(f"h2_step must be at least 1, got {h2_step}")
+        if tol is not None:
+            raise ValueError("tol is the krylov basis's tolerance; with basis 'h2' give h2_tol (a relative H2 error)")
+    else:
+        if h2_tol is not None:
+            raise ValueError("--h2-tol applies with --basis h2 only")
+        if (tol is None) == (order is None):
+            raise ValueError("give exactly one of tol and order")
+    if tol is not None and not tol > 0:
+        raise ValueError(f"tol must be positive, got {tol}")
     path = Path(path)
     mats, sha = read_matrices(path)
     system = system_from_matrices(mats, str(path))
     q = system.C.shape[0]
     if order is not None and not 1 <= order < system.n:
         raise ValueError(f"--order must be between 1 and {system.n - 1} (the system has {system.n} states), got {order}")
+    if h2_tol is not None and system.n > EXACT_ERROR_MAX_STATES:
+        raise ValueError(f"--h2-tol needs the exact H2 error, computed up to {EXACT_ERROR_MAX_STATES} states; "
+                         f"{path.name} has {system.n}: give --order")
     reductor = Reductor(system, np.full(q, tol if tol is not None else 1.0), np.ones(system.B.shape[1]),
                         np.zeros((1, 0)), fastest_time_s=fastest_time_s)
+    tried = []
     if basis == "h2":
         from hybridcomp.rom.machine import _reduce_h2
 
-        red, method = _reduce_h2(system, reductor, np.zeros((1, 0)), np.ones(system.B.shape[1]), np.ones(q), order,
-                                 order, 1, lambda V: True, fastest_time_s, h2_maxiter, progress=progress,
-                                 hold_steady=False)
+        def h2_basis(r):
+            return _reduce_h2(system, reductor, np.zeros((1, 0)), np.ones(system.B.shape[1]), np.ones(q), r, r, 1,
+                              lambda V: True, fastest_time_s, h2_maxiter, progress=progress, hold_steady=False)
+
+        if order is not None:
+            red, method = h2_basis(order)
+        else:
+            for r in range(h2_step, system.n, h2_step):
+                red, method = h2_basis(r)
+                tried.append((red.V.shape[1], exact_h2_error(system, red.V)))
+                if tried[-1][1] <= h2_tol:
+                    break
+            method += f"; order grown by {h2_step} to relative H2 error {h2_tol:g}"
     else:
         red, method = reductor.reduce(target=1.0, order=order), "greedy rational Krylov"
     P = project(system, red.V)
-    err = exact_h2_error(system, red.V) if system.n <= EXACT_ERROR_MAX_STATES else None
+    if tried:
+        err = tried[-1][1]
+    else:
+        err = exact_h2_error(system, red.V) if system.n <= EXACT_ERROR_MAX_STATES else None
     meta = {
         "matrices": {"file": path.name, "sha256": sha},
         "nodes": system.n,
@@ -206,6 +239,8 @@ def reduce_matrices(
                           f"not computed: more than {EXACT_ERROR_MAX_STATES} states"),
         "expansion_points": [{"s_1_s": p.s, "moments": p.moments, "complete": p.complete} for p in red.points],
     }
+    if h2_tol is not None:
+        meta |= {"h2_tol": h2_tol, "h2_orders_tried": [[r, e] for r, e in tried], "h2_tol_met": err <= h2_tol}
     return ReducedModel(M=P["M"], K=P["K"], H=P["H"], h_W_m2K=np.zeros(0), B=P["B"], Hb=P["Hb"], C=P["C"],
                         input_names=system.input_names, output_names=system.output_names,
                         V=red.V if keep_basis else None, meta=meta)

@@ -74,7 +74,28 @@ def test_reduce_cli_with_matrices_and_basis_h2(mat, tmp_path, capsys):
     assert summary["basis"] == "h2" and summary["order"] == 8 and 0 < summary["h2_error_relative"] < 1
     assert "relative H2 error of the reduced model" in cap.err
     assert main(["reduce", "--matrices", str(path), "--basis", "h2", "--out", str(tmp_path / "x.npz")]) == 2
-    assert "needs --order" in capsys.readouterr().err
+    assert "needs --order or --h2-tol" in capsys.readouterr().err
+    assert main(["reduce", "--matrices", str(path), "--h2-tol", "0.1", "--out", str(tmp_path / "x.npz")]) == 2
+    assert "--h2-tol applies with --matrices --basis h2 only" in capsys.readouterr().err
+    assert main(["reduce", "--matrices", str(path), "--basis", "h2", "--order", "8", "--h2-tol", "0.1",
+                 "--out", str(tmp_path / "x.npz")]) == 2
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_h2_basis_grows_to_a_relative_h2_error(mat, tmp_path, capsys):
+    path, m = mat
+    rom = reduce_matrices(path, basis="h2", h2_tol=0.02, h2_maxiter=300)
+    tried = rom.meta["h2_orders_tried"]
+    assert rom.meta["h2_tol_met"] and rom.meta["h2_error_relative"] <= 0.02
+    assert rom.order == tried[-1][0] and all(e > 0.02 for _, e in tried[:-1])  # the first order of the grid to reach it
+    assert rom.meta["h2_error_relative"] == pytest.approx(_h2_error(m, rom.M, -rom.K, rom.B, rom.C), rel=1e-6)
+    out = tmp_path / "t.npz"
+    assert main(["reduce", "--matrices", str(path), "--basis", "h2", "--h2-tol", "0.02", "--h2-maxiter", "300",
+                 "--out", str(out)]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["h2_tol_met"] and summary["order"] == rom.order
+    with pytest.raises(ValueError, match="h2_tol"):
+        reduce_matrices(path, basis="h2", tol=0.1, order=5)  # the krylov tolerance would be ignored
 
 
 def test_corrupted_or_wrongly_shaped_files_are_named(mat, tmp_path, capsys):
