@@ -179,7 +179,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"warning: relative H2 error {rom.meta['h2_error_relative']:.3g} above --h2-tol "
                       f"{rom.meta['h2_tol']:g} at the largest order tried", file=sys.stderr)
         err = rom.meta.get("h2_error_relative")
-        print(f"relative H2 error of the reduced model: {err:.3g} (exact)" if err is not None else
-              f"relative H2 error: {rom.meta.get('h2_error_note')}", file=sys.stderr)
+        summary["h2_error_exact"] = rom.meta.get("h2_error_exact")
+        how = "exact" if rom.meta.get("h2_error_exact") else rom.meta.get("h2_error_note")
+        print(f"relative H2 error of the reduced model: {err:.3g} ({how})", file=sys.stderr)
     print(jsonio.dumps(summary))
     return 0

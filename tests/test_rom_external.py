@@ -112,3 +112,17 @@ def test_corrupted_or_wrongly_shaped_files_are_named(mat, tmp_path, capsys):
     assert main(["reduce", "--matrices", str(bad), "--order", "5", "--out", str(tmp_path / "o.npz")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "garbage.mat" in err and "Traceback" not in err
+
+
+def test_above_the_exact_size_the_error_is_estimated_and_said_so(mat, monkeypatch):
+    import hybridcomp.rom.external as ext
+
+    path, m = mat
+    exact = reduce_matrices(path, order=12)
+    monkeypatch.setattr(ext, "EXACT_ERROR_MAX_STATES", 100)  # the 400-state plate now counts as large
+    est = reduce_matrices(path, order=12)
+    assert exact.meta["h2_error_exact"] and not est.meta["h2_error_exact"]
+    assert "estimated" in est.meta["h2_error_note"]
+    assert est.meta["h2_error_relative"] == pytest.approx(exact.meta["h2_error_relative"], rel=0.25)
+    with pytest.raises(ValueError, match="needs the exact H2 error"):
+        reduce_matrices(path, basis="h2", h2_tol=0.05)
