@@ -2,7 +2,8 @@
 
 Accepted files:
 
-* a MATLAB ``.mat`` file with variables ``E``, ``A``, ``B``, ``C`` (sparse or dense);
+* a MATLAB ``.mat`` file with variables ``E``, ``A``, ``B``, ``C`` (sparse or dense), versions 5 to 7.2
+  (scipy) and 7.3 (HDF5, through h5py);
 * Matrix Market files: a directory holding ``E.mtx``, ``A.mtx``, ``B.mtx``,
   ``C.mtx`` (or the path of any one of them).
 
@@ -49,6 +50,39 @@ def _files(path: Path) -> dict[str, Path]:
     return out
 
 
+def _read_mat73(path: Path, raw: bytes) -> dict[str, object]:
+    """The variables E, A, B, C of a MATLAB v7.3 file (HDF5).
+
+    Dense arrays are stored transposed (MATLAB is column-major); a sparse matrix is a group of ``data``, ``ir``
+    and ``jc`` (compressed columns) with the row count in its ``MATLAB_sparse`` attribute.
+    """
+    try:
+        import h5py
+    except ImportError:
+        raise MatrixFileError(f"{path}: a MATLAB v7.3 file (HDF5) needs h5py: pip install h5py") from None
+    out = {}
+    try:
+        with h5py.File(io.BytesIO(raw), "r") as f:
+            for v in NAMES:
+                if v not in f:
+                    continue
+                node = f[v]
+                if isinstance(node, h5py.Group):
+                    if "MATLAB_sparse" not in node.attrs or not {"ir", "jc"} <= set(node):
+                        raise MatrixFileError(f"{path}: variable {v!r} is a group but not a MATLAB sparse matrix")
+                    jc = np.asarray(node["jc"], np.int64)
+                    data = np.asarray(node["data"], float) if "data" in node else np.zeros(jc[-1])
+                    out[v] = sp.csc_matrix((data, np.asarray(node["ir"], np.int64), jc),
+                                           shape=(int(node.attrs["MATLAB_sparse"]), jc.size - 1))
+                else:
+                    out[v] = np.asarray(node, float).T
+    except MatrixFileError:
+        raise
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise MatrixFileError(f"{path}: cannot read MATLAB v7.3 (HDF5) file: {exc}") from None
+    return out
+
+
 def read_matrices(path: str | Path) -> tuple[dict[str, object], str]:
     """Read E, A, B, C from a .mat file or Matrix Market files; returns them and the SHA-256 of the file(s)."""
     path = Path(path)
@@ -62,7 +96,9 @@ def read_matrices(path: str | Path) -> tuple[dict[str, object], str]:
         hsh.update(raw)
         try:
             data = scipy.io.loadmat(io.BytesIO(raw))
-        except (ValueError, OSError, NotImplementedError) as exc:
+        except NotImplementedError:  # scipy reads up to v7.2; v7.3 is HDF5
+            data = _read_mat73(path, raw)
+        except (ValueError, OSError) as exc:
             raise MatrixFileError(f"{path}: cannot read MATLAB file: {exc}") from None
         missing = [v for v in NAMES if v not in data]
         if missing:
