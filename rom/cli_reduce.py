@@ -43,13 +43,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--h-range", type=_h_range, default=(0.5, 2.0), metavar="LOW,HIGH",
                    help="heat-transfer coefficients the model must cover, as factors of nominal (default 0.5,2)")
     p.add_argument("--check-loads", type=Path, help="loads CSV of the FE check (default: the 16 h example day at 60 s)")
-    p.add_argument("--basis", choices=("krylov", "h2"), default="krylov",
-                   help="krylov: greedy rational Krylov basis, then its Gramian compression (default); h2: the "
-                   "one-sided basis with the smallest H2 error (L-BFGS inside a large Krylov surrogate), keeping "
-                   "the s = 0 block when the order allows; both keep the model symmetric, stable and affine in h")
+    p.add_argument("--basis", choices=("krylov", "h2"),
+                   help="krylov: greedy rational Krylov basis, then its Gramian compression; h2: the one-sided basis "
+                   "with the smallest H2 error (L-BFGS inside a large Krylov surrogate), keeping the s = 0 block when "
+                   "the order allows (a machine's model); both keep the model symmetric, stable and affine in h. "
+                   "Default: h2 for --matrices with --order or --h2-tol (on many-input, many-output systems it is "
+                   "up to 40x more accurate at the same order), krylov otherwise")
     p.add_argument("--h2-tol", type=float, metavar="REL",
-                   help="with --matrices --basis h2, instead of --order: grow the order by 5 until the H2-optimal "
-                   "basis's exact relative H2 error is at most REL (systems up to 4,000 states)")
+                   help="with --matrices, instead of --order: grow the order by 5 until the H2-optimal basis's exact "
+                   "relative H2 error is at most REL (systems up to 4,000 states)")
     p.add_argument("--h2-maxiter", type=int, metavar="N",
                    help="with --basis h2: L-BFGS iterations per basis (default 1500); more iterations, smaller H2 error "
                    "(150 mm mesh, --order 80: about 30 s per 1,000 iterations)")
@@ -80,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     matrices = args.matrices is not None
+    if args.basis is None:  # h2 where it is built for a stated order or error, krylov otherwise
+        args.basis = "h2" if matrices and (args.order is not None or args.h2_tol is not None) else "krylov"
     fe_only = "applies to a machine's FE model only, not to --matrices"
     bad = refuse_unused(args, [
         ("machine", matrices, fe_only),
@@ -91,9 +95,10 @@ def run(args: argparse.Namespace) -> int:
         ("basis", matrices and args.basis == "h2" and args.order is None and args.h2_tol is None,
          "h2 with --matrices needs --order or --h2-tol (the H2-optimal basis is built for one order, or grown until "
          "its exact relative H2 error is reached)"),
-        ("h2_tol", not (matrices and args.basis == "h2"), "applies with --matrices --basis h2 only"),
+        ("h2_tol", not matrices, "applies with --matrices only (a machine's model is reduced to --tol-K, --tol-um)"),
+        ("h2_tol", args.basis != "h2", "applies with the h2 basis only (not with --basis krylov)"),
         ("h2_tol", args.order is not None, "cannot be combined with --order (the order decides)"),
-        ("h2_maxiter", args.basis != "h2", "applies with --basis h2 only"),
+        ("h2_maxiter", args.basis != "h2", "applies with the h2 basis only"),
         ("tol_K", matrices and (args.order is not None or args.h2_tol is not None),
          "has no effect with --matrices and --order or --h2-tol (those decide)"),
         ("poses", matrices, fe_only),

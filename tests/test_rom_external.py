@@ -72,11 +72,21 @@ def test_reduce_cli_with_matrices_and_basis_h2(mat, tmp_path, capsys):
     cap = capsys.readouterr()
     summary = json.loads(cap.out.strip().splitlines()[-1])
     assert summary["basis"] == "h2" and summary["order"] == 8 and 0 < summary["h2_error_relative"] < 1
+    # at a stated order the h2 basis is the default for exported systems; --basis krylov asks for the other
+    assert main(["reduce", "--matrices", str(path), "--order", "8", "--h2-maxiter", "200",
+                 "--out", str(tmp_path / "d.npz")]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["basis"] == "h2"
+    assert main(["reduce", "--matrices", str(path), "--order", "8", "--basis", "krylov",
+                 "--out", str(tmp_path / "k.npz")]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["basis"] == "krylov"
     assert "relative H2 error of the reduced model" in cap.err
     assert main(["reduce", "--matrices", str(path), "--basis", "h2", "--out", str(tmp_path / "x.npz")]) == 2
     assert "needs --order or --h2-tol" in capsys.readouterr().err
-    assert main(["reduce", "--matrices", str(path), "--h2-tol", "0.1", "--out", str(tmp_path / "x.npz")]) == 2
-    assert "--h2-tol applies with --matrices --basis h2 only" in capsys.readouterr().err
+    assert main(["reduce", "--matrices", str(path), "--basis", "krylov", "--h2-tol", "0.1",
+                 "--out", str(tmp_path / "x.npz")]) == 2
+    assert "--h2-tol applies with the h2 basis only" in capsys.readouterr().err
+    assert main(["reduce", "--h2-tol", "0.1", "--out", str(tmp_path / "x.npz")]) == 2
+    assert "--h2-tol applies with --matrices only" in capsys.readouterr().err
     assert main(["reduce", "--matrices", str(path), "--basis", "h2", "--order", "8", "--h2-tol", "0.1",
                  "--out", str(tmp_path / "x.npz")]) == 2
     assert not (tmp_path / "x.npz").exists()
