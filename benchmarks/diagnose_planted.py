@@ -35,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from hybridcomp.diagnose import Dataset, diagnose, prepare_model
 from hybridcomp.diagnose.problem import first_order_lag
 from hybridcomp.fem.assembly import cell_basis
+from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.model import build_model, heat_input_matrix
 from hybridcomp.fem.transient import simulate as fe_simulate
 from hybridcomp.histogram.scenarios import jobshop_loads
@@ -260,10 +261,7 @@ def main(argv=None) -> int:
     p.add_argument("--dt", type=float, default=120.0, help="sampling of the day [s]")
     a = p.parse_args(argv)
     machine = load_machine("vmc800")
-    loads = jobshop_loads(machine)
-    t = np.arange(loads.time_s[0], loads.time_s[-1] + 1e-9, a.dt)
-    loads = type(loads)(t, np.column_stack([np.interp(t, loads.time_s, loads.values[:, j])
-                                            for j in range(loads.values.shape[1])]), loads.names)
+    loads = resample(jobshop_loads(machine), a.dt)
     fe = build_model(machine, None, a.element_size_mm)
     t0 = time.perf_counter()
     rom = prepare_model(machine, model=fe, order=150)

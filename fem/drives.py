@@ -113,7 +113,6 @@ class ScrewModel:
     drive: Drive
     s_mm: np.ndarray
     M: sp.csr_matrix
-    A: sp.csr_matrix
     Bu: np.ndarray
     K: sp.csr_matrix
     H: sp.csr_matrix
@@ -122,6 +121,11 @@ class ScrewModel:
     s_other_mm: float
     nut_at_mm: float
     layout: InputLayout
+
+    @property
+    def A(self) -> sp.csr_matrix:
+        """K + H [W/K]."""
+        return (self.K + self.H).tocsr()
 
     @property
     def length_mm(self) -> float:
@@ -168,7 +172,8 @@ class ScrewModel:
             dt = float(t[i] - t[i - 1])
             key = round(dt, 9)
             if key not in lus:
-                lus[key] = (spla.splu((self.M / dt + 0.5 * self.A).tocsc()), (self.M / dt - 0.5 * self.A).tocsr())
+                A = self.A
+                lus[key] = (spla.splu((self.M / dt + 0.5 * A).tocsc()), (self.M / dt - 0.5 * A).tocsr())
             lu, rhs = lus[key]
             x = lu.solve(rhs @ x + self.Bu @ (0.5 * (U[i - 1] + U[i])))
             out[i] = x
@@ -222,7 +227,7 @@ def build_screw(machine: Machine, drive: Drive, element_mm: float = SCREW_ELEMEN
             Bu[:, cols[k]] += drive.nut_screw_W / nut.power_W * _interval_column(s, nut_at + a, nut_at + b)
     zone = layout.zones.index(drive.screw_zone)
     Bu[:, len(layout.heat_inputs) + zone] = H @ np.ones(s.size)
-    return ScrewModel(drive=drive, s_mm=s, M=M, A=(K + H).tocsr(), Bu=Bu, K=K, H=H, alpha_1_K=mat.expansion_1_K,
+    return ScrewModel(drive=drive, s_mm=s, M=M, Bu=Bu, K=K, H=H, alpha_1_K=mat.expansion_1_K,
                       s_fixed_mm=s_fixed, s_other_mm=s_other, nut_at_mm=nut_at, layout=layout)
 
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hybridcomp.fem.drives import build_screw, scale_line
+from hybridcomp.histogram.bcs import standstill_powers
 from hybridcomp.models.layout import Loads
 from hybridcomp.models.machine import Machine, MachineFileError
 
@@ -77,16 +78,16 @@ def axis_cycle_loads(machine: Machine, axis: str, feed_mm_min: float, hours: flo
         raise ValueError(f"hours ({hours:g}) and step_s ({step_s:g}) must be positive, the step within the test")
     layout = machine.layout()
     t = np.arange(0.0, hours * 3600 + 0.5 * step_s, step_s)
-    rest, run = np.zeros(layout.n_inputs), np.zeros(layout.n_inputs)
+    rest = np.concatenate([standstill_powers(machine), np.zeros(len(layout.zones))])
+    run = rest.copy()
     factor = feed_mm_min / a.max_feed_mm_min
     lengths = np.diff(a.segment_bounds_mm) / (a.travel_mm[1] - a.travel_mm[0])
     for s in machine.heat_sources:
-        cols = list(layout.source_columns(s.name))
-        p0 = float(s.power_W) if s.driver is None else float(machine.source_power_W(s, 0.0))
-        rest[cols] = p0 / len(cols)
-        moving = s.driver == axis or (s.kind == "moving" and s.axis == axis)
-        p1 = float(machine.source_power_W(s, factor)) if moving else p0
-        run[cols] = p1 * lengths if s.kind == "moving" and s.axis == axis else p1 / len(cols)
+        on_rail = s.kind == "moving" and s.axis == axis
+        if s.driver == axis or on_rail:
+            cols = list(layout.source_columns(s.name))
+            p1 = float(machine.source_power_W(s, factor))
+            run[cols] = p1 * lengths if on_rail else p1 / len(cols)
     U = np.vstack([rest, np.repeat(run[None, :], t.size - 1, axis=0)])
     return Loads(t, layout.loads_values(U), layout.columns)
 
@@ -99,9 +100,7 @@ def etve_loads(machine: Machine, hours: float, amplitude_K: float, period_h: flo
     layout = machine.layout()
     t = np.arange(0.0, hours * 3600 + 0.5 * step_s, step_s)
     U = np.zeros((t.size, layout.n_inputs))
-    for s in machine.heat_sources:
-        cols = list(layout.source_columns(s.name))
-        U[:, cols] = (float(s.power_W) if s.driver is None else float(machine.source_power_W(s, 0.0))) / len(cols)
+    U[:, :len(layout.heat_inputs)] = standstill_powers(machine)
     U[:, len(layout.heat_inputs):] = amplitude_K * np.sin(2 * np.pi * t / (period_h * 3600))[:, None]
     return Loads(t, layout.loads_values(U), layout.columns)
 
