@@ -214,8 +214,14 @@ def heat_input_matrix(machine: Machine, mm: MachineMesh, basis) -> tuple[np.ndar
     patch is sampled on a grid finer than the elements and each sample point's
     share is spread by the shape functions, which conserves power exactly.
     """
+    R, names = heat_input_rows(machine, mm, basis)
+    return np.asarray(R.T.todense()), names
+
+
+def heat_input_rows(machine: Machine, mm: MachineMesh, basis) -> tuple[sp.csr_matrix, tuple[str, ...]]:
+    """The transpose of :func:`heat_input_matrix`, sparse (m × n): for many patches (a search over the surface)."""
     h_mm = machine.mesh.element_size_mm
-    cols, names = [], []
+    pts_all, cells_all, col_of_pt, weight, names = [], [], [], [], []
     for s in machine.heat_sources:
         patches = _source_patches_mm(machine, s, mm.pose_mm)
         for k, (lo, hi) in enumerate(patches):
@@ -231,11 +237,18 @@ def heat_input_matrix(machine: Machine, mm: MachineMesh, basis) -> tuple[np.ndar
             name = heat_input_name(s.name, None if s.kind == "fixed" else k + 1)
             if not ok.any():
                 raise MachineFileError(f"{machine.source}: heat source {name!r}: its patch lies outside its body {s.body!r}")
-            P = assembly.probe_matrix(basis, pts[:, ok], cells[ok])
-            cols.append(np.asarray(P.sum(axis=0)).ravel() / ok.sum())
+            pts_all.append(pts[:, ok])
+            cells_all.append(cells[ok])
+            col_of_pt.append(np.full(ok.sum(), len(names)))
+            weight.append(np.full(ok.sum(), 1.0 / ok.sum()))
             names.append(name)
-    B = np.column_stack(cols) if cols else np.zeros((basis.N, 0))
-    return B, tuple(names)
+    if not names:
+        return sp.csr_matrix((0, basis.N)), ()
+    # one interpolation for every sample point of every patch (the mapping's inversion is the cost)
+    P = assembly.probe_matrix(basis, np.hstack(pts_all), np.concatenate(cells_all))
+    cols = np.concatenate(col_of_pt)
+    S = sp.coo_matrix((np.concatenate(weight), (cols, np.arange(cols.size))), shape=(len(names), cols.size)).tocsr()
+    return (S @ P).tocsr(), tuple(names)
 
 
 def disturbance_heat_columns(machine: Machine, mm: MachineMesh) -> tuple[np.ndarray, tuple[str, ...]]:
