@@ -8,13 +8,17 @@ Each case plants what a drawn generator makes (seeded) into FE runs of the bundl
 * one library effect at a random target and magnitude: a source's power scaled (any source the day drives), a
   zone's heat-transfer coefficient, a sensor's offset or lag (any sensor), the workspace air warmer, the workshop
   air reaching the surfaces with a lag, a body's expansion coefficient, the spindle bearings' speed exponent;
-* two of them at once (different targets);
+* two or three of them at once (different targets);
 * nothing (null);
-* an effect outside the library: a heat source the machine file lacks, on while the spindle runs, at a random
-  point of a random body's surface.
+* a heat source the machine file lacks at a random point of a random body's surface (in the air or at a joint),
+  with a random drive shape: on/off with the spindle or an axis, proportional to or a power law of its activity,
+  constant, or switched on at the record's start;
+* an effect outside the library: such a source on its own thermostat cycle, which no signal of the dataset
+  switches.
 
 Criteria (the issue's): an in-library effect is named, with every parameter within 20 % of its deviation from
-the nominal model; null gives "no significant discrepancy"; out of the library, no confident wrong name (an
+the nominal model (a missing source: its shape and body, its power and exponent within 20 %, its place within one
+element size); null gives "no significant discrepancy"; out of the library, no confident wrong name (an
 "explained" verdict must name a missing heat source).  A planted change that stays below the noise (its largest
 RMS over the validation rows under 3 noise standard deviations on every channel, column ``sigma``: a 15 min lag
 of a sensor on the slow bed) cannot be asked to be named: there only a wrong name fails.  Prints one row per case
@@ -33,14 +37,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 from hybridcomp.diagnose import Dataset, diagnose, prepare_model
-from hybridcomp.diagnose.problem import first_order_lag
+from hybridcomp.diagnose.data import parse_split
+from hybridcomp.diagnose.problem import build_problem, first_order_lag
 from hybridcomp.fem.assembly import cell_basis
 from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.model import build_model, heat_input_matrix
 from hybridcomp.fem.transient import simulate as fe_simulate
 from hybridcomp.histogram.scenarios import jobshop_loads
 from hybridcomp.models import jsonio, load_machine
-from hybridcomp.models.machine import SPINDLE
 
 from _table import table
 
@@ -49,15 +53,15 @@ SIGMA_K, SIGMA_UM = 0.02, 0.3
 DETECTABLE = 3.0
 SINGLE = ("power_scale", "htc", "sensor_offset", "sensor_lag", "workspace_offset", "ambient_lag", "expansion",
           "exponent")
-KINDS = SINGLE + ("two", "null", "outside")
-WEIGHTS = np.array([3, 2, 2, 2, 1, 1, 2, 1, 3, 1, 2], float)
+KINDS = SINGLE + ("two", "three", "null", "located", "outside")
+WEIGHTS = np.array([3, 2, 2, 2, 1, 1, 2, 1, 3, 1, 1, 3, 1], float)
 
 
 @dataclasses.dataclass
 class Case:
     kind: str
     description: str
-    expected: list  # [(key, truth, nominal)] for in-library effects
+    expected: list  # [(key, truth, nominal)] for in-library effects (a missing source: + place [mm], body)
     sensors: np.ndarray
     drift: np.ndarray
     columns: dict
@@ -162,30 +166,68 @@ def _model_with(machine, fe, edits, h_mm):
     return model
 
 
-def make_case(kind, machine, fe, loads, rng, h_mm) -> Case:
+def _surface_point(machine, rng):
+    """A random point on a random face of a random body [mm] (faces in the air and joints alike)."""
+    body = machine.bodies[int(rng.integers(len(machine.bodies)))]
+    lo, hi = np.asarray(body.box_mm[0]), np.asarray(body.box_mm[1])
+    face = int(rng.integers(6))
+    p = rng.uniform(lo, hi)
+    p[face // 2] = (lo if face % 2 == 0 else hi)[face // 2]
+    return body, p, np.minimum(100.0, hi - lo)
+
+
+def _with_source(machine, fe, loads, U, body, p, size, P):
+    """FE channels with a heat source the machine file lacks: ``P`` [W] per sample on a patch at ``p``."""
+    src = dataclasses.replace(machine.heat_sources[0], name="planted", kind="fixed", body=body.name, axis=None,
+                              driver=None, position_mm=tuple(p), size_mm=tuple(size), power_W=1.0, power_table=None)
+    b, _ = heat_input_matrix(dataclasses.replace(machine, heat_sources=(src,)), fe.mesh, cell_basis(fe.mesh.mesh))
+    model = dataclasses.replace(fe, B=np.hstack([fe.B, b]), heat_names=fe.heat_names + ("planted",), _cache={})
+    m = len(fe.heat_names)
+    return _fe(model, loads, np.hstack([U[:, :m], P[:, None], U[:, m:]]))
+
+
+#: drive shapes of a planted missing source (the library's, ``diagnose.locate.shapes``)
+FORMS = ("on/off", "on/off", "proportional", "power law", "constant", "switched on")
+
+
+def make_case(kind, machine, fe, loads, rng, h_mm, activity=None) -> Case:
     U = loads.as_inputs(machine.reference_temperature_degC)
-    if kind in ("null", "outside"):
-        if kind == "null":
-            s, d = _fe(fe, loads, U)
-            return Case(kind, "nothing planted", [], s, d, {}, ())
-        body = machine.bodies[int(rng.integers(len(machine.bodies)))]
-        lo, hi = np.asarray(body.box_mm[0]), np.asarray(body.box_mm[1])
-        face = int(rng.integers(6))
-        p = rng.uniform(lo, hi)
-        p[face // 2] = (lo if face % 2 == 0 else hi)[face // 2]
-        size = np.minimum(100.0, hi - lo)
+    if kind == "null":
+        s, d = _fe(fe, loads, U)
+        return Case(kind, "nothing planted", [], s, d, {}, ())
+    if kind == "outside":  # a cabinet heater on its own thermostat: no driver of the dataset switches it
+        body, p, size = _surface_point(machine, rng)
         power = float(rng.uniform(40.0, 80.0))
-        src = dataclasses.replace(machine.heat_sources[0], name="planted", kind="fixed", body=body.name, axis=None,
-                                  driver=SPINDLE, position_mm=tuple(p), size_mm=tuple(size), power_W=power)
-        b, _ = heat_input_matrix(dataclasses.replace(machine, heat_sources=(src,)), fe.mesh, cell_basis(fe.mesh.mesh))
-        model = dataclasses.replace(fe, B=np.hstack([fe.B, b]), heat_names=fe.heat_names + ("planted",), _cache={})
-        on = (U[:, _col(loads, "spindle_motor_W")] > 0).astype(float)
-        m = len(fe.heat_names)
-        s, d = _fe(model, loads, np.hstack([U[:, :m], (power * on)[:, None], U[:, m:]]))
-        return Case(kind, f"{power:.0f} W on {body.name} at {np.round(p).tolist()} mm while the spindle runs", [],
+        period_s, duty = float(rng.uniform(1800, 3600)), float(rng.uniform(0.3, 0.6))
+        on = (((loads.time_s - loads.time_s[0]) % period_s) < duty * period_s).astype(float)
+        s, d = _with_source(machine, fe, loads, U, body, p, size, power * on)
+        return Case(kind, f"{power:.0f} W on {body.name} at {np.round(p).tolist()} mm, on a {period_s / 60:.0f} min "
+                    f"thermostat cycle ({duty:.0%} on)", [], s, d, {}, ())
+    if kind == "located":  # a missing source anywhere, with one of the library's drive shapes
+        body, p, size = _surface_point(machine, rng)
+        form = str(rng.choice(FORMS))
+        driver = None if form in ("constant", "switched on") else str(rng.choice(list(activity)))
+        act = np.ones(loads.time_s.size) if driver is None else activity[driver]
+        if form == "switched on":
+            act = np.r_[0.0, act[1:]]
+        power = float(rng.uniform(40.0, 80.0))
+        n = float(rng.uniform(1.6, 2.4)) if form == "power law" else None
+        f = {"on/off": (act > 0.02).astype(float), "proportional": act, "constant": act, "switched on": act}.get(form)
+        f = act**n if form == "power law" else f
+        if form in ("proportional", "power law"):
+            power = float(rng.uniform(150.0, 300.0))  # at full activity, which the day seldom reaches
+        s, d = _with_source(machine, fe, loads, U, body, p, size, power * f)
+        shape = {"constant": "constant", "switched on": "on from the start", "power law": f"{driver} power law"}.get(
+            form, f"{driver} {form}")
+        truth = (power,) if n is None else (power, n)
+        what = f", exponent {n:.2f}" if n is not None else ""
+        at_pose = p + machine.body_offset_mm(body.name, fe.mesh.pose_mm)
+        return Case(kind, f"{power:.0f} W on {body.name} at {np.round(p).tolist()} mm, {shape}{what}",
+                    [(("located_source", shape), truth, tuple([None] * len(truth)), tuple(at_pose), body.name)],
                     s, d, {}, ())
-    kinds = [kind] if kind != "two" else list(rng.choice([k for k in SINGLE if k not in ("ambient_lag", "exponent")],
-                                                          2, replace=False))
+    n_effects = {"two": 2, "three": 3}.get(kind, 1)
+    kinds = [kind] if n_effects == 1 else list(rng.choice([k for k in SINGLE if k not in ("ambient_lag", "exponent")],
+                                                          n_effects, replace=False))
     used, expected, edits, outs, columns, drop, desc = set(), [], [], [], {}, (), []
     for k in kinds:
         edit, exp, model_edit, cols, dr, text, target = plant_inputs(k, machine, loads, U, rng, used)
@@ -218,7 +260,7 @@ def dataset(machine, loads, case: Case, seed: int) -> Dataset:
 def within(params, truth, nominal) -> bool:
     """Every parameter within 20 % of the effect's deviation from nominal (of its value, without a nominal)."""
     truth, nominal = np.atleast_1d(truth), np.atleast_1d(np.array(nominal, dtype=object))
-    scale = max(abs(v - n) for v, n in zip(truth, nominal) if n is not None)
+    scale = max((abs(v - n) for v, n in zip(truth, nominal) if n is not None), default=0.0)
     for p, v, n in zip(params, truth, nominal):
         limit = 0.2 * abs(v) if n is None else 0.2 * scale
         if abs(p - v) > limit:
@@ -233,17 +275,31 @@ def detectability(case: Case, nominal: Case, start: int) -> float:
     return float(max(np.sqrt(np.mean(ds**2, axis=0)).max() / SIGMA_K, np.sqrt(np.mean(dd**2, axis=0)).max() / SIGMA_UM))
 
 
-def judge(case: Case, d, snr: float) -> tuple[bool, str]:
+def judge(case: Case, d, snr: float, h_mm: float) -> tuple[bool, str]:
     named = {f.candidate.key: f.params for f in d.causes}
     if case.expected and snr < DETECTABLE:  # below the noise: no name is right, a wrong name is not
         keys = {e[0] for e in case.expected}
-        ok = d.verdict == "no significant discrepancy" or (set(named) <= keys and bool(named))
+        said = {(k[0], k[1].split("|")[-1]) if k[0] == "located_source" else k for k in named}
+        ok = d.verdict == "no significant discrepancy" or (said <= keys and bool(named))
         return ok, f"below noise ({snr:.1f} sigma): {d.verdict} " + ", ".join(f"{k[0]} {k[1]}" for k in named)
     if case.kind == "null":
         return d.verdict == "no significant discrepancy", d.verdict
     if case.kind == "outside":
-        ok = d.verdict != "explained" or all(k[0] == "missing_source" for k in named)
+        ok = d.verdict != "explained" or all(k[0] in ("missing_source", "located_source") for k in named)
         return ok, f"{d.verdict}: " + ", ".join(f"{k[0]} {k[1]}" for k in named)
+    if case.kind == "located":
+        (_, shape), truth, nominal, where, _body = case.expected[0]
+        found = [f for f in d.causes if f.candidate.kind == "located_source"]
+        if d.verdict != "explained" or len(d.causes) != 1 or len(found) != 1:
+            return False, f"{d.verdict}: " + ", ".join(f"{k[0]} {k[1]}" for k in named)
+        f = found[0]
+        info = f.candidate.info
+        # compared at the model's pose: at a joint the heat may be placed on either body
+        miss_mm = float(np.linalg.norm(np.asarray(info["location_at_pose_mm"]) - np.asarray(where)))
+        ok_shape = f.candidate.target.endswith("|" + shape)
+        ok = ok_shape and miss_mm <= h_mm and within(f.params, truth, nominal)
+        return ok, (f"located {miss_mm:.0f} mm off (± {info['location_spread_mm']:.0f}), "
+                    f"{f.candidate.target.split('|')[1]}, {np.round(f.params, 2).tolist()} vs {np.round(truth, 2).tolist()}")
     keys = [e[0] for e in case.expected]
     if d.verdict != "explained" or set(named) != set(keys):
         return False, f"{d.verdict}: " + ", ".join(f"{k[0]} {k[1]}" for k in named)
@@ -267,16 +323,18 @@ def main(argv=None) -> int:
     rom = prepare_model(machine, model=fe, order=150)
     prep_s = time.perf_counter() - t0
     nominal = make_case("null", machine, fe, loads, np.random.default_rng(0), a.element_size_mm)
+    ds0 = dataset(machine, loads, nominal, seed=0)
+    activity = build_problem(machine, rom, ds0, parse_split("0:60%", ds0.time_s)).activity
     start = int(0.6 * loads.time_s.size)
     rng = np.random.default_rng(a.seed)
     rows, records = [], []
     for i in range(a.cases):
         kind = str(rng.choice(KINDS, p=WEIGHTS / WEIGHTS.sum()))
-        case = make_case(kind, machine, fe, loads, rng, a.element_size_mm)
+        case = make_case(kind, machine, fe, loads, rng, a.element_size_mm, activity)
         t0 = time.perf_counter()
         d = diagnose(machine, dataset(machine, loads, case, seed=a.seed + i), "0:60%", rom=rom)
         snr = detectability(case, nominal, start)
-        ok, said = judge(case, d, snr)
+        ok, said = judge(case, d, snr, a.element_size_mm)
         rows.append({"case": i + 1, "kind": kind, "planted": case.description, "sigma": f"{snr:.0f}", "result": said,
                      "ok": "yes" if ok else "NO", "s": f"{time.perf_counter() - t0:.0f}"})
         records.append({"kind": kind, "planted": case.description, "verdict": d.verdict, "ok": ok, "snr": snr,

@@ -81,7 +81,25 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     cands = library(problem, kinds)
     log.info("%d candidate effects", len(cands))
     with single_blas_thread():
-        d = select(problem, cands, max_effects=max_effects, progress=progress)
+        memo: dict = {}
+        d = select(problem, cands, max_effects=max_effects, progress=progress, memo=memo)
+        if d.verdict == "unexplained" and (kinds is None or "located_source" in kinds) and rom.V is not None:
+            # the machine's own elements leave a structured residual: then, and only then, a heat source the machine
+            # file lacks, searched anywhere on the surface (the most flexible hypothesis comes last), on the residual
+            # of the model as it is and on the one the partial candidates leave
+            from hybridcomp.diagnose.effects import simulate
+            from hybridcomp.diagnose.locate import candidates as located
+
+            t1 = time.perf_counter()
+            more = located(problem, problem.Y - simulate(problem, []))
+            if d.partial:
+                seen = {c.key for c in more}
+                more += [c for c in located(problem, problem.Y - d.Y_after) if c.key not in seen]
+            log.info("%d located-source candidates in %.1f s", len(more), time.perf_counter() - t1)
+            timings = d.timings_s
+            d = select(problem, cands + more, max_effects=max_effects, progress=progress, memo=memo)
+            d.timings_s["without located sources"] = timings["selection"]
+            cands = cands + more
     d.timings_s["total"] = time.perf_counter() - t0
     d.timings_s["candidates"] = len(cands)
     return d

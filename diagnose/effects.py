@@ -8,6 +8,7 @@ an ``apply`` function that changes a :class:`~hybridcomp.diagnose.problem.Setup`
 |---|---|---|
 | ``ambient_lag`` | gain [-], τ [h] | ambient-air zones follow the measured workshop air through a first-order lag |
 | ``missing_source`` | power at full activity [W] | a heat input at an existing source's patch driven by another activity signal |
+| ``located_source`` | power [W] (exponent [-]) | a heat input anywhere on a body's surface, with a drive shape (``locate``) |
 | ``power_scale`` | factor [-] | the power of a modelled source |
 | ``exponent`` | exponent [-] | the speed-to-heat exponent of a modelled source |
 | ``htc`` | h [W/(m² K)] | a zone's heat-transfer coefficient |
@@ -27,7 +28,7 @@ import numpy as np
 
 from hybridcomp.diagnose.problem import DRIFT, Problem, Setup, activity_mask, first_order_lag
 
-KINDS = ("ambient_lag", "missing_source", "power_scale", "exponent", "htc", "htc_motion", "sensor_lag",
+KINDS = ("ambient_lag", "missing_source", "located_source", "power_scale", "exponent", "htc", "htc_motion", "sensor_lag",
          "sensor_offset", "workspace_offset", "expansion")
 
 
@@ -51,6 +52,8 @@ class Candidate:
     physical : per parameter, whether its (lower, upper) bound is a physically meaningful value (a time constant
         of 0: the air reaches the surfaces at once; a power factor of 0: the source gives no heat) rather than the
         edge of the search range; a fit at a meaningful bound is a result, at an artefact bound the wrong shape
+    extra_dof : parameters chosen outside the fit that count in the BIC (a located source's three coordinates)
+    info : what a report needs beyond the parameters (a located source's place, its confidence region, its driver)
     """
 
     kind: str
@@ -66,6 +69,8 @@ class Candidate:
     apply: Callable = field(compare=False, repr=False)
     grid: tuple[float, ...] | None = None
     physical: tuple[tuple[bool, bool], ...] = ()
+    extra_dof: int = 0
+    info: dict = field(default_factory=dict, compare=False)
 
     @property
     def key(self) -> tuple[str, str]:
@@ -85,7 +90,11 @@ def _varies(f: np.ndarray | None) -> bool:
 
 
 def library(problem: Problem, kinds=None) -> list[Candidate]:
-    """Every candidate effect the problem's machine and data allow (``kinds`` restricts the library)."""
+    """Every candidate effect the problem's machine and data allow (``kinds`` restricts the library).
+
+    ``located_source`` candidates depend on a residual: :func:`hybridcomp.diagnose.core.diagnose` makes them with
+    :func:`hybridcomp.diagnose.locate.candidates` when the others leave the data unexplained.
+    """
     kinds = KINDS if kinds is None else tuple(kinds)
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:

@@ -1,7 +1,8 @@
 """The extended machine file: the named causes written back into the machine's TOML.
 
 What a machine file can express (``models/README.md``): a source's ``power_W`` and ``exponent``,
-a zone's ``h_W_m2K``, a new fixed heat source with a driver, a body's material (so a body-specific
+a zone's ``h_W_m2K``, a new fixed heat source with a driver (at an existing patch, or at the place a search over
+the surface found), a body's material (so a body-specific
 expansion coefficient is a new material).  What it cannot express is listed by
 :func:`not_expressible`: air temperatures (ambient lag, workspace offset) are loads, sensor lag
 and offset are properties of the measurement, and a zone has one coefficient, not one for motion
@@ -12,6 +13,8 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+
+import numpy as np
 
 from hybridcomp.models.toml import dumps_toml, read_toml
 
@@ -72,6 +75,13 @@ def extended_machine(machine, causes) -> dict:
                    "exponent": 1.0}
             sources.append(new)
             applied.append(f"heat_sources: new '{name}' at {loc} ({s0['body']}), driven by {driver}, {p[0]:.4g} W at full load")
+        elif c.kind == "located_source":
+            new = located_source_entry(c, p, {b["name"]: b for b in bodies})
+            sources.append(new)
+            where = ", ".join(f"{v:g}" for v in new["position_mm"])
+            applied.append(f"heat_sources: new '{new['name']}' on {new['body']} at ({where}) mm "
+                           f"(± {c.info['location_spread_mm']:.0f} mm), {p[0]:.4g} W, {c.info['form']}"
+                           + (f" with {c.info['driver']}" if c.info.get("driver") else ""))
         elif c.kind == "expansion":
             b = next(b for b in bodies if b["name"] == c.target)
             mats = data["materials"]
@@ -83,6 +93,32 @@ def extended_machine(machine, causes) -> dict:
     data["heat_sources"] = sources
     data["_applied"] = applied
     return data
+
+
+def located_source_entry(c, p, bodies: dict) -> dict:
+    """A located source as a ``[[heat_sources]]`` table.
+
+    Its patch sits at the fitted place; its drive shape becomes a power law
+    (proportional: exponent 1; power law: the fitted exponent), a power table that switches on at 2 % load (on/off),
+    or no driver (constant).
+    """
+    from hybridcomp.diagnose.locate import ON_THRESHOLD
+
+    info = c.info
+    box = bodies[info["body"]].get("box_mm")
+    pos = np.asarray(info["location_mm"], float)
+    if box is not None:
+        pos = np.clip(pos, np.asarray(box[0], float), np.asarray(box[1], float))
+    name = _clean_name(f"found_{info['body']}_{info['form']}_{info.get('driver') or 'always'}")
+    new = {"name": name, "kind": "fixed", "body": info["body"], "position_mm": [round(float(v), 1) for v in pos],
+           "size_mm": [float(info["patch_mm"])] * 3, "power_W": round(float(p[0]), 6)}
+    if info.get("driver"):
+        new["driver"] = info["driver"]
+        if info["form"] == "on/off":
+            new["power_table"] = [[0.0, 0.0], [ON_THRESHOLD, 1.0], [1.0, 1.0]]
+        else:
+            new["exponent"] = round(float(p[1]), 6) if info["form"] == "power law" else 1.0
+    return new
 
 
 def write_extended_machine(machine, causes, path: str | Path) -> tuple[Path, list[str], list[tuple[str, str]]]:

@@ -155,6 +155,16 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
             L.append(f"| {i} | {c.label} | {pars} | {nom} | {f.bic_drop:.1f} | {100 * f.validation_gain:.1f} % |")
         L += ["", "Validation gain: reduction of the noise-weighted residual energy on the validation rows when the "
               "effect was added."]
+        for f in d.causes:
+            w = f.candidate.info
+            if f.candidate.kind == "located_source":
+                xyz = ", ".join(f"{v:.0f}" for v in w["location_mm"])
+                L += ["", f"The missing source was searched over every body's surface (sites {w['patch_mm']:.0f} mm "
+                      f"patches, on the training rows only): it sits on {w['body']} at ({xyz}) mm in machine-file "
+                      f"coordinates; sites within {w['location_spread_mm']:.0f} mm of it fit the training data as "
+                      "well within the noise (the place is known to that extent)."
+                      + (f" Its drive cannot be told apart from {', '.join(w['same_as'])}'s in these data."
+                         if w.get("same_as") else "")]
     else:
         L.append("No effect named.")
     if d.partial:

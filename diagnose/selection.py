@@ -44,6 +44,7 @@ class Fitted:
             "nominal": {n: float(v) for n, v in zip(c.param_names, c.nominal)},
             "uncertainty": {n: float(v) for n, v in zip(c.param_names, self.uncertainty)},
             "gain": {"bic_drop_train": float(self.bic_drop), "validation_rss_reduction": float(self.validation_gain)},
+            **({"where": dict(c.info)} if c.info else {}),
         }
 
 
@@ -60,6 +61,11 @@ class Evaluation:
     def bic(self) -> float:
         n = self.n_train
         return n * np.log(self.rss_train / n) + self.k * np.log(n)
+
+
+def dof(candidates, params) -> int:
+    """Parameters a set of effects spends: the fitted ones and those chosen outside the fit (a source's location)."""
+    return sum(len(p) + c.extra_dof for c, p in zip(candidates, params))
 
 
 def _weighted(problem: Problem, Yhat: np.ndarray) -> np.ndarray:
@@ -232,14 +238,15 @@ def _conflicts(a: Candidate, chosen: list) -> bool:
 
 def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX_EFFECTS,
            min_gain: float = MIN_VALIDATION_GAIN, min_bic_drop: float = MIN_BIC_DROP, top_joint: int = 6,
-           progress: bool = False) -> Diagnosis:
+           progress: bool = False, memo: dict | None = None) -> Diagnosis:
     """Greedy forward selection of named effects.
 
     Each round fits every remaining candidate (the accepted ones held at their values), ranks them
     by the drop of the training BIC, and accepts the best one whose fit also lowers the weighted
     validation residual energy by at least ``min_gain``; then all accepted effects are refitted
     together.  Stops when every channel's validation residual is at its noise level, when no
-    candidate passes both tests, or after ``max_effects``.
+    candidate passes both tests, or after ``max_effects``.  ``memo`` keeps the screening fits of a
+    candidate next to given accepted effects for a later selection on the same problem.
     """
     t0 = time.perf_counter()
     base_eval, Y0 = evaluate(problem, [], 0)
@@ -262,19 +269,25 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
         if len(chosen) >= max_effects:
             break
         fixed = [(f.candidate, f.params) for f in chosen]
-        k_now = sum(len(f.params) for f in chosen)
+        k_now = dof([f.candidate for f in chosen], [f.params for f in chosen])
         scores = []
         for cand in candidates:
             if bar is not None:
                 bar.update()
             if cand.key in banned or _conflicts(cand, [f.candidate for f in chosen]):
                 continue
-            try:
-                (p,), (u,), _ = fit(problem, fixed, [cand])
-            except (ValueError, np.linalg.LinAlgError) as exc:
-                log.debug("candidate %s failed: %s", cand.label, exc)
-                continue
-            ev, _ = evaluate(problem, fixed + [(cand, p)], k_now + len(p))
+            memo_key = (cand.key, tuple((c.key, tuple(np.round(np.asarray(q, float), 12))) for c, q in fixed))
+            if memo is not None and memo_key in memo:
+                p, u, ev = memo[memo_key]
+            else:
+                try:
+                    (p,), (u,), _ = fit(problem, fixed, [cand])
+                except (ValueError, np.linalg.LinAlgError) as exc:
+                    log.debug("candidate %s failed: %s", cand.label, exc)
+                    continue
+                ev, _ = evaluate(problem, fixed + [(cand, p)], k_now + len(p) + cand.extra_dof)
+                if memo is not None:
+                    memo[memo_key] = (p, u, ev)
             bic_drop = current.bic - ev.bic
             gain = 1.0 - ev.rss_val / current.rss_val if current.rss_val > 0 else 0.0
             scores.append({"candidate": cand, "params": p, "unc": u, "bic_drop": bic_drop, "gain": gain})
@@ -291,7 +304,7 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
                 params, uncs, ev = [s["params"]], [s["unc"]], None
             else:
                 params, uncs, _ = fit(problem, [], free, start=[f.params for f in chosen] + [s["params"]])
-            ev, _ = evaluate(problem, list(zip(free, params)), sum(len(p) for p in params))
+            ev, _ = evaluate(problem, list(zip(free, params)), dof(free, params))
             gain = 1.0 - ev.rss_val / current.rss_val if current.rss_val > 0 else 0.0
             pinned = any(at_bound(c, p) for c, p in zip(free, params))
             joint.append({"free": free, "params": params, "uncs": uncs, "eval": ev, "bic_drop": current.bic - ev.bic,
@@ -304,7 +317,7 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
         # parsimony: a candidate with fewer parameters within the significance margin of the best wins
         # (e.g. one h for a zone against separate h for motion and standstill that fit equally well)
         close = [j for j in ok if j["bic_drop"] >= top - min_bic_drop]
-        best = min(close, key=lambda j: (len(j["params"][-1]), -j["bic_drop"]))
+        best = min(close, key=lambda j: (len(j["params"][-1]) + j["free"][-1].extra_dof, -j["bic_drop"]))
         new = best["free"][-1]
         rounds.append(Round(new.describe(best["params"][-1]), table))
         log.info("accepted %s (BIC drop %.1f, validation gain %.3f)", new.describe(best["params"][-1]), best["bic_drop"],
@@ -317,7 +330,8 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
             for i in range(len(chosen) - 1):
                 rest = chosen[:i] + chosen[i + 1:]
                 params, uncs, _ = fit(problem, [], [f.candidate for f in rest], start=[f.params for f in rest])
-                ev, _ = evaluate(problem, [(f.candidate, p) for f, p in zip(rest, params)], sum(len(p) for p in params))
+                cands = [f.candidate for f in rest]
+                ev, _ = evaluate(problem, list(zip(cands, params)), dof(cands, params))
                 need_bic = ev.bic - current.bic
                 need_gain = 1.0 - current.rss_val / ev.rss_val if ev.rss_val > 0 else 0.0
                 if need_bic < min_bic_drop or need_gain < min_gain:
@@ -337,7 +351,8 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
         rest = chosen[:i] + chosen[i + 1:]
         if rest:
             params, _, _ = fit(problem, [], [g.candidate for g in rest], start=[g.params for g in rest])
-            ev, _ = evaluate(problem, [(g.candidate, p) for g, p in zip(rest, params)], sum(len(p) for p in params))
+            cands = [g.candidate for g in rest]
+            ev, _ = evaluate(problem, list(zip(cands, params)), dof(cands, params))
         else:
             ev = base_eval
         final.append(Fitted(f.candidate, f.params, f.uncertainty, float(ev.bic - current.bic),

@@ -361,3 +361,62 @@ def test_body_drift_rows_sum_to_the_drift_rows(fe):
     assert bodies == tuple(b.name for b in fe.machine.bodies if b.name in bodies) and len(bodies) == 6
     assert np.abs(rows.sum(axis=0) - fe.G).max() <= 1e-12 * np.abs(fe.G).max()
     assert all(np.abs(r).max() > 0 for r in rows)
+
+
+def _planted_patch(machine, fe, body, where_mm, size_mm):
+    src = HeatSource("planted", "fixed", body, None, None, tuple(where_mm), tuple(size_mm), 1.0, 1.0, None)
+    b, _ = heat_input_matrix(dataclasses.replace(machine, heat_sources=(src,)), fe.mesh, cell_basis(fe.mesh.mesh))
+    return b
+
+
+def test_surface_site_response_matches_fe(machine, fe, rom, loads):
+    """The reduced model carries heat anywhere on the surface (its basis holds the outputs' adjoint directions): the
+    modal response of a site equals an FE run with that patch as an extra input, within the model's own accuracy."""
+    from hybridcomp.diagnose import locate
+    from hybridcomp.diagnose.problem import build_problem
+
+    t = loads.time_s
+    U = loads.as_inputs(machine.reference_temperature_degC)
+    s0, d0 = fe_run(fe, t, U)
+    pb = build_problem(machine, rom, dataset(machine, loads, s0, d0, seed=2), parse_split("0:60%", t))
+    on = (pb.activity["spindle"] > locate.ON_THRESHOLD).astype(float)
+    b = _planted_patch(machine, fe, "column", (-450.0, 800.0, 1200.0), (100.0, 100.0, 100.0))
+    model = dataclasses.replace(fe, B=np.hstack([fe.B, b]), heat_names=fe.heat_names + ("planted",), _cache={})
+    m = len(fe.heat_names)
+    s1, d1 = fe_run(model, t, np.hstack([U[:, :m], 60.0 * on[:, None], U[:, m:]]))
+    resp = locate.site_responses(pb, locate.mode_lags(pb, on), rom._modes()[1].T @ (rom.V.T @ b))[:, :, 0] * 60.0
+    truth = np.hstack([s1 - s0, d1 - d0])
+    resp[:, 8:] *= 1e6
+    assert np.abs(truth).max() > 1.0  # the source shows: T3/T4 on the column's side, the drift
+    err = np.abs(resp - truth).max(axis=0)
+    assert err[:8].max() <= 0.02 and err[8:].max() <= 0.1, err
+
+
+def test_missing_source_anywhere_is_located(machine, fe, rom, loads, tmp_path):
+    """A 55 W source on the column's side, on while the spindle runs, at no existing source's patch: named with its
+    drive shape, placed within one element size, its power within 20 %; written into the extended machine file."""
+    from hybridcomp.diagnose.machine_file import write_extended_machine
+    from hybridcomp.models import load_machine
+
+    t = loads.time_s
+    U = loads.as_inputs(machine.reference_temperature_degC)
+    where = np.array([-450.0, 720.0, 1310.0])
+    b = _planted_patch(machine, fe, "column", where, (100.0, 100.0, 100.0))
+    model = dataclasses.replace(fe, B=np.hstack([fe.B, b]), heat_names=fe.heat_names + ("planted",), _cache={})
+    on = (U[:, column(loads, "spindle_motor_W")] > 0).astype(float)
+    m = len(fe.heat_names)
+    s, d = fe_run(model, t, np.hstack([U[:, :m], 55.0 * on[:, None], U[:, m:]]))
+    dg = diagnose(machine, dataset(machine, loads, s, d, seed=5), "0:60%", rom=rom)
+    assert dg.verdict == "explained", (dg.message, [f.candidate.label for f in dg.causes + dg.partial])
+    assert [f.candidate.kind for f in dg.causes] == ["located_source"], [f.candidate.label for f in dg.causes]
+    cause = dg.causes[0]
+    assert cause.candidate.target.endswith("|spindle on/off"), cause.candidate.target
+    info = cause.candidate.info
+    assert np.linalg.norm(np.asarray(info["location_mm"]) - where) <= H_MM, info
+    _check(cause.params, 55.0, 0.0)
+    assert "location_mm" in cause.as_dict()["where"]
+    path, applied, _ = write_extended_machine(machine, dg.causes, tmp_path / "m.toml")
+    new = next(s for s in load_machine(path).heat_sources if s.name.startswith("found_"))
+    assert new.body == info["body"] and new.driver == "spindle" and new.power_table is not None
+    assert np.linalg.norm(np.asarray(new.position_mm) - where) <= H_MM
+    assert new.power_W == pytest.approx(float(cause.params[0]), rel=1e-6)

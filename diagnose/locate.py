@@ -1,0 +1,426 @@
+"""A missing heat source anywhere on the machine's surface: sites, drive shapes and the search over both.
+
+The library's ``missing_source`` only tries existing sources' patches.  A pump, a fan, a brake or a cabinet sits
+anywhere.  Here every body's surface (its faces in the air and its joints with other bodies) is cut into *sites* one
+search spacing apart (default: the element size), each a box patch of that size centred on the surface, clipped to its
+body like a machine-file heat source.  The reduced model's basis carries a site's heat input: ``B_site = Vᵀ b``.
+The basis holds output-side Krylov directions (the sensors' and the drifts' adjoints), so the Galerkin
+projection reproduces the outputs' response to heat anywhere at the expansion points, not only to the modelled
+sources' heat.
+
+In the reduced model's modes (``M Φ = K Φ Λ⁻¹``, ``Φᵀ M Φ = I``) the response of every channel to a unit power
+``f(t)`` at a site is ``Σ_j (C Φ)_j (Φᵀ B_site)_j g_j(t)`` with ``g_j`` the first-order lag of ``f`` with time
+constant ``1/λ_j`` and gain ``1/λ_j``: one set of lags per drive shape serves every site.  The power of a site
+and shape is then a non-negative least-squares fit of the weighted training residual, in closed form for all
+sites at once.
+
+Drive shapes (``shapes``): on/off with the spindle or any axis (on above 2 % load), proportional to its activity,
+a power law of it (exponent fitted once the site is found), constant (on before the record began: the machine in
+its steady state with it), and switched on at the record's first sample (the machine at rest before: a cabinet or
+a hydraulic unit that comes on with the machine).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from hybridcomp.diagnose.problem import Problem, first_order_lag
+
+log = logging.getLogger(__name__)
+
+#: load factor above which a driver counts as on (on/off shapes)
+ON_THRESHOLD = 0.02
+#: sites kept per drive shape (distinct places, at least two spacings apart) as candidates of the selection
+TOP_SITES = 2
+#: (shape, site) pairs refined on finer sites, the best by their coarse fit (the others stay candidates as they are)
+REFINED = 4
+#: the location's confidence region: sites whose training misfit is within this Δχ² (3 location parameters, 95 %)
+#: of the best, the misfit inflated for the residual's correlation in time
+CHI2_3_95 = 7.81
+
+
+@dataclass(frozen=True)
+class Sites:
+    """Places on the bodies' surfaces where a missing heat source is tried.
+
+    Attributes
+    ----------
+    position_mm : site centres at the model's pose (n × 3) [mm]
+    reference_mm : the same in machine-file coordinates (the reference pose, all axes at 0) (n × 3) [mm]
+    body : body name per site
+    Br : reduced heat input of 1 W at each site (r × n) [-]
+    patch_mm : edge length of a site's box patch [mm]
+    mesh : the machine's mesh at the model's pose (for a finer search near a site)
+    """
+
+    position_mm: np.ndarray
+    reference_mm: np.ndarray
+    body: tuple[str, ...]
+    Br: np.ndarray
+    patch_mm: float
+    mesh: object = dataclasses.field(default=None, compare=False, repr=False)
+
+    @property
+    def n(self) -> int:
+        return len(self.body)
+
+
+@dataclass(frozen=True)
+class Shape:
+    """A drive shape: the unit power over time of a missing source.
+
+    Attributes
+    ----------
+    name : ``"spindle on/off"``, ``"X proportional"``, ``"constant"`` …
+    driver : the spindle or an axis name, None for constant
+    form : ``"on/off"``, ``"proportional"``, ``"constant"`` (on before the record began: the machine in its steady
+        state with it) or ``"switched on"`` (at the record's first sample, the machine at rest before)
+    f : unit power per sample, 0..1 [-]
+    also : other drivers with the same shape in these data
+    """
+
+    name: str
+    driver: str | None
+    form: str
+    f: np.ndarray
+    also: tuple[str, ...] = ()
+
+
+def shapes(problem: Problem) -> list[Shape]:
+    """Every drive shape the dataset's activity signals allow, the spindle's first.
+
+    Drivers whose shapes are the same in these data (an axis that runs exactly while the spindle does) give one
+    shape, named by the first of them, with the others in ``also``: the data cannot tell them apart.
+    """
+    out: list[Shape] = []
+
+    def add(shape: Shape) -> None:
+        for k, other in enumerate(out):
+            if other.form == shape.form and np.allclose(other.f, shape.f, rtol=0, atol=1e-9):
+                out[k] = dataclasses.replace(other, also=other.also + (shape.driver,))
+                return
+        out.append(shape)
+
+    for driver in sorted(problem.activity, key=lambda d: d != "spindle"):
+        act = np.asarray(problem.activity[driver], float)
+        if np.ptp(act) == 0:
+            continue
+        on = (act > ON_THRESHOLD).astype(float)
+        add(Shape(f"{driver} on/off", driver, "on/off", on))
+        if not np.array_equal(on, act):
+            add(Shape(f"{driver} proportional", driver, "proportional", act))
+    n = problem.time_s.size
+    out.append(Shape("constant", None, "constant", np.ones(n)))
+    if n > 1:
+        out.append(Shape("on from the start", None, "switched on", np.r_[0.0, np.ones(n - 1)]))
+    return out
+
+
+def surface_sites(machine, rom, mesh=None, spacing_mm: float | None = None, patch_mm: float | None = None,
+                  near: tuple[np.ndarray, float, str] | None = None) -> Sites:
+    """The search sites of a machine for a reduced model with its basis V.
+
+    Parameters
+    ----------
+    machine : the machine the reduced model was made of
+    rom : reduced model with ``V``; its ``meta`` gives the pose and element size of the mesh
+    mesh : the :class:`~hybridcomp.fem.mesh.MachineMesh` (made here from the reduced model's pose if None)
+    spacing_mm : distance between sites [mm] (default: the element size)
+    patch_mm : edge of a site's box patch [mm] (default: the spacing)
+    near : (centre at the pose [mm], radius [mm], body): only the surface of that body within the radius
+    """
+    from hybridcomp.fem.assembly import cell_basis
+    from hybridcomp.fem.mesh import mesh_machine
+    from hybridcomp.fem.model import MM, heat_input_rows
+
+    if rom.V is None:
+        raise ValueError("the reduced model has no basis V: a missing source cannot be searched over the surface")
+    h = float(rom.meta.get("element_size_mm") or machine.mesh.element_size_mm)
+    if mesh is None:
+        m = dataclasses.replace(machine, mesh=dataclasses.replace(machine.mesh, element_size_mm=h))
+        mesh = mesh_machine(m, rom.meta.get("pose_mm"))
+    if mesh.n_nodes != rom.V.shape[0]:
+        raise ValueError(f"the reduced model has {rom.V.shape[0]} nodes, the mesh {mesh.n_nodes}: use the same element size")
+    spacing = float(spacing_mm or h)
+    patch = float(patch_mm or spacing)
+    sk = mesh.mesh
+    # the bodies' surfaces: facets on the boundary (air) and between two bodies (a joint), the latter once per side
+    left = mesh.body_of_element[sk.f2t[0]]
+    right = np.where(sk.f2t[1] >= 0, mesh.body_of_element[np.maximum(sk.f2t[1], 0)], -1)
+    outer = np.flatnonzero(right < 0)
+    joint = np.flatnonzero((right >= 0) & (right != left))
+    facets = np.concatenate([outer, joint, joint])
+    body_idx = np.concatenate([left[outer], left[joint], right[joint]])
+    corners_mm = sk.p[:, sk.facets[:, facets]].transpose(2, 1, 0) / MM  # facet × node × xyz
+    if near is not None:
+        lo, hi = corners_mm.min(axis=1), corners_mm.max(axis=1)
+        gap = np.linalg.norm(np.clip(np.asarray(near[0], float), lo, hi) - np.asarray(near[0], float), axis=1)
+        keep = (gap <= near[1]) & (body_idx == mesh.body_names.index(near[2]))
+        corners_mm, body_idx = corners_mm[keep], body_idx[keep]
+    cent_mm, body_idx = _facet_points(corners_mm, body_idx, spacing)
+    if near is not None:
+        keep = np.linalg.norm(cent_mm - np.asarray(near[0], float), axis=1) <= near[1]
+        cent_mm, body_idx = cent_mm[keep], body_idx[keep]
+    keys = np.column_stack([body_idx, np.floor(cent_mm / spacing).astype(int)])
+    _, group = np.unique(keys, axis=0, return_inverse=True)
+    group = group.ravel()
+    n = int(group.max()) + 1
+    pos = np.zeros((n, 3))
+    np.add.at(pos, group, cent_mm)
+    pos /= np.bincount(group, minlength=n)[:, None]
+    bodies = [mesh.body_names[int(b)] for b in np.bincount(group, weights=body_idx, minlength=n)
+              // np.bincount(group, minlength=n)]
+    ref = np.array([p - machine.body_offset_mm(b, mesh.pose_mm) for p, b in zip(pos, bodies)])
+    template = machine.heat_sources[0] if machine.heat_sources else None
+    if template is None:
+        from hybridcomp.models.machine import HeatSource
+
+        template = HeatSource("site", "fixed", bodies[0], None, None, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1.0, 1.0, None)
+    srcs = tuple(dataclasses.replace(template, name=f"site{i}", kind="fixed", body=b, axis=None, driver=None,
+                                     position_mm=tuple(map(float, r)), size_mm=(patch,) * 3, power_W=1.0,
+                                     exponent=1.0, power_table=None)
+                 for i, (r, b) in enumerate(zip(ref, bodies)))
+    rows, _ = heat_input_rows(dataclasses.replace(machine, heat_sources=srcs), mesh, cell_basis(sk))
+    return Sites(pos, ref, tuple(bodies), np.asarray(rows @ rom.V).T, patch, mesh)
+
+
+def _facet_points(corners_mm: np.ndarray, body_idx: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the facets at most ``spacing`` apart.
+
+    The centroid of a facet smaller than the spacing, else a lattice of combinations of its corners (bilinear on a
+    quadrilateral, barycentric on a triangle).
+    """
+    size = np.max(np.linalg.norm(corners_mm - corners_mm.mean(axis=1, keepdims=True), axis=2), axis=1) * 2.0
+    pts, bodies = [corners_mm.mean(axis=1)], [body_idx]
+    big = np.flatnonzero(size > spacing)
+    for k in np.unique(np.ceil(size[big] / spacing).astype(int)):
+        sel = big[np.ceil(size[big] / spacing).astype(int) == k]
+        u = (np.arange(k) + 0.5) / k
+        c = corners_mm[sel]
+        if c.shape[1] == 4:  # quadrilateral, corners in cyclic order
+            U, W = (a.ravel() for a in np.meshgrid(u, u, indexing="ij"))
+            wts = np.column_stack([(1 - U) * (1 - W), U * (1 - W), U * W, (1 - U) * W])
+        else:  # triangle: the lattice points inside
+            U, W = (a.ravel() for a in np.meshgrid(u, u, indexing="ij"))
+            inside = U + W < 1
+            U, W = U[inside], W[inside]
+            wts = np.column_stack([1 - U - W, U, W])
+        pts.append(np.einsum("pn,fnd->fpd", wts, c[:, : wts.shape[1]]).reshape(-1, 3))
+        bodies.append(np.repeat(body_idx[sel], wts.shape[0]))
+    return np.vstack(pts), np.concatenate(bodies)
+
+
+def sites_for(problem: Problem, machine=None) -> Sites | None:
+    """The problem's search sites (made once per reduced model and kept in its cache); None without a basis."""
+    rom = problem.rom
+    if rom.V is None:
+        return None
+    if "surface_sites" not in rom._cache:
+        t0 = time.perf_counter()
+        rom._cache["surface_sites"] = surface_sites(machine or problem.machine, rom)
+        log.info("%d surface sites for a missing source in %.1f s", rom._cache["surface_sites"].n, time.perf_counter() - t0)
+    return rom._cache["surface_sites"]
+
+
+def _channel_scale(problem: Problem) -> np.ndarray:
+    """Raw output unit → channel unit (K → K, m → µm)."""
+    return np.array([1.0 if problem.is_temperature(k) else 1e6 for k in range(len(problem.channels))])
+
+
+def mode_lags(problem: Problem, f: np.ndarray) -> np.ndarray:
+    """Per reduced mode j, the response g_j (nt × r) of ġ = −λ_j g + f from its steady state at f[0]."""
+    lam = problem.rom._modes()[0]
+    t = problem.time_s
+    G = np.empty((t.size, lam.size))
+    for j, rate in enumerate(lam):
+        G[:, j] = first_order_lag(t, f, 1.0 / rate) / rate
+    return G
+
+
+def site_responses(problem: Problem, G: np.ndarray, Bm: np.ndarray) -> np.ndarray:
+    """Raw channel outputs (nt × nch × ns) of 1 W at each site with the mode responses ``G``; ``Bm = Φᵀ B_site``."""
+    Phi = problem.rom._modes()[1]
+    Cz = problem.rom.C[list(problem.out_index)] @ Phi
+    return np.stack([(G * Cz[k]) @ Bm for k in range(Cz.shape[0])], axis=1)
+
+
+@dataclass(frozen=True)
+class Found:
+    """The best sites of one shape for a residual.
+
+    Attributes
+    ----------
+    shape : the drive shape
+    sites : site indices, best first (distinct places)
+    power_W : fitted power per site [W]
+    gain : drop of the weighted training misfit per site [-]
+    spread_mm : per site, the largest distance to a site of its confidence region [mm]
+    """
+
+    shape: Shape
+    sites: tuple[int, ...]
+    power_W: tuple[float, ...]
+    gain: tuple[float, ...]
+    spread_mm: tuple[float, ...]
+
+
+def search(problem: Problem, sites: Sites, residual: np.ndarray, shape: Shape, top: int = TOP_SITES,
+           max_power_W: float = 2000.0) -> Found:
+    """Fit a missing source of ``shape`` at every site to the weighted training ``residual`` (measured − model).
+
+    The location is chosen on the training rows only.  With the weighted response ``Y_s = Σ_j G_j (w ∘ Cz_j) Bm_js``
+    the fit needs ``⟨R, Y_s⟩ = (Σ_c w_c Cz_c ∘ (Rᵀ G)_c) Bm_s`` and ``‖Y_s‖² = Bm_sᵀ Q Bm_s`` with
+    ``Q = Σ_c w_c² (Cz_c Cz_cᵀ) ∘ (Gᵀ G)``: O(nt r²) once, then O(r²) a site, whatever the record's length.
+    The confidence region of a site: the sites whose misfit is within ``CHI2_3_95`` × the inflation of the
+    residual's correlation in time of its own.
+    """
+    from hybridcomp.diagnose.metrics import lag1_autocorrelation
+
+    tr = problem.split.train
+    w = problem.weights * _channel_scale(problem)
+    R = residual[tr] * problem.weights[None, :]
+    lam, Phi = problem.rom._modes()
+    Bm = Phi.T @ sites.Br
+    Cz = problem.rom.C[list(problem.out_index)] @ Phi * w[:, None]
+    G = mode_lags(problem, shape.f)[tr]
+    num = np.einsum("cj,cj->j", Cz, R.T @ G) @ Bm
+    Q = (Cz.T @ Cz) * (G.T @ G)
+    den = np.maximum(np.einsum("js,jk,ks->s", Bm, Q, Bm), 1e-300)
+    P = np.clip(num / den, 0.0, max_power_W)
+    drop = 2 * P * num - P**2 * den  # misfit drop of power P
+    base = float(np.sum(R**2))
+    rho = np.clip(np.mean([lag1_autocorrelation(r) for r in R.T]), 0.0, 0.99)
+    s2 = base / max(R.size - 1, 1)
+    threshold = CHI2_3_95 * s2 * (1 + rho) / (1 - rho)
+    order = np.argsort(-drop)
+    picked: list[int] = []
+    for i in order:
+        if len(picked) >= top or drop[i] <= 0:
+            break
+        if all(np.linalg.norm(sites.position_mm[i] - sites.position_mm[j]) >= 2 * sites.patch_mm for j in picked):
+            picked.append(int(i))
+    spread = []
+    for i in picked:
+        near = drop >= drop[i] - threshold
+        spread.append(float(np.max(np.linalg.norm(sites.position_mm[near] - sites.position_mm[i], axis=1))))
+    return Found(shape, tuple(picked), tuple(float(P[i]) for i in picked), tuple(float(drop[i] / base) for i in picked),
+                 tuple(spread))
+
+
+def refine(problem: Problem, sites: Sites, i: int, residual: np.ndarray, shape: Shape) -> tuple[Sites, int, float]:
+    """Finer searches around site ``i`` on its body.
+
+    First a third of the spacing within 1.2 spacings, then a ninth within half a spacing with patches of one, two
+    and three thirds of the spacing.
+
+    Returns the sites searched last, the best one's index among them, and the confidence region's extent [mm].
+    """
+    h = sites.patch_mm
+    at, best, spread = sites, i, 0.5 * h
+    for step, radius, patches in ((h / 3.0, 1.2 * h, (h,)), (h / 9.0, 0.5 * h, (h / 3.0, 2.0 * h / 3.0, h))):
+        trials = []
+        for patch in patches:
+            fine = surface_sites(problem.machine, problem.rom, sites.mesh, step, patch,
+                                 (at.position_mm[best], radius, at.body[best]))
+            found = search(problem, fine, residual, shape, top=1)
+            if found.sites:
+                trials.append((found.gain[0], fine, found.sites[0], found.spread_mm[0]))
+        if not trials:
+            break
+        _, at, best, spread = max(trials, key=lambda x: x[0])
+    return at, best, spread
+
+
+def _describe_shape(shape: Shape, exponent: float | None = None) -> str:
+    if shape.form == "constant":
+        return "constant (on before the record began)"
+    if shape.form == "switched on":
+        return "switched on at the record's start"
+    who = " or ".join("the spindle" if d == "spindle" else f"axis {d}" for d in (shape.driver, *shape.also))
+    if exponent is not None:
+        text = f"following {who}'s activity to a power"
+    else:
+        text = f"on while {who} runs" if shape.form == "on/off" else f"proportional to {who}'s activity"
+    return text + (" (the same in these data)" if shape.also else "")
+
+
+def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> list:
+    """``located_source`` candidates: per drive shape, the ``top`` best distinct sites for ``residual``.
+
+    The ``REFINED`` best of them are placed more finely (:func:`refine`).  Each is linear in its power; a
+    proportional shape's best site is also tried with a power law of its activity (power and exponent fitted).
+    The location counts as three parameters more in the selection's BIC (``Candidate.extra_dof``); the
+    confidence region's extent is reported with it.
+    """
+    from hybridcomp.diagnose.effects import Candidate
+
+    sites = sites_for(problem)
+    if sites is None:
+        log.info("the reduced model has no basis V: no search for a missing source over the surface")
+        return []
+    rows = list(problem.out_index)
+    out = []
+    founds = [search(problem, sites, residual, shape, top) for shape in shapes(problem)]
+    gains = sorted((g for f in founds for g in f.gain), reverse=True)
+    refine_from = gains[min(REFINED, len(gains)) - 1] if gains else np.inf
+    for found in founds:
+        shape = found.shape
+        G = None
+        for i0, g0, s0 in zip(found.sites, found.gain, found.spread_mm):
+            if G is None:
+                G = mode_lags(problem, shape.f)
+            if g0 >= refine_from:
+                at, i, spread = refine(problem, sites, i0, residual, shape)
+            else:
+                at, i, spread = sites, i0, max(s0, 0.5 * sites.patch_mm)
+            resp = site_responses(problem, G, problem.rom._modes()[1].T @ at.Br[:, [i]])[:, :, 0]
+            ref = np.round(at.reference_mm[i]).astype(int)
+            where = f"{at.body[i]}@{ref[0]},{ref[1]},{ref[2]}"
+            info = {"location_mm": [float(v) for v in at.reference_mm[i]], "body": at.body[i],
+                    "location_at_pose_mm": [float(v) for v in at.position_mm[i]],
+                    "location_spread_mm": max(spread, sites.patch_mm / 6.0), "patch_mm": at.patch_mm,
+                    "driver": shape.driver, "form": shape.form, "same_as": list(shape.also)}
+
+            def apply(s, p, resp=resp):
+                s.raw_ops.append(lambda Y, P=p[0]: Y.__setitem__((slice(None), rows), Y[:, rows] + P * resp))
+
+            label = (f"missing heat source on {at.body[i]} at ({ref[0]}, {ref[1]}, {ref[2]}) mm, "
+                     f"{_describe_shape(shape)}")
+            out.append(Candidate("located_source", f"{where}|{shape.name}", label, ("power [W]",), (0.0,), (2000.0,),
+                                 (0.0,), (0.0,), True, "raw", apply, physical=((True, False),), extra_dof=3, info=info))
+            if shape.form == "proportional" and i0 == found.sites[0]:
+                out.append(_power_law(problem, at, i, shape, where, info))
+    return out
+
+
+def _power_law(problem: Problem, sites: Sites, i: int, shape: Shape, where: str, info: dict):
+    from hybridcomp.diagnose.effects import Candidate
+
+    Bm = problem.rom._modes()[1].T @ sites.Br[:, [i]]
+    rows = list(problem.out_index)
+    cache: dict = {}
+
+    def response(n: float) -> np.ndarray:
+        key = round(float(n), 6)
+        if key not in cache:
+            if len(cache) > 64:
+                cache.clear()
+            G = mode_lags(problem, shape.f ** key)
+            cache[key] = site_responses(problem, G, Bm)[:, :, 0]
+        return cache[key]
+
+    def apply(s, p):
+        resp = response(p[1])
+        s.raw_ops.append(lambda Y, P=p[0]: Y.__setitem__((slice(None), rows), Y[:, rows] + P * resp))
+
+    ref = np.round(sites.reference_mm[i]).astype(int)
+    label = (f"missing heat source on {sites.body[i]} at ({ref[0]}, {ref[1]}, {ref[2]}) mm, "
+             f"{_describe_shape(shape, exponent=1.0)}")
+    return Candidate("located_source", f"{where}|{shape.driver} power law", label, ("power [W]", "exponent [-]"),
+                     (0.0, 0.2), (2000.0, 4.0), (0.0, 1.0), (100.0, 1.0), False, "raw", apply, grid=(20.0, 100.0, 500.0),
+                     physical=((True, False), (False, False)), extra_dof=3, info={**info, "form": "power law"})
