@@ -118,6 +118,9 @@ class MonitorConfig:
     max_step_um : largest change of an offset per compensation cycle [µm]
     blend_s : after a change of the active set, what remains between the offsets written and the new set's
         prediction (a generated set continues them by construction) decays with this time constant [s]
+    model_transient_s : hybrid strategy: crossover time constant of the complementary filter that takes what
+        changes faster than this from the corrected structure model and the rest from the CDs (0: the CDs alone;
+        while the model is flagged the CDs alone) [s]
     validity : when the active set is kept, replaced or regenerated (predicted compensation error in µm)
     observer : noise levels of the structure model's state observer
     sensors : plausibility rules for the temperature sensors
@@ -146,6 +149,7 @@ class MonitorConfig:
     max_offset_um: float = 200.0
     max_step_um: float = 0.2
     blend_s: float = 0.0
+    model_transient_s: float = 2700.0
     validity: Validity = field(default_factory=Validity)
     observer: ObserverSettings = field(default_factory=ObserverSettings)
     sensors: SensorRules = field(default_factory=SensorRules)
@@ -166,7 +170,7 @@ _MONITOR_KEYS = {
 }
 _SECTIONS = {
     "monitor": _MONITOR_KEYS,
-    "compensation": {"strategy", "sensor_filter_s", "max_offset_um", "max_step_um", "blend_s"},
+    "compensation": {"strategy", "sensor_filter_s", "max_offset_um", "max_step_um", "blend_s", "model_transient_s"},
     "validity": {f.name for f in dataclass_fields(Validity)},
     "observer": {f.name for f in dataclass_fields(ObserverSettings)},
     "sensors": {"hold_s", "frozen_s", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
@@ -336,6 +340,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         max_offset_um=c.number("max_offset_um", 200.0, positive=True),
         max_step_um=c.number("max_step_um", MonitorConfig.max_step_um, positive=True),
         blend_s=c.number("blend_s", MonitorConfig.blend_s, nonneg=True),
+        model_transient_s=c.number("model_transient_s", MonitorConfig.model_transient_s, nonneg=True),
         validity=validity,
         observer=observer,
         sensors=rules,
@@ -382,6 +387,8 @@ max_offset_um = 200                # offsets are clamped to this magnitude [um]
 max_step_um = 0.2                  # and change by at most this much per compensation cycle [um]
 blend_s = 0                        # after a change of CD set, what is left of a jump decays with this time constant [s]
                                    # (0: it is taken out at max_step_um per cycle)
+model_transient_s = 2700           # hybrid: what changes faster than this comes from the structure model (driven by
+                                   # the loads), the rest from the CDs (a complementary filter; 0: the CDs alone) [s]
 
 [validity]                         # the active set's predicted compensation error decides
 keep_um = 1.5                      # keep while |CD(T) - drift| over the last interval stays below this [um]

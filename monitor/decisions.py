@@ -68,6 +68,43 @@ def limit_offsets(
     return out, clamped, limited
 
 
+def complementary_offsets(
+    cd_um: Mapping[str, float], model_um: Mapping[str, float], low_um: Mapping[str, float] | None, dt_s: float,
+    tau_s: float,
+) -> tuple[dict[str, float], dict[str, float]]:
+    """The CD tables' prediction for the slow part, the structure model's for the fast part (a complementary filter).
+
+    ``offsets = model + LP_τ(CD − model)`` = ``LP_τ(CD) + HP_τ(model)``: what changes within ``tau_s`` (a spindle
+    start, a machining cycle; heat the sensors see late or not at all) comes from the structure model, which is
+    driven by the loads themselves; what is slower comes from the CDs on the measured sensors, which carry the real
+    machine's state and none of the model's bias.  The residual is the model's error high-passed plus the CDs'
+    error low-passed.
+
+    Parameters
+    ----------
+    cd_um : the active set's prediction now [µm]
+    model_um : the structure model's drift as the loads move it now (the daemon leaves out the jumps of the
+        observer's corrections, which are no transient of the machine) [µm]
+    low_um : the low-passed difference CD − model of the previous cycle (None: start from this cycle's) [µm]
+    dt_s : machine time since the previous cycle [s]
+    tau_s : the crossover time constant [s] (0: the CDs alone)
+
+    Returns
+    -------
+    the offsets [µm] and the low-passed difference [µm]
+    """
+    if not (dt_s >= 0 and tau_s >= 0):
+        raise ValueError(f"dt_s and tau_s must not be negative, got {dt_s}, {tau_s}")
+    if tau_s == 0:
+        return {k: float(v) for k, v in cd_um.items()}, {k: float(v) - float(model_um[k]) for k, v in cd_um.items()}
+    a = math.exp(-dt_s / tau_s)
+    low = {}
+    for k, v in cd_um.items():
+        x = float(v) - float(model_um[k])
+        low[k] = x if low_um is None or k not in low_um or not math.isfinite(low_um[k]) else a * low_um[k] + (1 - a) * x
+    return {k: float(model_um[k]) + low[k] for k in cd_um}, low
+
+
 def blend_offsets(
     target_um: Mapping[str, float], blend_um: Mapping[str, float], dt_s: float, tau_s: float
 ) -> tuple[dict[str, float], dict[str, float]]:

@@ -38,7 +38,8 @@ class Offset:
     clamped, limited : whether the clamp or the rate limit acted
     outside : whether an input was outside the CDs' trained range
     degraded : sensors standing in by the structure model's estimate
-    by : what computed the offsets: ``"cd"`` (the active CD set) or ``"observer"`` (the corrected structure model)
+    by : what computed the offsets: ``"cd"`` (the active CD set), ``"cd+model"`` (the CDs' slow part and the corrected
+        structure model's fast part) or ``"observer"`` (the corrected structure model)
     """
 
     time_s: float

@@ -49,7 +49,7 @@ _FLOATS = (lambda d: d, _floats_in)
 
 # field name -> (write, read) for the fields that are not plain JSON
 _CODECS: dict[str, tuple[Any, Any]] = {
-    **dict.fromkeys(("filtered_degC", "bias_K", "offsets_um", "blend_um", "air_hold"), _FLOATS),
+    **dict.fromkeys(("filtered_degC", "bias_K", "offsets_um", "blend_um", "air_hold", "complement_um"), _FLOATS),
     "observer": (lambda o: None if o is None else o.to_dict(), lambda v: None if v is None else ObserverState.from_dict(v)),
     "sensors": (lambda d: {k: s.to_dict() for k, s in d.items()}, lambda d: {k: SensorState.from_dict(s) for k, s in d.items()}),
     "carry": (_reading_out, _reading_in),
@@ -83,6 +83,10 @@ class MonitorState:
     offsets_um : offsets written last
     written : whether any offset was written (the first one is not rate limited: there is none to continue)
     blend_um, blend_time_s, blend_pending : what remains of a jump at a set change, and since when
+    complement_um, complement_time_s : the low-passed difference CD − structure model of the hybrid's complementary
+        filter, and when it was updated
+    transient_um : the structure model's drift moved by the loads alone: the sum of its predictions' steps, without
+        the jumps of the observer's corrections (probes, sensors), which are no transient of the machine [µm]
     carry : the last sample of the previous model step (continuity of the histogram)
     air_hold, pos_hold, spindle_hold : last finite air, positions, spindle speed
     probe_um : a probed drift waiting for the next model step (dx, dy, dz), or None
@@ -130,6 +134,9 @@ class MonitorState:
     blend_um: dict = field(default_factory=lambda: dict(ZERO_OFFSETS))
     blend_time_s: float | None = None
     blend_pending: bool = False
+    complement_um: dict | None = None
+    complement_time_s: float | None = None
+    transient_um: list | None = None
     carry: Reading | None = None
     air_hold: dict = field(default_factory=dict)
     pos_hold: list = field(default_factory=list)

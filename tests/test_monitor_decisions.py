@@ -16,6 +16,7 @@ from hybridcomp.monitor.decisions import (
     Validity,
     backoff_delay,
     blend_offsets,
+    complementary_offsets,
     check_sensor,
     check_time,
     compensation_error_um,
@@ -250,3 +251,22 @@ def test_backoff_jitter_bounds():
 def test_backoff_rejects_bad_settings(kw):
     with pytest.raises(ValueError):
         Backoff(**kw)
+
+
+def test_complementary_offsets_take_the_fast_part_from_the_model_and_the_slow_part_from_the_cds():
+    cd, model = {"dz_um": -10.0}, {"dz_um": -7.0}
+    out, low = complementary_offsets(cd, model, None, 5.0, 900.0)
+    assert out == {"dz_um": -10.0} and low == {"dz_um": -3.0}  # the first cycle: the CDs, nothing to continue
+    # the model jumps by 2 µm (a spindle start the sensors see late): the offsets follow at once
+    out, low = complementary_offsets(cd, {"dz_um": -5.0}, low, 5.0, 900.0)
+    assert out["dz_um"] == pytest.approx(-8.0, abs=0.02)
+    # held for long against the same CDs, the offsets settle on the CDs (the model's bias is not kept)
+    for _ in range(2000):
+        out, low = complementary_offsets(cd, {"dz_um": -5.0}, low, 5.0, 900.0)
+    assert out["dz_um"] == pytest.approx(-10.0, abs=1e-3)
+    # settling is first order with the crossover time constant
+    out1, _ = complementary_offsets(cd, {"dz_um": -5.0}, {"dz_um": -3.0}, 900.0, 900.0)
+    assert out1["dz_um"] == pytest.approx(-5.0 + (-3.0 * math.exp(-1.0) + -5.0 * (1 - math.exp(-1.0))))
+    assert complementary_offsets(cd, model, {"dz_um": 1.0}, 5.0, 0.0)[0] == cd  # 0: the CDs alone
+    with pytest.raises(ValueError):
+        complementary_offsets(cd, model, None, -1.0, 900.0)
