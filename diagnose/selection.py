@@ -236,9 +236,21 @@ def _conflicts(a: Candidate, chosen: list) -> bool:
                for c in chosen)
 
 
+def _joint(problem: Problem, free: list[Candidate], start: list, memo: dict | None):
+    """A joint refit of ``free`` from ``start`` (kept in ``memo`` for a later selection on the same problem)."""
+    key = ("joint", tuple(c.key for c in free), tuple(tuple(np.round(np.asarray(p, float), 12)) for p in start))
+    if memo is not None and key in memo:
+        return memo[key]
+    params, uncs, _ = fit(problem, [], free, start=start)
+    if memo is not None:
+        memo[key] = (params, uncs)
+    return params, uncs
+
+
 def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX_EFFECTS,
            min_gain: float = MIN_VALIDATION_GAIN, min_bic_drop: float = MIN_BIC_DROP, top_joint: int = 6,
-           progress: bool = False, memo: dict | None = None) -> Diagnosis:
+           progress: bool = False, memo: dict | None = None, initial: tuple = (),
+           earlier_rounds: tuple = ()) -> Diagnosis:
     """Greedy forward selection of named effects.
 
     Each round fits every remaining candidate (the accepted ones held at their values), ranks them
@@ -246,7 +258,9 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
     validation residual energy by at least ``min_gain``; then all accepted effects are refitted
     together.  Stops when every channel's validation residual is at its noise level, when no
     candidate passes both tests, or after ``max_effects``.  ``memo`` keeps the screening fits of a
-    candidate next to given accepted effects for a later selection on the same problem.
+    candidate next to given accepted effects, and the joint refits, for a later selection on the same problem.
+    ``initial`` (:class:`Fitted`) continues a selection from effects accepted before, whose ``earlier_rounds`` are
+    reported first.
     """
     t0 = time.perf_counter()
     base_eval, Y0 = evaluate(problem, [], 0)
@@ -255,10 +269,12 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
         return Diagnosis(problem, (), before, before, "no significant discrepancy", Y0, Y0, [], (),
                          "every channel's validation residual is at its noise level (within "
                          f"{NOISE_FACTOR}× the noise estimated from the data)", {"selection": time.perf_counter() - t0})
-    chosen: list[Fitted] = []
-    current = base_eval
-    Ycur = Y0
-    rounds = []
+    chosen: list[Fitted] = list(initial)
+    current, Ycur = base_eval, Y0
+    if chosen:
+        current, Ycur = evaluate(problem, [(f.candidate, f.params) for f in chosen],
+                                 dof([f.candidate for f in chosen], [f.params for f in chosen]))
+    rounds = list(earlier_rounds)
     banned: set = set()
     bar = None
     if progress:
@@ -303,7 +319,7 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
             if not chosen:
                 params, uncs, ev = [s["params"]], [s["unc"]], None
             else:
-                params, uncs, _ = fit(problem, [], free, start=[f.params for f in chosen] + [s["params"]])
+                params, uncs = _joint(problem, free, [f.params for f in chosen] + [s["params"]], memo)
             ev, _ = evaluate(problem, list(zip(free, params)), dof(free, params))
             gain = 1.0 - ev.rss_val / current.rss_val if current.rss_val > 0 else 0.0
             pinned = any(at_bound(c, p) for c, p in zip(free, params))
@@ -329,7 +345,7 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
             worst = None
             for i in range(len(chosen) - 1):
                 rest = chosen[:i] + chosen[i + 1:]
-                params, uncs, _ = fit(problem, [], [f.candidate for f in rest], start=[f.params for f in rest])
+                params, uncs = _joint(problem, [f.candidate for f in rest], [f.params for f in rest], memo)
                 cands = [f.candidate for f in rest]
                 ev, _ = evaluate(problem, list(zip(cands, params)), dof(cands, params))
                 need_bic = ev.bic - current.bic
@@ -350,7 +366,7 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
     for i, f in enumerate(chosen):
         rest = chosen[:i] + chosen[i + 1:]
         if rest:
-            params, _, _ = fit(problem, [], [g.candidate for g in rest], start=[g.params for g in rest])
+            params, _ = _joint(problem, [g.candidate for g in rest], [g.params for g in rest], memo)
             cands = [g.candidate for g in rest]
             ev, _ = evaluate(problem, list(zip(cands, params)), dof(cands, params))
         else:
