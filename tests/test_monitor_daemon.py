@@ -175,8 +175,10 @@ def test_replay_decides_on_the_predicted_error_and_switches_to_the_set_that_fits
                                                                                  tmp_path):
     path, s, T = trace
     db, ids = right_and_wrong(tmp_path, machine, T, drift)
-    # a stored set may be switched to whatever it jumps (the blend takes the jump out)
-    cfg = config(rom_file, path, tmp_path, validity={"bump_um": 100.0}, compensation={"max_step_um": 100.0})
+    # a stored set may be switched to whatever it jumps (the blend takes the jump out); the CDs alone, so that the
+    # offsets can be checked against the set's own prediction (the structure model's fast part: the test below)
+    cfg = config(rom_file, path, tmp_path, validity={"bump_um": 100.0},
+                 compensation={"max_step_um": 100.0, "model_transient_s": 0})
     mon, sink, res = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=0))
     duration = s.time_s[-1]
     # one offset per 5 s of machine time (samples every 10 s: one per sample), a decision at the start and
@@ -221,6 +223,22 @@ def test_replay_decides_on_the_predicted_error_and_switches_to_the_set_that_fits
     assert not events(db, "model_drift")
     assert res.status["max_decision_s"] < 2.0
 
+
+
+def test_the_hybrid_adds_the_structure_models_fast_part_to_the_cds(machine, rom, rom_file, trace, drift, tmp_path):
+    """Default hybrid (complementary filter, model_transient_s = 45 min): the same decisions as the CDs alone,
+    offsets marked ``cd+model`` once the structure model runs, and the drift compensated as well after the switch."""
+    path, s, T = trace
+    db, ids = right_and_wrong(tmp_path, machine, T, drift)
+    cfg = config(rom_file, path, tmp_path, validity={"bump_um": 100.0}, compensation={"max_step_um": 100.0})
+    assert cfg.model_transient_s == 2700.0
+    mon, sink, res = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=0))
+    assert [e[2]["ids"] for e in events(db, "activation")] == [ids["wrong"], ids["right"]]
+    by = [r.by for r in sink.rows]
+    assert set(by[len(by) // 10:]) == {"cd+model"}
+    k_sw = next(i for i, r in enumerate(sink.rows) if r.active == ",".join(f"{k}={v}" for k, v in sorted(ids["right"].items())))
+    late = np.array([[r.dx_um, r.dy_um, r.dz_um] for r in sink.rows[k_sw + 360:]])
+    assert np.abs(late - drift[k_sw + 360:]).max() < 0.6
 
 def test_generated_sets_follow_the_structure_model_and_continue_the_offsets(machine, rom, rom_file, trace, drift,
                                                                             tmp_path):
