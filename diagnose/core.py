@@ -16,8 +16,6 @@ from hybridcomp.fem.blas import single_blas_thread
 log = logging.getLogger(__name__)
 
 DEFAULT_SPLIT = "0:60%"
-#: selection rounds of the machine's own effects before a missing source is searched over the surface
-FIRST_ROUNDS = 2
 
 
 def prepare_model(machine, *, rom=None, model=None, element_size_mm: float | None = None, pose_mm: dict | None = None,
@@ -85,10 +83,7 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     with single_blas_thread():
         memo: dict = {}
         search = (kinds is None or "located_source" in kinds) and rom.V is not None
-        # with the search to come, the machine's own effects get two rounds on their own; a case they do not explain
-        # by then continues with the located sources beside them
-        first = min(max_effects, FIRST_ROUNDS) if search else max_effects
-        d = select(problem, cands, max_effects=first, progress=progress, memo=memo)
+        d = select(problem, cands, max_effects=max_effects, progress=progress, memo=memo)
         if d.verdict == "unexplained" and search:
             # the machine's own elements leave a structured residual: then, and only then, a heat source the machine
             # file lacks, searched anywhere on the surface (the most flexible hypothesis comes last), on the residual
@@ -103,10 +98,9 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
                 more += [c for c in located(problem, problem.Y - d.Y_after) if c.key not in seen]
             log.info("%d located-source candidates in %.1f s", len(more), time.perf_counter() - t1)
             timings = d.timings_s
-            # the selection continues from the machine's own effects accepted so far (the backward step drops those
-            # a located source makes unnecessary)
-            d = select(problem, cands + more, max_effects=max_effects, progress=progress, memo=memo,
-                       initial=d.partial, earlier_rounds=d.rounds)
+            # a new selection with the located sources beside the machine's own effects (the screening fits and
+            # joint refits it repeats are remembered)
+            d = select(problem, cands + more, max_effects=max_effects, progress=progress, memo=memo)
             d.timings_s["without located sources"] = timings["selection"]
             cands = cands + more
     d.timings_s["total"] = time.perf_counter() - t0

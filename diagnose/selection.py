@@ -249,8 +249,7 @@ def _joint(problem: Problem, free: list[Candidate], start: list, memo: dict | No
 
 def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX_EFFECTS,
            min_gain: float = MIN_VALIDATION_GAIN, min_bic_drop: float = MIN_BIC_DROP, top_joint: int = 6,
-           progress: bool = False, memo: dict | None = None, initial: tuple = (),
-           earlier_rounds: tuple = ()) -> Diagnosis:
+           progress: bool = False, memo: dict | None = None) -> Diagnosis:
     """Greedy forward selection of named effects.
 
     Each round fits every remaining candidate (the accepted ones held at their values), ranks them
@@ -259,8 +258,6 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
     together.  Stops when every channel's validation residual is at its noise level, when no
     candidate passes both tests, or after ``max_effects``.  ``memo`` keeps the screening fits of a
     candidate next to given accepted effects, and the joint refits, for a later selection on the same problem.
-    ``initial`` (:class:`Fitted`) continues a selection from effects accepted before, whose ``earlier_rounds`` are
-    reported first.
     """
     t0 = time.perf_counter()
     base_eval, Y0 = evaluate(problem, [], 0)
@@ -269,12 +266,9 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
         return Diagnosis(problem, (), before, before, "no significant discrepancy", Y0, Y0, [], (),
                          "every channel's validation residual is at its noise level (within "
                          f"{NOISE_FACTOR}× the noise estimated from the data)", {"selection": time.perf_counter() - t0})
-    chosen: list[Fitted] = list(initial)
+    chosen: list[Fitted] = []
     current, Ycur = base_eval, Y0
-    if chosen:
-        current, Ycur = evaluate(problem, [(f.candidate, f.params) for f in chosen],
-                                 dof([f.candidate for f in chosen], [f.params for f in chosen]))
-    rounds = list(earlier_rounds)
+    rounds = []
     banned: set = set()
     bar = None
     if progress:
