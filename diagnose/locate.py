@@ -166,6 +166,8 @@ def surface_sites(machine, rom, mesh=None, spacing_mm: float | None = None, patc
     if near is not None:
         keep = np.linalg.norm(cent_mm - np.asarray(near[0], float), axis=1) <= near[1]
         cent_mm, body_idx = cent_mm[keep], body_idx[keep]
+    if cent_mm.shape[0] == 0:  # nothing of that body within the radius
+        return Sites(np.zeros((0, 3)), np.zeros((0, 3)), (), np.zeros((rom.order, 0)), patch, mesh)
     keys = np.column_stack([body_idx, np.floor(cent_mm / spacing).astype(int)])
     _, group = np.unique(keys, axis=0, return_inverse=True)
     group = group.ravel()
