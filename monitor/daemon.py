@@ -491,9 +491,6 @@ class Monitor:
         before = s.observer
         if dt > 0:
             s.observer = self.observer.predict(s.observer, u, dt)
-            if s.transient_um is not None:  # what the loads move the drift by (not what the corrections do)
-                moved = np.asarray(self.observer.drift_um(s.observer)) - np.asarray(self.observer.drift_um(before))
-                s.transient_um = [float(a + m) for a, m in zip(s.transient_um, moved)]
         # the sensors' mean over the step (their noise averages out; the thermal state moves little in a step)
         with np.errstate(invalid="ignore", divide="ignore"):
             y = np.where(self.step_n > 0, self.step_sum / self.step_n, math.nan)
@@ -585,8 +582,6 @@ class Monitor:
         s.step_inputs = [float(v) for v in u]
         s.drift_um = [float(v) for v in self.observer.drift_um(s.observer)]
         s.drift_next_um = [float(v) for v in self.observer.forecast(s.observer, u[None, :], self.cfg.increment_s)[1][0]]
-        if s.transient_um is None:
-            s.transient_um = list(s.drift_um)
         est = self._estimate_degC()
         for n, v in self.measured.items():
             if math.isfinite(v) and s.sensors[n].status == "ok":
@@ -654,13 +649,15 @@ class Monitor:
                 dt = 0.0 if s.blend_time_s is None else r.time_s - s.blend_time_s
                 target, s.blend_um = decisions.blend_offsets(target, s.blend_um, dt, self.cfg.blend_s)
                 s.blend_time_s = r.time_s
-                if self.cfg.model_transient_s > 0 and not s.observer_flag and s.transient_um is not None:
-                    # the structure model's fast part on top of the CDs' slow part (the model is not flagged)
+                if self.cfg.model_transient_s > 0 and not s.observer_flag and s.drift_um is not None:
+                    # the corrected structure model's fast part on top of the CDs' slow part (the model is not flagged)
                     f = min(max((r.time_s - s.step_time_s) / self.cfg.increment_s, 0.0), 1.0)
-                    model = {c: m + f * (b - a) for c, m, a, b in zip(DRIFT_COLUMNS, s.transient_um, s.drift_um,
-                                                                      s.drift_next_um)}
+                    model = {c: a + f * (b - a) for c, a, b in zip(DRIFT_COLUMNS, s.drift_um, s.drift_next_um)}
                     dtc = 0.0 if s.complement_time_s is None else max(r.time_s - s.complement_time_s, 0.0)
-                    low = None if s.complement_um is None else s.complement_um
+                    # a fresh start trusts the corrected model (the CDs earn their part over the crossover time);
+                    # after an activation the filter starts from the new set's prediction
+                    low = s.complement_um if s.complement_um is not None else (
+                        dict.fromkeys(DRIFT_COLUMNS, 0.0) if s.complement_time_s is None else None)
                     target, s.complement_um = decisions.complementary_offsets(target, model, low, dtc,
                                                                               self.cfg.model_transient_s)
                     s.complement_time_s = r.time_s

@@ -83,9 +83,9 @@ def complementary_offsets(
     Parameters
     ----------
     cd_um : the active set's prediction now [µm]
-    model_um : the structure model's drift as the loads move it now (the daemon leaves out the jumps of the
-        observer's corrections, which are no transient of the machine) [µm]
-    low_um : the low-passed difference CD − model of the previous cycle (None: start from this cycle's) [µm]
+    model_um : the corrected structure model's drift now [µm]
+    low_um : the low-passed difference CD − model of the previous cycle (None: start from this cycle's, so that
+        the offsets are the CDs'; zeros: start from the model) [µm]
     dt_s : machine time since the previous cycle [s]
     tau_s : the crossover time constant [s] (0: the CDs alone)
 

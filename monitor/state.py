@@ -85,8 +85,6 @@ class MonitorState:
     blend_um, blend_time_s, blend_pending : what remains of a jump at a set change, and since when
     complement_um, complement_time_s : the low-passed difference CD − structure model of the hybrid's complementary
         filter, and when it was updated
-    transient_um : the structure model's drift moved by the loads alone: the sum of its predictions' steps, without
-        the jumps of the observer's corrections (probes, sensors), which are no transient of the machine [µm]
     carry : the last sample of the previous model step (continuity of the histogram)
     air_hold, pos_hold, spindle_hold : last finite air, positions, spindle speed
     probe_um : a probed drift waiting for the next model step (dx, dy, dz), or None
@@ -136,7 +134,6 @@ class MonitorState:
     blend_pending: bool = False
     complement_um: dict | None = None
     complement_time_s: float | None = None
-    transient_um: list | None = None
     carry: Reading | None = None
     air_hold: dict = field(default_factory=dict)
     pos_hold: list = field(default_factory=list)
