@@ -605,15 +605,25 @@ class Monitor:
             s.loads = [h for h in s.loads if h[0] >= keep]
 
     # ------------------------------------------------------------------ compensation
+    def _model_drift_now(self, t: float) -> dict[str, float] | None:
+        """The corrected structure model's drift at ``t`` [µm]; None before its first estimate and while it is flagged.
+
+        Linear between the end of the last model step and its forecast one step ahead.
+        """
+        s = self.s
+        if s.observer_flag or s.drift_um is None:
+            return None
+        f = min(max((t - s.step_time_s) / self.cfg.increment_s, 0.0), 1.0)
+        return {c: a + f * (b - a) for c, a, b in zip(DRIFT_COLUMNS, s.drift_um, s.drift_next_um)}
+
     def _compensate(self, r: Reading) -> Offset:
         s = self.s
         self.counters.compensations += 1
         degraded = ",".join(n for n in self.sensor_names if s.sensors[n].status == "degraded")
         target, outside, by = None, False, "cd"
-        if self.cfg.strategy == "observer" and not s.observer_flag and s.drift_um is not None:
-            f = min(max((r.time_s - s.step_time_s) / self.cfg.increment_s, 0.0), 1.0)
-            target = {c: a + f * (b - a) for c, a, b in zip(DRIFT_COLUMNS, s.drift_um, s.drift_next_um)}
-            by = "observer"
+        model = self._model_drift_now(r.time_s)
+        if self.cfg.strategy == "observer" and model is not None:
+            target, by = dict(model), "observer"
         elif self.active is not None:
             values = dict(s.filtered_degC)
             values.update(zip(self.axis_names, r.position_mm))
@@ -649,10 +659,8 @@ class Monitor:
                 dt = 0.0 if s.blend_time_s is None else r.time_s - s.blend_time_s
                 target, s.blend_um = decisions.blend_offsets(target, s.blend_um, dt, self.cfg.blend_s)
                 s.blend_time_s = r.time_s
-                if self.cfg.model_transient_s > 0 and not s.observer_flag and s.drift_um is not None:
+                if self.cfg.model_transient_s > 0 and model is not None:
                     # the corrected structure model's fast part on top of the CDs' slow part (the model is not flagged)
-                    f = min(max((r.time_s - s.step_time_s) / self.cfg.increment_s, 0.0), 1.0)
-                    model = {c: a + f * (b - a) for c, a, b in zip(DRIFT_COLUMNS, s.drift_um, s.drift_next_um)}
                     dtc = 0.0 if s.complement_time_s is None else max(r.time_s - s.complement_time_s, 0.0)
                     # a fresh start trusts the corrected model (the CDs earn their part over the crossover time);
                     # after an activation the filter starts from the new set's prediction
