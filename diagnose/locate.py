@@ -272,24 +272,25 @@ class Found:
 
 
 def search(problem: Problem, sites: Sites, residual: np.ndarray, shape: Shape, top: int = TOP_SITES,
-           max_power_W: float = 2000.0) -> Found:
+           max_power_W: float = 2000.0, G: np.ndarray | None = None) -> Found:
     """Fit a missing source of ``shape`` at every site to the weighted training ``residual`` (measured − model).
 
     The location is chosen on the training rows only.  With the weighted response ``Y_s = Σ_j G_j (w ∘ Cz_j) Bm_js``
     the fit needs ``⟨R, Y_s⟩ = (Σ_c w_c Cz_c ∘ (Rᵀ G)_c) Bm_s`` and ``‖Y_s‖² = Bm_sᵀ Q Bm_s`` with
     ``Q = Σ_c w_c² (Cz_c Cz_cᵀ) ∘ (Gᵀ G)``: O(nt r²) once, then O(r²) a site, whatever the record's length.
     The confidence region of a site: the sites whose misfit is within ``CHI2_3_95`` × the inflation of the
-    residual's correlation in time of its own.
+    residual's correlation in time of its own.  ``G``: the shape's :func:`mode_lags` over all rows, if the caller
+    has them.
     """
     from hybridcomp.diagnose.metrics import lag1_autocorrelation
 
     tr = problem.split.train
     w = problem.weights * _channel_scale(problem)
     R = residual[tr] * problem.weights[None, :]
-    lam, Phi = problem.rom._modes()
+    Phi = problem.rom._modes()[1]
     Bm = Phi.T @ sites.Br
     Cz = problem.rom.C[list(problem.out_index)] @ Phi * w[:, None]
-    G = mode_lags(problem, shape.f)[tr]
+    G = (mode_lags(problem, shape.f) if G is None else G)[tr]
     num = np.einsum("cj,cj->j", Cz, R.T @ G) @ Bm
     Q = (Cz.T @ Cz) * (G.T @ G)
     den = np.maximum(np.einsum("js,jk,ks->s", Bm, Q, Bm), 1e-300)
@@ -314,7 +315,8 @@ def search(problem: Problem, sites: Sites, residual: np.ndarray, shape: Shape, t
                  tuple(spread))
 
 
-def refine(problem: Problem, sites: Sites, i: int, residual: np.ndarray, shape: Shape) -> tuple[Sites, int, float]:
+def refine(problem: Problem, sites: Sites, i: int, residual: np.ndarray, shape: Shape,
+           G: np.ndarray | None = None) -> tuple[Sites, int, float]:
     """Finer searches around site ``i`` on its body.
 
     First a third of the spacing within 1.2 spacings, then a ninth within half a spacing with patches of one, two
@@ -329,7 +331,7 @@ def refine(problem: Problem, sites: Sites, i: int, residual: np.ndarray, shape: 
         for patch in patches:
             fine = surface_sites(problem.machine, problem.rom, sites.mesh, step, patch,
                                  (at.position_mm[best], radius, at.body[best]))
-            found = search(problem, fine, residual, shape, top=1)
+            found = search(problem, fine, residual, shape, top=1, G=G)
             if found.sites:
                 trials.append((found.gain[0], fine, found.sites[0], found.spread_mm[0]))
         if not trials:
@@ -367,17 +369,15 @@ def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> 
         return []
     rows = list(problem.out_index)
     out = []
-    founds = [search(problem, sites, residual, shape, top) for shape in shapes(problem)]
-    gains = sorted((g for f in founds for g in f.gain), reverse=True)
+    lags = [(shape, mode_lags(problem, shape.f)) for shape in shapes(problem)]  # once per shape, for every search
+    founds = [(search(problem, sites, residual, shape, top, G=G), G) for shape, G in lags]
+    gains = sorted((g for f, _ in founds for g in f.gain), reverse=True)
     refine_from = gains[min(REFINED, len(gains)) - 1] if gains else np.inf
-    for found in founds:
+    for found, G in founds:
         shape = found.shape
-        G = None
         for i0, g0, s0 in zip(found.sites, found.gain, found.spread_mm):
-            if G is None:
-                G = mode_lags(problem, shape.f)
             if g0 >= refine_from:
-                at, i, spread = refine(problem, sites, i0, residual, shape)
+                at, i, spread = refine(problem, sites, i0, residual, shape, G)
             else:
                 at, i, spread = sites, i0, max(s0, 0.5 * sites.patch_mm)
             resp = site_responses(problem, G, problem.rom._modes()[1].T @ at.Br[:, [i]])[:, :, 0]
