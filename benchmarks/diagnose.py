@@ -54,12 +54,9 @@ def main(argv=None) -> int:
     elif args.case == "located":
         import dataclasses
 
-        from hybridcomp.fem.assembly import cell_basis
-        from hybridcomp.fem.model import heat_input_matrix
-
         src = dataclasses.replace(machine.heat_sources[0], name="planted", body="column", driver=None,
                                   position_mm=(-450.0, 720.0, 1310.0), size_mm=(100.0, 100.0, 100.0), power_W=1.0)
-        b, _ = heat_input_matrix(dataclasses.replace(machine, heat_sources=(src,)), model.mesh, cell_basis(model.mesh.mesh))
+        b = model.with_heat_input(src).B[:, -1:]
         m = rom.B.shape[1]
         plus = dataclasses.replace(rom, B=np.hstack([rom.B, rom.V.T @ b]), input_names=(*rom.input_names[:m], "planted_W",
                                    *rom.input_names[m:]), _cache={})

@@ -39,9 +39,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from hybridcomp.diagnose import Dataset, diagnose, prepare_model
 from hybridcomp.diagnose.data import parse_split
 from hybridcomp.diagnose.problem import build_problem, first_order_lag
-from hybridcomp.fem.assembly import cell_basis
 from hybridcomp.fem.cli_simulate import resample
-from hybridcomp.fem.model import build_model, heat_input_matrix
+from hybridcomp.fem.model import build_model
 from hybridcomp.fem.transient import simulate as fe_simulate
 from hybridcomp.histogram.scenarios import jobshop_loads
 from hybridcomp.models import jsonio, load_machine
@@ -180,8 +179,7 @@ def _with_source(machine, fe, loads, U, body, p, size, P):
     """FE channels with a heat source the machine file lacks: ``P`` [W] per sample on a patch at ``p``."""
     src = dataclasses.replace(machine.heat_sources[0], name="planted", kind="fixed", body=body.name, axis=None,
                               driver=None, position_mm=tuple(p), size_mm=tuple(size), power_W=1.0, power_table=None)
-    b, _ = heat_input_matrix(dataclasses.replace(machine, heat_sources=(src,)), fe.mesh, cell_basis(fe.mesh.mesh))
-    model = dataclasses.replace(fe, B=np.hstack([fe.B, b]), heat_names=fe.heat_names + ("planted",), _cache={})
+    model = fe.with_heat_input(src)
     m = len(fe.heat_names)
     return _fe(model, loads, np.hstack([U[:, :m], P[:, None], U[:, m:]]))
 

@@ -155,6 +155,15 @@ class ThermoElasticModel:
                                                progress=progress)
         return dataclasses.replace(result, time_error=estimate.as_dict())
 
+    def with_heat_input(self, source: HeatSource) -> ThermoElasticModel:
+        """The model with one more heat input after the others: ``source``'s patch on this mesh.
+
+        A source the machine file lacks, planted in a test or a benchmark; 1 W of heat per W of input.
+        """
+        b, names = heat_input_matrix(dataclasses.replace(self.machine, heat_sources=(source,)), self.mesh,
+                                     assembly.cell_basis(self.mesh.mesh))
+        return dataclasses.replace(self, B=np.hstack([self.B, b]), heat_names=self.heat_names + names, _cache={})
+
     def with_htc(self, **h_W_m2K: float) -> ThermoElasticModel:
         """A copy with changed zone heat-transfer coefficients (no re-assembly)."""
         h = self.h_W_m2K.copy()

@@ -12,9 +12,8 @@ import pytest
 
 from hybridcomp.diagnose import Dataset, diagnose, parse_split, prepare_model, write_report
 from hybridcomp.diagnose.problem import first_order_lag
-from hybridcomp.fem.assembly import cell_basis
 from hybridcomp.fem.loads import example_loads
-from hybridcomp.fem.model import build_model, heat_input_matrix
+from hybridcomp.fem.model import build_model
 from hybridcomp.fem.transient import simulate as fe_simulate
 from hybridcomp.models.machine import HeatSource, Material
 
@@ -87,8 +86,7 @@ def plant(kind, machine, fe, loads, rng):
         p = rng.uniform(40.0, 80.0)
         y_motor = next(s for s in machine.heat_sources if s.name == "y_motor")
         new = dataclasses.replace(y_motor, name="extra", driver="spindle")
-        b, _ = heat_input_matrix(dataclasses.replace(machine, heat_sources=(new,)), fe.mesh, cell_basis(fe.mesh.mesh))
-        model = dataclasses.replace(fe, B=np.hstack([fe.B, b]), heat_names=fe.heat_names + ("extra",), _cache={})
+        model = fe.with_heat_input(new)
         spindle = next(s for s in machine.heat_sources if s.name == "spindle_motor")
         fs = (U[:, column(loads, "spindle_motor_W")] / spindle.power_W) ** (1 / spindle.exponent)
         m = len(fe.heat_names)
@@ -258,8 +256,7 @@ def test_effect_outside_library_is_not_named(machine, fe, rom, loads):
     t = loads.time_s
     U = loads.as_inputs(machine.reference_temperature_degC)
     src = HeatSource("pump", "fixed", "bed", None, None, (700.0, 900.0, -400.0), (150.0, 150.0, 150.0), 1.0, 1.0, None)
-    b, _ = heat_input_matrix(dataclasses.replace(machine, heat_sources=(src,)), fe.mesh, cell_basis(fe.mesh.mesh))
-    model = dataclasses.replace(fe, B=np.hstack([fe.B, b]), heat_names=fe.heat_names + ("pump",), _cache={})
+    model = fe.with_heat_input(src)
     cycle = 150.0 * (np.floor(t / 2700.0) % 2 == 0)
     m = len(fe.heat_names)
     s, d = fe_run(model, t, np.hstack([U[:, :m], cycle[:, None], U[:, m:]]))
@@ -363,10 +360,9 @@ def test_body_drift_rows_sum_to_the_drift_rows(fe):
     assert all(np.abs(r).max() > 0 for r in rows)
 
 
-def _planted_patch(machine, fe, body, where_mm, size_mm):
-    src = HeatSource("planted", "fixed", body, None, None, tuple(where_mm), tuple(size_mm), 1.0, 1.0, None)
-    b, _ = heat_input_matrix(dataclasses.replace(machine, heat_sources=(src,)), fe.mesh, cell_basis(fe.mesh.mesh))
-    return b
+def _with_patch(fe, body, where_mm, size_mm):
+    return fe.with_heat_input(HeatSource("planted", "fixed", body, None, None, tuple(where_mm), tuple(size_mm), 1.0, 1.0,
+                                         None))
 
 
 def test_surface_site_response_matches_fe(machine, fe, rom, loads):
@@ -380,8 +376,8 @@ def test_surface_site_response_matches_fe(machine, fe, rom, loads):
     s0, d0 = fe_run(fe, t, U)
     pb = build_problem(machine, rom, dataset(machine, loads, s0, d0, seed=2), parse_split("0:60%", t))
     on = (pb.activity["spindle"] > locate.ON_THRESHOLD).astype(float)
-    b = _planted_patch(machine, fe, "column", (-450.0, 800.0, 1200.0), (100.0, 100.0, 100.0))
-    model = dataclasses.replace(fe, B=np.hstack([fe.B, b]), heat_names=fe.heat_names + ("planted",), _cache={})
+    model = _with_patch(fe, "column", (-450.0, 800.0, 1200.0), (100.0, 100.0, 100.0))
+    b = model.B[:, -1:]
     m = len(fe.heat_names)
     s1, d1 = fe_run(model, t, np.hstack([U[:, :m], 60.0 * on[:, None], U[:, m:]]))
     resp = locate.site_responses(pb, locate.mode_lags(pb, on), rom._modes()[1].T @ (rom.V.T @ b))[:, :, 0] * 60.0
@@ -401,8 +397,7 @@ def test_missing_source_anywhere_is_located(machine, fe, rom, loads, tmp_path):
     t = loads.time_s
     U = loads.as_inputs(machine.reference_temperature_degC)
     where = np.array([-450.0, 720.0, 1310.0])
-    b = _planted_patch(machine, fe, "column", where, (100.0, 100.0, 100.0))
-    model = dataclasses.replace(fe, B=np.hstack([fe.B, b]), heat_names=fe.heat_names + ("planted",), _cache={})
+    model = _with_patch(fe, "column", where, (100.0, 100.0, 100.0))
     on = (U[:, column(loads, "spindle_motor_W")] > 0).astype(float)
     m = len(fe.heat_names)
     s, d = fe_run(model, t, np.hstack([U[:, :m], 55.0 * on[:, None], U[:, m:]]))
