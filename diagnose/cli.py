@@ -56,6 +56,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "extensions (their fit flatters; the selection check says by how much)")
     p.add_argument("--folds", type=int, default=3, help="--data-only, --selection held-out: contiguous blocks of the "
                    "training rows for the cross-validation (default 3)")
+    p.add_argument("--criterion", choices=("bic", "bicc"), default="bic",
+                   help="--data-only: the training information criterion that selects the sensor inputs and that every "
+                   "search step must lower: 'bic' (Schwarz, default) or 'bicc' (BIC with McQuarrie's small-sample "
+                   "correction, for short datasets with few rows per parameter)")
     p.add_argument("--no-selection-check", action="store_true", help="--data-only --selection assisted: skip the check "
                    "that repeats the selection on half the validation part and scores it on the other half")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -73,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         *((opt, args.data_only, model_only) for opt in ("machine", "increment", "rom", "element_size_mm", "effects",
                                                          "max_effects")),
         *((opt, not args.data_only, data_only) for opt in ("max_terms", "beam", "no_selection_check", "selection",
-                                                            "folds")),
+                                                            "folds", "criterion")),
         ("no_selection_check", args.selection != "assisted", "applies with --selection assisted only (a held-out "
          "selection needs no check)"),
         ("folds", args.selection != "held-out", "applies with --selection held-out only"),
@@ -106,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
 
             d = diagnose_data_only(ds, split, max_terms=args.max_terms, beam_width=args.beam,
                                    selection_check=not args.no_selection_check, selection=args.selection,
-                                   folds=args.folds)
+                                   folds=args.folds, criterion=args.criterion)
             summary = write_data_only_report(d, args.out, dataset_name=", ".join(p.name for p in args.data),
                                              plots=not args.no_plots)
             fits = ", ".join(f"{c} {v['after']['fit_percent']:.1f} %" for c, v in summary["channels"].items())

@@ -98,6 +98,11 @@ class DataOnlyDiagnosis:
     selection: str = "held-out"  # "held-out": every choice on the training rows (blocked CV); "assisted": not
     folds: int = 3
     runs: np.ndarray | None = None  # a campaign's run number per row (Y and the predictions relative to each run's start)
+    criterion: str = "bic"  # the information criterion of the input selection and the search: "bic" or "bicc"
+
+    @property
+    def criterion_name(self) -> str:
+        return {"bic": "BIC", "bicc": "BICc"}[self.criterion]
 
 
 def per_run(fn, starts: np.ndarray, time_s: np.ndarray, x: np.ndarray, *args) -> np.ndarray:
@@ -190,13 +195,22 @@ def is_air(name: str) -> bool:
     return n.endswith("_degc") and ("amb" in n or "air" in n)
 
 
-def _bic_rss(rss, n: int, k: int):
-    """BIC of a least-squares fit on ``n`` rows with ``k`` parameters.
+CRITERIA = ("bic", "bicc")
 
+
+def _bic_rss(rss, n: int, k: int, criterion: str = "bic"):
+    """Information criterion of a least-squares fit on ``n`` rows with ``k`` parameters: BIC or BICc.
+
+    ``bic`` (Schwarz): ``n ln(RSS/n) + k ln n``. ``bicc``, the small-sample correction of McQuarrie (1999):
+    ``n ln(RSS/n) + n k ln n / (n − k − 2)``, which penalises a parameter more the fewer rows there are per
+    parameter (the two agree for many rows; a model with ``k ≥ n − 2`` gets ``inf``).
     (Dividing ``n`` by the residual's decorrelation length, tried on the spindle test, selected fewer inputs and
     predicted the validation part worse.)
     """
-    return n * np.log(np.maximum(rss, 1e-300) / n) + k * np.log(n)
+    fit = n * np.log(np.maximum(rss, 1e-300) / n)
+    if criterion == "bicc":
+        return fit + (n * k * np.log(n) / (n - k - 2) if n - k - 2 > 0 else np.inf)
+    return fit + k * np.log(n)
 
 
 class _Library:
@@ -248,8 +262,9 @@ class _Scorer:
     """
 
     def __init__(self, lib: _Library, y: np.ndarray, train: np.ndarray, validation: np.ndarray, channel: str = "channel",
-                 what: str = "validation rows"):
+                 what: str = "validation rows", criterion: str = "bic"):
         self.lib, self.y, self.tr, self.va = lib, y, train, validation
+        self.criterion = criterion
         self.n = int(train.sum())
         yv = y[validation]
         self.yv = yv
@@ -262,7 +277,7 @@ class _Scorer:
         coef, *_ = np.linalg.lstsq(X[self.tr], self.y[self.tr], rcond=None)
         r = self.y[self.tr] - X[self.tr] @ coef
         k = X.shape[1] + (ar_tau_h is not None)
-        return float(_bic_rss(r @ r, self.n, k)), float(100.0 * (1.0 - np.linalg.norm(self.yv - X[self.va] @ coef) / self.den))
+        return float(_bic_rss(r @ r, self.n, k, self.criterion)), float(100.0 * (1.0 - np.linalg.norm(self.yv - X[self.va] @ coef) / self.den))
 
     def predict(self, idx, ar_tau_h) -> tuple[np.ndarray, np.ndarray]:
         X = self.lib.design(idx, ar_tau_h)
@@ -289,7 +304,7 @@ class _Scorer:
         rc = r @ Cp
         gain = rc / norm2  # coefficient of the new column
         rss = r @ r - rc**2 / norm2
-        bic = _bic_rss(rss, self.n, X.shape[1] + 1 + (ar_tau_h is not None))
+        bic = _bic_rss(rss, self.n, X.shape[1] + 1 + (ar_tau_h is not None), self.criterion)
         if not scored:
             return new, bic, None
         proj = np.linalg.lstsq(R, P, rcond=None)[0]  # the new column's projection on the model, as model coefficients
@@ -330,13 +345,13 @@ class _BlockedCV:
     """
 
     def __init__(self, lib: _Library, y: np.ndarray, train: np.ndarray, folds: int, channel: str = "channel",
-                 runs: np.ndarray | None = None):
+                 runs: np.ndarray | None = None, criterion: str = "bic"):
         rows = np.flatnonzero(train)
         if folds < 2 or rows.size < 4 * folds:
             raise DatasetError(f"{channel}: {rows.size} training rows cannot be cut into {folds} blocks for the "
                                "cross-validation (at least 2 blocks of 4 rows)")
         self.lib, self.y, self.tr = lib, y, train
-        self.full = _Scorer(lib, y, train, train, channel, "training rows")
+        self.full = _Scorer(lib, y, train, train, channel, "training rows", criterion)
         self.n = self.full.n
         self.parts = []
         train_runs = np.unique(runs[rows]) if runs is not None else np.zeros(0)
@@ -445,7 +460,7 @@ def _extension_records(lib: _Library, path, gain_key: str = "validation_fit_poin
 
 def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_gain: float = MIN_FIT_GAIN,
                        beam_width: int = BEAM_WIDTH, selection_check: bool = True, selection: str = "held-out",
-                       folds: int = 3) -> DataOnlyDiagnosis:
+                       folds: int = 3, criterion: str = "bic") -> DataOnlyDiagnosis:
     """Diagnose a regression compensation model on a dataset alone (see the module docstring).
 
     Parameters
@@ -460,6 +475,8 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_g
         validation rows score the result once: a held-out fit. ``"assisted"``: the validation rows take part in
         the choice (the search keeps what raises their fit), so their fit flatters
     folds : blocks of the training rows for the cross-validation (``selection="held-out"``)
+    criterion : ``"bic"`` (default) or ``"bicc"``, BIC with McQuarrie's small-sample correction: the training
+        criterion that selects the sensor inputs and that every search step must lower by ``MIN_BIC_DROP``
 
     Raises
     ------
@@ -474,13 +491,16 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_g
         raise DatasetError(f"selection must be 'held-out' or 'assisted', got {selection!r}")
     if not (isinstance(folds, int) and 2 <= folds <= 20):
         raise DatasetError(f"folds must be an integer in 2..20, got {folds!r}")
+    if criterion not in CRITERIA:
+        raise DatasetError(f"criterion must be one of {', '.join(CRITERIA)}, got {criterion!r}")
     with single_blas_thread():
         return _diagnose_data_only(ds, split, max_terms, min_fit_gain, beam_width,
-                                   selection_check and selection == "assisted", selection, folds)
+                                   selection_check and selection == "assisted", selection, folds, criterion)
 
 
 def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain: float, beam_width: int,
-                        selection_check: bool, selection: str = "held-out", folds: int = 3) -> DataOnlyDiagnosis:
+                        selection_check: bool, selection: str = "held-out", folds: int = 3,
+                        criterion: str = "bic") -> DataOnlyDiagnosis:
     t0 = time.perf_counter()
     targets = [n for n in ds.names if n.endswith("_um")]
     temps = [n for n in ds.names if n.endswith("_degC")]
@@ -519,9 +539,9 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
         Y[ch] = y
         every = tuple(range(len(temp_vals)))
         droppable = set(every)
-        sc = _Scorer(lib, y, tr, va, ch)
+        sc = _Scorer(lib, y, tr, va, ch, criterion=criterion)
         # what chooses: the validation rows themselves (assisted), or a cross-validation on the training rows only
-        chooser = sc if selection == "assisted" else _BlockedCV(lib, y, tr, folds, ch, ds.runs)
+        chooser = sc if selection == "assisted" else _BlockedCV(lib, y, tr, folds, ch, ds.runs, criterion)
         _, yh = sc.predict(every, None)
         reference[ch] = {**channel_metrics(y[va], yh[va]), "terms": len(every)}
         start = forward_sensors(chooser, len(temp_vals))
@@ -535,8 +555,8 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
         log.info("%s: reference fit %.1f %%, base %.1f %%, extended %.1f %% (%s)", ch, reference[ch]["fit_percent"],
                  base[ch]["fit_percent"], channel_metrics(y[va], yh[va])["fit_percent"], selection)
         if selection_check and va1.sum() >= 2 and va2.sum() >= 2 and np.ptp(y[va1]) > 0 and np.ptp(y[va2]) > 0:
-            best2 = beam_search(_Scorer(lib, y, tr, va1, ch), start, droppable, beam_width, max_terms, min_fit_gain)
-            sc2 = _Scorer(lib, y, tr, va2, ch)
+            best2 = beam_search(_Scorer(lib, y, tr, va1, ch, criterion=criterion), start, droppable, beam_width, max_terms, min_fit_gain)
+            sc2 = _Scorer(lib, y, tr, va2, ch, criterion=criterion)
             check[ch] = {
                 "static_all_temperatures": sc2.score(every, None)[1],
                 "base": sc2.score(start, None)[1],
@@ -550,7 +570,7 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
     return DataOnlyDiagnosis(t, Y, split, reference, base, extended, extensions,
                              {"total": time.perf_counter() - t0, "candidates": len(cands), "beam_width": beam_width,
                               "row_stride": stride},
-                             split_check, selection, folds, ds.runs)
+                             split_check, selection, folds, ds.runs, criterion)
 
 
 def _structure_name(tm: Term) -> str:
@@ -594,6 +614,7 @@ def summary(d: DataOnlyDiagnosis) -> dict:
     held_out = {c: {k: ch[c]["after"][k] for k in ("fit_percent", "rms", "p2p")} for c in d.extended}
     return {
         "mode": "data-only",
+        "criterion": d.criterion_name,
         "selection": (f"held-out: every choice by blocked {d.folds}-fold cross-validation on the training rows; the "
                       "validation rows scored the result once" if d.selection == "held-out" else
                       "assisted: the validation rows took part in choosing the extensions (their fit flatters)"),
@@ -655,23 +676,23 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
     stride = d.timings_s["row_stride"]
     thinned = "" if stride == 1 else f" (every {stride}. row of the dataset)"
     if d.selection == "held-out":
-        how = (f"while the training BIC drops and the fit in a blocked {d.folds}-fold cross-validation on the training "
+        how = (f"while the training {d.criterion_name} drops and the fit in a blocked {d.folds}-fold cross-validation on the training "
                "rows improves. Every choice is made on the training rows: the validation fits below are held out "
                "(no choice saw those rows).")
         gain_key, gain_name = "cv_fit_points", "cross-validation fit points"
     else:
-        how = ("while the training BIC drops and the validation fit improves (selection-assisted: the validation part "
+        how = (f"while the training {d.criterion_name} drops and the validation fit improves (selection-assisted: the validation part "
                "takes part in this selection; the selection check below says how much that flatters).")
         gain_key, gain_name = "validation_fit_points", "fit points"
     L = [f"# Data-only diagnosis{' of ' + dataset_name if dataset_name else ''}", "",
          "Model under test: a multiple linear regression of each drift channel on the temperature sensors, inputs "
-         "selected greedily by BIC on the training part. Extensions: lag terms of activity signals, heating/cooling "
+         f"selected greedily by {d.criterion_name} on the training part. Extensions: lag terms of activity signals, heating/cooling "
          "split, sensor lags (lead terms), an autoregressive output lag; added (or sensor inputs dropped) by a beam search "
          f"(width {d.timings_s['beam_width']}) {how}", "",
          f"Training rows {s['split']['train_rows']}, validation rows {s['split']['validation_rows']}"
          f"{thinned}; "
          f"{d.timings_s['candidates']} candidate terms; {d.timings_s['total']:.1f} s.", "",
-         "| channel | static, all temperatures: fit % | BIC-selected regression: fit % (RMS, P2P) | extended: fit % (RMS, P2P)"
+         f"| channel | static, all temperatures: fit % | {d.criterion_name}-selected regression: fit % (RMS, P2P) | extended: fit % (RMS, P2P)"
          f"{' — held out' if d.selection == 'held-out' else ' — selection-assisted'} |",
          "|---|---|---|---|"]
     for c, v in s["channels"].items():
@@ -695,7 +716,7 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
         L.append(f"**{c}** (inputs {', '.join(v['before']['inputs'])}):")
         L.append("")
         for e in v["extensions"]:
-            L.append(f"* {e['term']} — +{e['gain'][gain_key]:.1f} {gain_name}, BIC drop "
+            L.append(f"* {e['term']} — +{e['gain'][gain_key]:.1f} {gain_name}, {d.criterion_name} drop "
                      f"{e['gain']['bic_drop_train']:.0f}")
         if not v["extensions"]:
             L.append("* none")
@@ -714,7 +735,8 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
         L += ["## Selection check", "",
               f"The same selection run on validation rows {a[0]:.1f}–{a[1]:.1f} h only, scored on {b[0]:.1f}–{b[1]:.1f} h, "
               "which took no part in it (fit % on that part; a short part with little variance gives low fits):", "",
-              "| channel | static, all temperatures | BIC-selected regression | extended |", "|---|---|---|---|"]
+              f"| channel | static, all temperatures | {d.criterion_name}-selected regression | extended |",
+              "|---|---|---|---|"]
         for c, v in sc["channels"].items():
             L.append(f"| {c} | {v['static_all_temperatures']:.1f} | {v['base']:.1f} | {v['extended']:.1f} |")
         L.append("")
