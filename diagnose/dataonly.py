@@ -41,6 +41,7 @@ import numpy as np
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, check_channels
 from hybridcomp.diagnose.metrics import channel_metrics
 from hybridcomp.diagnose.problem import first_order_lag
+from hybridcomp.diagnose.updating import choose_settings, probe_rows, updated_prediction
 from hybridcomp.models import jsonio
 
 log = logging.getLogger(__name__)
@@ -99,6 +100,9 @@ class DataOnlyDiagnosis:
     folds: int = 3
     runs: np.ndarray | None = None  # a campaign's run number per row (Y and the predictions relative to each run's start)
     criterion: str = "bic"  # the information criterion of the input selection and the search: "bic" or "bicc"
+    # post-process gain updating on the validation rows (None without probes): per channel the settings chosen on the
+    # training rows, the probe rows, the updated prediction and (gain, offset) per validation row
+    updating: dict | None = None
 
     @property
     def criterion_name(self) -> str:
@@ -277,7 +281,8 @@ class _Scorer:
         coef, *_ = np.linalg.lstsq(X[self.tr], self.y[self.tr], rcond=None)
         r = self.y[self.tr] - X[self.tr] @ coef
         k = X.shape[1] + (ar_tau_h is not None)
-        return float(_bic_rss(r @ r, self.n, k, self.criterion)), float(100.0 * (1.0 - np.linalg.norm(self.yv - X[self.va] @ coef) / self.den))
+        fit = 100.0 * (1.0 - np.linalg.norm(self.yv - X[self.va] @ coef) / self.den)
+        return float(_bic_rss(r @ r, self.n, k, self.criterion)), float(fit)
 
     def predict(self, idx, ar_tau_h) -> tuple[np.ndarray, np.ndarray]:
         X = self.lib.design(idx, ar_tau_h)
@@ -460,7 +465,8 @@ def _extension_records(lib: _Library, path, gain_key: str = "validation_fit_poin
 
 def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_gain: float = MIN_FIT_GAIN,
                        beam_width: int = BEAM_WIDTH, selection_check: bool = True, selection: str = "held-out",
-                       folds: int = 3, criterion: str = "bic") -> DataOnlyDiagnosis:
+                       folds: int = 3, criterion: str = "bic", probe_every_h: float | None = None,
+                       probe_sd_um: float = 0.5) -> DataOnlyDiagnosis:
     """Diagnose a regression compensation model on a dataset alone (see the module docstring).
 
     Parameters
@@ -477,6 +483,10 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_g
     folds : blocks of the training rows for the cross-validation (``selection="held-out"``)
     criterion : ``"bic"`` (default) or ``"bicc"``, BIC with McQuarrie's small-sample correction: the training
         criterion that selects the sensor inputs and that every search step must lower by ``MIN_BIC_DROP``
+    probe_every_h : post-process gain updating (:mod:`hybridcomp.diagnose.updating`): on the validation rows the
+        drift is measured every ``probe_every_h`` hours and the extended model's gain and offset are updated from
+        those measurements; the filter's settings are chosen on the training rows. ``None``: no updating
+    probe_sd_um : the probe measurement's repeatability [µm]
 
     Raises
     ------
@@ -493,14 +503,20 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_g
         raise DatasetError(f"folds must be an integer in 2..20, got {folds!r}")
     if criterion not in CRITERIA:
         raise DatasetError(f"criterion must be one of {', '.join(CRITERIA)}, got {criterion!r}")
+    if probe_every_h is not None and not (np.isfinite(probe_every_h) and probe_every_h > 0):
+        raise DatasetError(f"the probe interval must be a positive number of hours, got {probe_every_h!r}")
+    if not (np.isfinite(probe_sd_um) and probe_sd_um > 0):
+        raise DatasetError(f"the probe repeatability must be a positive number of µm, got {probe_sd_um!r}")
     with single_blas_thread():
         return _diagnose_data_only(ds, split, max_terms, min_fit_gain, beam_width,
-                                   selection_check and selection == "assisted", selection, folds, criterion)
+                                   selection_check and selection == "assisted", selection, folds, criterion,
+                                   probe_every_h, probe_sd_um)
 
 
 def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain: float, beam_width: int,
                         selection_check: bool, selection: str = "held-out", folds: int = 3,
-                        criterion: str = "bic") -> DataOnlyDiagnosis:
+                        criterion: str = "bic", probe_every_h: float | None = None,
+                        probe_sd_um: float = 0.5) -> DataOnlyDiagnosis:
     t0 = time.perf_counter()
     targets = [n for n in ds.names if n.endswith("_um")]
     temps = [n for n in ds.names if n.endswith("_degC")]
@@ -533,7 +549,7 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
     va1 = np.zeros_like(va)
     va1[va_rows[: va_rows.size // 2]] = True
     va2 = va & ~va1
-    reference, base, extended, extensions, Y, check = {}, {}, {}, {}, {}, {}
+    reference, base, extended, extensions, Y, check, updating = {}, {}, {}, {}, {}, {}, {}
     for ch in targets:
         y = ds[ch] if ds.runs is None else zero_runs(ds[ch], starts)
         Y[ch] = y
@@ -550,12 +566,16 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
         best = beam_search(chooser, start, droppable, beam_width, max_terms, min_fit_gain)
         coef, yh = sc.predict(best.idx, best.ar_tau_h)  # fitted on the training rows, scored once on the validation
         extended[ch] = ChannelModel(ch, tuple(lib.terms[i] for i in best.idx), best.ar_tau_h, coef, yh)
+        if probe_every_h is not None:
+            cv = chooser if isinstance(chooser, _BlockedCV) else _BlockedCV(lib, y, tr, folds, ch, ds.runs, criterion)
+            updating[ch] = _post_process_updating(cv, best, t, y, yh, va, starts, probe_every_h, probe_sd_um)
         extensions[ch] = _extension_records(lib, best.path,
                                             "validation_fit_points" if selection == "assisted" else "cv_fit_points")
         log.info("%s: reference fit %.1f %%, base %.1f %%, extended %.1f %% (%s)", ch, reference[ch]["fit_percent"],
                  base[ch]["fit_percent"], channel_metrics(y[va], yh[va])["fit_percent"], selection)
         if selection_check and va1.sum() >= 2 and va2.sum() >= 2 and np.ptp(y[va1]) > 0 and np.ptp(y[va2]) > 0:
-            best2 = beam_search(_Scorer(lib, y, tr, va1, ch, criterion=criterion), start, droppable, beam_width, max_terms, min_fit_gain)
+            best2 = beam_search(_Scorer(lib, y, tr, va1, ch, criterion=criterion), start, droppable, beam_width,
+                                max_terms, min_fit_gain)
             sc2 = _Scorer(lib, y, tr, va2, ch, criterion=criterion)
             check[ch] = {
                 "static_all_temperatures": sc2.score(every, None)[1],
@@ -570,7 +590,20 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
     return DataOnlyDiagnosis(t, Y, split, reference, base, extended, extensions,
                              {"total": time.perf_counter() - t0, "candidates": len(cands), "beam_width": beam_width,
                               "row_stride": stride},
-                             split_check, selection, folds, ds.runs, criterion)
+                             split_check, selection, folds, ds.runs, criterion, updating or None)
+
+
+def _post_process_updating(cv: _BlockedCV, best: _State, t: np.ndarray, y: np.ndarray, yh: np.ndarray,
+                           va: np.ndarray, starts: np.ndarray, every_h: float, probe_sd_um: float) -> dict:
+    """The chosen model with gain updating on the validation rows; the filter settings chosen on the training blocks."""
+    blocks = [(np.flatnonzero(p.va), p.predict(best.idx, best.ar_tau_h)[1][p.va]) for p in cv.parts]
+    settings, cv_rms = choose_settings(t, y, blocks, every_h, probe_sd_um)
+    rows = np.flatnonzero(va)
+    probes = probe_rows(t[rows], np.ones(rows.size, bool), every_h)
+    restarts = np.flatnonzero(np.isin(rows, starts))
+    u, theta = updated_prediction(yh[rows], y[rows], t[rows], probes, settings, restarts)
+    return {"settings": settings, "cv_rms_updated_um": cv_rms, "probe_rows": rows[probes], "y_hat": u,
+            "gain": theta[:, 0], "offset_um": theta[:, 1]}
 
 
 def _structure_name(tm: Term) -> str:
@@ -630,8 +663,33 @@ def summary(d: DataOnlyDiagnosis) -> dict:
         "split": d.split.describe(d.time_s),
         "runs": None if d.runs is None else _per_run_metrics(d),
         "selection_check": d.selection_check,
+        "post_process_updating": _updating_summary(d),
         "timings_s": d.timings_s,
     }
+
+
+def _updating_summary(d: DataOnlyDiagnosis) -> dict | None:
+    """Fits with post-process gain updating on the validation rows (None without probes)."""
+    if not d.updating:
+        return None
+    va = d.split.validation
+    out = {}
+    for c, u in d.updating.items():
+        st = u["settings"]
+        out[c] = {"fit": {k: v for k, v in channel_metrics(d.Y[c][va], u["y_hat"]).items()
+                          if k in ("fit_percent", "rms", "p2p")},
+                  "without_updating": {k: v for k, v in channel_metrics(d.Y[c][va], d.extended[c].y_hat[va]).items()
+                                       if k in ("fit_percent", "rms", "p2p")},
+                  "probes": int(u["probe_rows"].size), "final_gain": float(u["gain"][-1]),
+                  "final_offset_um": float(u["offset_um"][-1]), "settings": {
+                      "gain_walk_per_sqrt_h": st.gain_walk_per_sqrt_h,
+                      "offset_walk_um_per_sqrt_h": st.offset_walk_um_per_sqrt_h, "offset_sd_um": st.offset_sd_um},
+                  "training_cv_rms_updated_um": u["cv_rms_updated_um"]}
+    st = next(iter(d.updating.values()))["settings"]
+    return {"every_h": st.every_h, "probe_sd_um": st.probe_sd_um,
+            "how": "the extended model's gain and offset updated by a Kalman filter at each probe of the validation "
+                   "rows; each row uses earlier probes only; the filter's random walks chosen on the training rows",
+            "channels": out}
 
 
 def _per_run_metrics(d: DataOnlyDiagnosis) -> dict:
@@ -676,23 +734,26 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
     stride = d.timings_s["row_stride"]
     thinned = "" if stride == 1 else f" (every {stride}. row of the dataset)"
     if d.selection == "held-out":
-        how = (f"while the training {d.criterion_name} drops and the fit in a blocked {d.folds}-fold cross-validation on the training "
-               "rows improves. Every choice is made on the training rows: the validation fits below are held out "
-               "(no choice saw those rows).")
+        how = (f"while the training {d.criterion_name} drops and the fit in a blocked {d.folds}-fold cross-validation "
+               "on the training rows improves. Every choice is made on the training rows: the validation fits below "
+               "are held out (no choice saw those rows).")
         gain_key, gain_name = "cv_fit_points", "cross-validation fit points"
     else:
-        how = (f"while the training {d.criterion_name} drops and the validation fit improves (selection-assisted: the validation part "
-               "takes part in this selection; the selection check below says how much that flatters).")
+        how = (f"while the training {d.criterion_name} drops and the validation fit improves (selection-assisted: "
+               "the validation part takes part in this selection; the selection check below says how much that "
+               "flatters).")
         gain_key, gain_name = "validation_fit_points", "fit points"
     L = [f"# Data-only diagnosis{' of ' + dataset_name if dataset_name else ''}", "",
          "Model under test: a multiple linear regression of each drift channel on the temperature sensors, inputs "
-         f"selected greedily by {d.criterion_name} on the training part. Extensions: lag terms of activity signals, heating/cooling "
-         "split, sensor lags (lead terms), an autoregressive output lag; added (or sensor inputs dropped) by a beam search "
+         f"selected greedily by {d.criterion_name} on the training part. Extensions: lag terms of activity signals, "
+         "heating/cooling split, sensor lags (lead terms), an autoregressive output lag; added (or sensor inputs "
+         "dropped) by a beam search "
          f"(width {d.timings_s['beam_width']}) {how}", "",
          f"Training rows {s['split']['train_rows']}, validation rows {s['split']['validation_rows']}"
          f"{thinned}; "
          f"{d.timings_s['candidates']} candidate terms; {d.timings_s['total']:.1f} s.", "",
-         f"| channel | static, all temperatures: fit % | {d.criterion_name}-selected regression: fit % (RMS, P2P) | extended: fit % (RMS, P2P)"
+         f"| channel | static, all temperatures: fit % | {d.criterion_name}-selected regression: fit % (RMS, P2P) | "
+         "extended: fit % (RMS, P2P)"
          f"{' — held out' if d.selection == 'held-out' else ' — selection-assisted'} |",
          "|---|---|---|---|"]
     for c, v in s["channels"].items():
@@ -740,6 +801,21 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
         for c, v in sc["channels"].items():
             L.append(f"| {c} | {v['static_all_temperatures']:.1f} | {v['base']:.1f} | {v['extended']:.1f} |")
         L.append("")
+    if s["post_process_updating"]:
+        pu = s["post_process_updating"]
+        L += [f"## Post-process gain updating: a probe every {pu['every_h']:g} h", "",
+              "The extended model as a transfer-function model with post-process gain updating: on the validation "
+              f"rows the drift is measured every {pu['every_h']:g} h (repeatability {pu['probe_sd_um']:g} µm), and a "
+              "Kalman filter updates the model's gain and offset at each measurement; every row is predicted from "
+              "the measurements before it. How fast gain and offset may wander was chosen on the training rows "
+              "(the updating replayed on the cross-validation's predictions of them).", "",
+              "| channel | held out, no updating: fit % (RMS) | with updating: fit % (RMS, P2P) | probes | gain at the end "
+              "| offset at the end [µm] |", "|---|---|---|---|---|---|"]
+        for c, v in pu["channels"].items():
+            a, b = v["without_updating"], v["fit"]
+            L.append(f"| {c} | {a['fit_percent']:.1f} ({a['rms']:.3g}) | {b['fit_percent']:.1f} ({b['rms']:.3g}, "
+                     f"{b['p2p']:.3g}) | {v['probes']} | {v['final_gain']:.3f} | {v['final_offset_um']:.3g} |")
+        L.append("")
     if plots:
         try:
             import matplotlib
@@ -754,6 +830,10 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
             for ax, (c, m) in zip(axes[:, 0], d.extended.items()):
                 ax.plot(th, d.Y[c], "k", lw=0.8, label="measured")
                 ax.plot(th, m.y_hat, "tab:blue", lw=0.8, label="extended")
+                if d.updating:
+                    u = d.updating[c]
+                    ax.plot(th[d.split.validation], u["y_hat"], "tab:orange", lw=0.8, label="updated by probes")
+                    ax.plot(th[u["probe_rows"]], d.Y[c][u["probe_rows"]], "o", ms=2.5, color="tab:red", label="probes")
                 ax.axvspan(t_val, th[-1], color="0.92", zorder=0)
                 ax.set_ylabel(c, fontsize=8)
             axes[0, 0].legend(fontsize=7)

@@ -467,6 +467,11 @@ def test_campaign_diagnosis_holds_out_runs_and_beats_one_series(tmp_path):
     va = split.validation
     assert s["held_out"]["dz_um"]["fit_percent"] > fit_percent(one.Y["dz_um"][va], one.extended["dz_um"].y_hat[va]) + 20
     assert [v["part"] for v in s["runs"].values()] == ["training"] * 3 + ["validation"] * 2
+    # post-process updating over runs: each validation run's offset starts afresh (its own gauge zero)
+    u = diagnose_data_only(camp, split, probe_every_h=3.0).updating["dz_um"]
+    run_starts = np.flatnonzero(np.isin(np.flatnonzero(va), camp.run_starts()))
+    assert run_starts.size == 2 and np.all(u["offset_um"][run_starts] == 0.0)
+    assert fit_percent(aware.Y["dz_um"][va], u["y_hat"]) > s["held_out"]["dz_um"]["fit_percent"] - 2.0
     pytest.importorskip("matplotlib")
     from hybridcomp.diagnose.dataonly import write_data_only_report
 
@@ -540,3 +545,62 @@ def test_data_only_cli_takes_the_bicc_criterion(tmp_path):
     s = json.loads((out / "summary.json").read_text())
     assert s["criterion"] == "BICc" and "BICc-selected regression" in (out / "report.md").read_text()
     assert main(["diagnose", "--data", str(path), "--out", str(tmp_path / "x"), "--criterion", "bicc"]) == 2
+
+
+def _regained(gain: float) -> tuple[Dataset, object]:
+    """The spindle test with the drift's gain changed by ``gain`` for the second half (a new fixture, say)."""
+    ds = _spindle_data()
+    t = ds.time_s
+    dz = np.where(t >= t[-1] / 2, gain, 1.0) * ds["dz_um"]
+    return Dataset(t, {**ds.columns, "dz_um": dz}), parse_split("0:50%", t)
+
+
+def test_post_process_updating_recovers_a_changed_gain_from_the_probes_only():
+    """A gain 1.4 times the training one on the validation half: probed every 2 h, the filter recovers the gain
+    within 3 % and the held-out fit rises by more than 100 points; the drift between probes is never read (poisoning
+    it changes nothing); with no change the updating costs less than 2 fit points."""
+    ds, split = _regained(1.4)
+    d = diagnose_data_only(ds, split, probe_every_h=2.0)
+    u = d.updating["dz_um"]
+    va = split.validation
+    y = ds["dz_um"]
+    assert u["probe_rows"].size == 9 and va[u["probe_rows"]].all()
+    assert np.diff(ds.time_s[u["probe_rows"]]) == pytest.approx(7200.0)
+    assert u["gain"][-1] == pytest.approx(1.4, rel=0.03)
+    before, after = fit_percent(y[va], d.extended["dz_um"].y_hat[va]), fit_percent(y[va], u["y_hat"])
+    assert after > before + 100.0, (before, after)
+    # no row sees its own or a later probe: up to the first probe the prediction is the model's own
+    first = int(np.flatnonzero(np.flatnonzero(va) == u["probe_rows"][0])[0])
+    np.testing.assert_array_equal(u["y_hat"][: first + 1], d.extended["dz_um"].y_hat[va][: first + 1])
+    keep = np.zeros_like(va)
+    keep[u["probe_rows"]] = True
+    rng = np.random.default_rng(4)
+    poisoned = Dataset(ds.time_s, {**ds.columns, "dz_um": np.where(va & ~keep, rng.normal(0, 50, y.size), y)})
+    e = diagnose_data_only(poisoned, split, probe_every_h=2.0)
+    np.testing.assert_array_equal(e.updating["dz_um"]["y_hat"], u["y_hat"])
+    same, split = _regained(1.0)
+    d = diagnose_data_only(same, split, probe_every_h=2.0)
+    y = same["dz_um"]
+    assert fit_percent(y[va], d.updating["dz_um"]["y_hat"]) > fit_percent(y[va], d.extended["dz_um"].y_hat[va]) - 2.0
+
+
+def test_post_process_updating_in_the_cli_report_and_summary(tmp_path):
+    ds, _ = _regained(1.4)
+    path = tmp_path / "m.csv"
+    cols = ["time_s", *ds.names]
+    path.write_text(",".join(cols) + "\n" + "\n".join(
+        ",".join(f"{v:.6g}" for v in row) for row in np.column_stack([ds.time_s] + [ds[c] for c in ds.names])) + "\n")
+    out = tmp_path / "out"
+    assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(out), "--train", "0:50%",
+                 "--probe-every-h", "2", "--probe-sd-um", "0.3"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    pu = s["post_process_updating"]
+    assert pu["every_h"] == 2.0 and pu["probe_sd_um"] == 0.3
+    ch = pu["channels"]["dz_um"]
+    assert ch["fit"]["fit_percent"] > ch["without_updating"]["fit_percent"] + 100.0
+    assert ch["without_updating"]["fit_percent"] == pytest.approx(s["held_out"]["dz_um"]["fit_percent"])
+    report = (out / "report.md").read_text()
+    assert "## Post-process gain updating: a probe every 2 h" in report and (out / "channels.png").is_file()
+    assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(tmp_path / "x"), "--probe-sd-um", "1"]) == 2
+    assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(tmp_path / "x"),
+                 "--probe-every-h", "0"]) == 2
