@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -103,6 +104,11 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
             d = select(problem, cands + more, max_effects=max_effects, progress=progress, memo=memo)
             d.timings_s["without located sources"] = timings["selection"]
             cands = cands + more
+        elif d.verdict == "unexplained" and (kinds is None or "located_source" in kinds):
+            why = ("the search for a heat source anywhere on the surface did not run: the reduced model carries no "
+                   "basis (V) to place one (reduce it from the machine file, or load it with its basis)")
+            log.warning(why)
+            d = dataclasses.replace(d, message=f"{d.message}; {why}")
     d.timings_s["total"] = time.perf_counter() - t0
     d.timings_s["candidates"] = len(cands)
     return d

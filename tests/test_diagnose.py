@@ -264,6 +264,10 @@ def test_effect_outside_library_is_not_named(machine, fe, rom, loads):
     assert dg.causes == (), [f.candidate.describe(f.params) for f in dg.causes]
     assert dg.verdict == "unexplained"
     assert dg.correlations, "the report must give the strongest correlations of the unexplained residual"
+    # a reduced model without its basis cannot place a source: the verdict says the search did not run
+    bare = dataclasses.replace(rom, V=None, _cache={})
+    dg = diagnose(machine, dataset(machine, loads, s, d, seed=7), "0:60%", rom=bare, kinds=["htc", "located_source"])
+    assert dg.verdict == "unexplained" and "did not run: the reduced model carries no basis" in dg.message
 
 
 def test_report_and_extended_machine(machine, fe, rom, loads, tmp_path):
