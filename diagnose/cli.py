@@ -126,6 +126,10 @@ def run(args: argparse.Namespace) -> int:
             fits = ", ".join(f"{c} {v['after']['fit_percent']:.1f} %" for c, v in summary["channels"].items())
             kind = "held-out" if args.selection == "held-out" else "selection-assisted validation"
             print(f"data-only diagnosis: {kind} fit {fits}; report {args.out / 'report.md'}")
+            if summary["post_process_updating"]:
+                pu = summary["post_process_updating"]
+                fits = ", ".join(f"{c} {v['fit']['fit_percent']:.1f} %" for c, v in pu["channels"].items())
+                print(f"with a probe every {pu['every_h']:g} h (gain and offset updated): fit {fits}")
             return 0
         from hybridcomp.diagnose.core import diagnose, prepare_model
         from hybridcomp.diagnose.report import write_report
