@@ -173,7 +173,7 @@ _SECTIONS = {
     "compensation": {"strategy", "sensor_filter_s", "max_offset_um", "max_step_um", "blend_s", "model_transient_s"},
     "validity": {f.name for f in dataclass_fields(Validity)},
     "observer": {f.name for f in dataclass_fields(ObserverSettings)},
-    "sensors": {"hold_s", "frozen_s", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
+    "sensors": {"hold_s", "frozen_s", "frozen_model_K", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
     "time": {"max_step_s", "confirm_samples"},
     "source": {"kind", "path", "speed", "start_s", "url", "nodes", "publishing_interval_ms", "stale_s"},
     "sink": {"kind", "path", "url", "nodes"},
@@ -255,6 +255,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         rules = SensorRules(
             hold_s=s.number("hold_s", d.hold_s, nonneg=True),
             frozen_s=s.number("frozen_s", d.frozen_s, nonneg=True),
+            frozen_model_K=s.number("frozen_model_K", d.frozen_model_K, nonneg=True),
             spike_K=s.number("spike_K", d.spike_K, positive=True),
             spike_rate_K_s=s.number("spike_rate_K_s", d.spike_rate_K_s, nonneg=True),
             min_degC=s.number("min_degC", d.min_degC),
@@ -407,7 +408,8 @@ probe_sigma_um = 0.5               # noise of a probed drift (probe_dx_um ... co
 
 [sensors]
 hold_s = 60                        # a bad reading is replaced by the last good value this long [s]
-frozen_s = 1800                    # a reading unchanged this long is frozen [s]
+frozen_s = 1800                    # a reading unchanged this long is frozen [s] ...
+frozen_model_K = 0.5               # ... or unchanged while the structure model moves it this much (0: off) [K]
 spike_K = 2.0                      # a jump larger than this (plus spike_rate_K_s per second) is a spike [K]
 spike_rate_K_s = 0.01
 min_degC = -10                     # plausible range [degC]

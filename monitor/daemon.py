@@ -491,6 +491,10 @@ class Monitor:
         before = s.observer
         if dt > 0:
             s.observer = self.observer.predict(s.observer, u, dt)
+            # how far the model moves each sensor in this step: a reading that stands still meanwhile is stuck
+            moved = self.observer.sensors_degC(s.observer) - self.observer.sensors_degC(before)
+            for name, d in zip(self.sensor_names, moved):
+                s.sensors[name] = decisions.model_moved(s.sensors[name], before.time_s, float(d))
         # the sensors' mean over the step (their noise averages out; the thermal state moves little in a step)
         with np.errstate(invalid="ignore", divide="ignore"):
             y = np.where(self.step_n > 0, self.step_sum / self.step_n, math.nan)

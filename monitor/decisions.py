@@ -254,6 +254,8 @@ class SensorRules:
     ----------
     hold_s : how long a bad reading is replaced by the last good value before the sensor degrades [s]
     frozen_s : a reading that has not changed at all for this long is frozen [s]
+    frozen_model_K : ... and so is one that has not changed at all while the structure model predicts the sensor's
+        temperature to move by this much (a stuck sensor while the machine heats or cools; 0: off) [K]
     spike_K : a jump larger than this against the last good value is a spike [K] ...
     spike_rate_K_s : ... plus this rate times the time since the last good value [K/s]
     min_degC, max_degC : readings outside this range are implausible (open or shorted sensor) [°C]
@@ -261,13 +263,14 @@ class SensorRules:
 
     hold_s: float = 60.0
     frozen_s: float = 1800.0
+    frozen_model_K: float = 0.5
     spike_K: float = 2.0
     spike_rate_K_s: float = 0.01
     min_degC: float = -10.0
     max_degC: float = 80.0
 
     def __post_init__(self):
-        for name in ("hold_s", "frozen_s", "spike_K", "spike_rate_K_s"):
+        for name in ("hold_s", "frozen_s", "frozen_model_K", "spike_K", "spike_rate_K_s"):
             v = getattr(self, name)
             if not nonnegative_number(v):
                 raise ValueError(f"sensor rule {name} must be a non-negative number, got {v!r}")
@@ -288,6 +291,8 @@ class SensorState:
     reason : why the last reading was bad (``"nan"``, ``"spike"``, ``"frozen"``), empty when good
     raw_degC : the last raw reading [°C] (for the frozen check)
     raw_since_s : since when the raw reading has not changed [s]
+    model_moved_K : how far the structure model's prediction of this sensor has moved while the raw reading stood
+        still (the sum of its prediction steps since ``raw_since_s``) [K]
     """
 
     status: str = "ok"
@@ -297,6 +302,7 @@ class SensorState:
     reason: str = ""
     raw_degC: float = math.nan
     raw_since_s: float = math.nan
+    model_moved_K: float = 0.0
 
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in self.__dict__.items()}
@@ -329,13 +335,14 @@ def check_sensor(
 
     A reading is bad when it is NaN, outside ``[min_degC, max_degC]``, jumps
     against the last good value by more than ``spike_K + spike_rate_K_s · (time
-    since it)`` (a spike), or has not changed at all for ``frozen_s`` (a frozen
-    sensor or a dead bus). A bad reading is replaced by the last good value for
+    since it)`` (a spike), or has not changed at all for ``frozen_s`` or while the
+    structure model moved it by ``frozen_model_K`` (a frozen sensor or a dead bus;
+    the caller accumulates ``state.model_moved_K``, see :func:`model_moved`). A bad reading is replaced by the last good value for
     up to ``hold_s``; after that the sensor is ``"degraded"`` and the value is
     NaN (the caller substitutes the structure model's estimate, see
     :func:`substitute`). A good reading ends holding at once. A degraded sensor
-    recovers with the first reading that is plausible: in range, not frozen,
-    and within ``spike_K`` of ``reference_degC`` (the stand-in value) when the
+    recovers with the first reading that is plausible: in range, not frozen (a
+    frozen one: moving again), and within ``spike_K`` of ``reference_degC`` (the stand-in value) when the
     caller has one.
 
     Parameters
@@ -351,7 +358,8 @@ def check_sensor(
         raw_since = state.raw_since_s
     else:
         raw_since = time_s
-    st = replace(state, raw_degC=raw_degC if math.isfinite(raw_degC) else math.nan, raw_since_s=raw_since)
+    st = replace(state, raw_degC=raw_degC if math.isfinite(raw_degC) else math.nan, raw_since_s=raw_since,
+                 model_moved_K=state.model_moved_K if raw_since == state.raw_since_s else 0.0)
 
     reason = ""
     if not math.isfinite(raw_degC):
@@ -359,13 +367,16 @@ def check_sensor(
     elif not rules.min_degC <= raw_degC <= rules.max_degC:
         reason = "range"
     elif st.status == "degraded":
-        if math.isfinite(reference_degC) and abs(raw_degC - reference_degC) > rules.spike_K:
+        if state.reason == "frozen" and raw_since == state.raw_since_s:
+            reason = "frozen"  # a frozen sensor recovers only when its reading moves again
+        elif math.isfinite(reference_degC) and abs(raw_degC - reference_degC) > rules.spike_K:
             reason = "spike"
     elif math.isfinite(st.value_degC):
         allowed = rules.spike_K + rules.spike_rate_K_s * max(0.0, time_s - st.good_time_s)
         if abs(raw_degC - st.value_degC) > allowed:
             reason = "spike"
-    if not reason and math.isfinite(raw_since) and time_s - raw_since >= rules.frozen_s > 0:
+    if not reason and math.isfinite(raw_since) and (time_s - raw_since >= rules.frozen_s > 0
+                                                    or abs(st.model_moved_K) >= rules.frozen_model_K > 0):
         reason = "frozen"
 
     if not reason:
@@ -384,6 +395,17 @@ def check_sensor(
     event = "holding" if st.status == "ok" else None
     new = replace(st, status="holding", bad_since_s=bad_since, reason=reason)
     return SensorVerdict(new, st.value_degC, event)
+
+
+def model_moved(state: SensorState, step_start_s: float, predicted_step_K: float) -> SensorState:
+    """Accumulate how far the structure model moves a sensor while its raw reading stands still.
+
+    Adds one step's predicted change (the prediction minus the corrected state before it) while the raw reading
+    has not changed since before the step began; otherwise starts again from 0.
+    """
+    if math.isfinite(state.raw_since_s) and state.raw_since_s <= step_start_s and math.isfinite(predicted_step_K):
+        return replace(state, model_moved_K=state.model_moved_K + predicted_step_K)
+    return replace(state, model_moved_K=0.0)
 
 
 def substitute(model_degC: float, bias_K: float) -> float:

@@ -23,6 +23,7 @@ from hybridcomp.monitor.decisions import (
     decide,
     limit_offsets,
     model_drift,
+    model_moved,
     substitute,
     temperature_deviation,
 )
@@ -133,6 +134,31 @@ def test_sensor_frozen_degrades_after_frozen_plus_hold():
     assert statuses[99] == "ok"
     assert out[100][1] == "holding" and statuses[110] == "holding"
     assert out[111][1] == "degraded"
+
+
+def test_sensor_unchanged_while_the_model_moves_it_is_frozen_and_stays_so_until_it_moves():
+    """Unchanged while the structure model's prediction moves by frozen_model_K: frozen long before frozen_s; it
+    stays degraded while the reading stands still, even when the model comes back; a changed reading restarts."""
+    rules = SensorRules(hold_s=2.0, frozen_s=1000.0, frozen_model_K=0.5, spike_K=1.0, spike_rate_K_s=0.0)
+    st, events = SensorState(), []
+    path = [0.1] * 6 + [-0.1] * 12 + [0.0] * 5  # the model's predicted change per step [K]: up 0.6 K, back 1.2 K
+    for k, d in enumerate(path):
+        v = check_sensor(st, 10.0 * k, 20.0, rules, reference_degC=20.0 + 0.1 * min(k, 6))
+        st = model_moved(v.state, 10.0 * k, d)
+        events.append(v.event)
+    # moved 0.5 K after the 5th step (k = 5 reads it at t = 50 s), held 2 s, degraded at the next reading
+    assert events.index("holding") == 5 and events.index("degraded") == 6
+    assert st.status == "degraded" and "recovered" not in events  # the model's way back recovers nothing
+    assert model_moved(st, 0.0, 0.3).model_moved_K == pytest.approx(st.model_moved_K + 0.3)
+    v = check_sensor(st, 300.0, 20.05, rules, reference_degC=20.0)
+    assert v.event == "recovered" and v.state.model_moved_K == 0.0
+    assert model_moved(v.state, 290.0, 0.2).model_moved_K == 0.0  # changed within the step: starts again
+    # a healthy sensor the model moves by less than frozen_model_K is never frozen
+    st = SensorState()
+    for k in range(50):
+        v = check_sensor(st, 10.0 * k, 20.0, rules)
+        assert v.event is None
+        st = model_moved(v.state, 10.0 * k, 0.009)
 
 
 def test_sensor_stuck_at_implausible_value_does_not_recover_against_the_reference():
