@@ -175,6 +175,14 @@ def _spindle_data(seed=0, hours=40.0, dt=60.0):
     return Dataset(t, {"spindle_rpm": rpm, "T1_degC": sensor, "Tamb_degC": ambient, "dz_um": dz})
 
 
+def _dataset_csv(ds: Dataset, path: Path) -> Path:
+    """A dataset written as the CSV the CLI reads."""
+    cols = ["time_s", *ds.names]
+    path.write_text(",".join(cols) + "\n" + "\n".join(
+        ",".join(f"{v:.6g}" for v in row) for row in np.column_stack([ds.time_s] + [ds[c] for c in ds.names])) + "\n")
+    return path
+
+
 def test_data_only_finds_the_lag_and_gains():
     ds = _spindle_data()
     d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s))
@@ -190,10 +198,7 @@ def test_data_only_finds_the_lag_and_gains():
 
 def test_data_only_cli(tmp_path):
     ds = _spindle_data(hours=30.0, dt=120.0)
-    path = tmp_path / "m.csv"
-    cols = ["time_s", *ds.names]
-    path.write_text(",".join(cols) + "\n" + "\n".join(
-        ",".join(f"{v:.6g}" for v in row) for row in np.column_stack([ds.time_s] + [ds[c] for c in ds.names])) + "\n")
+    path = _dataset_csv(ds, tmp_path / "m.csv")
     out = tmp_path / "out"
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(out), "--train", "0:50%", "--no-plots"]) == 0
     s = json.loads((out / "summary.json").read_text())
@@ -535,10 +540,7 @@ def test_bicc_is_the_small_sample_bic_and_selects_fewer_spurious_inputs():
 
 def test_data_only_cli_takes_the_bicc_criterion(tmp_path):
     ds = _spindle_data(hours=30.0, dt=120.0)
-    path = tmp_path / "m.csv"
-    cols = ["time_s", *ds.names]
-    path.write_text(",".join(cols) + "\n" + "\n".join(
-        ",".join(f"{v:.6g}" for v in row) for row in np.column_stack([ds.time_s] + [ds[c] for c in ds.names])) + "\n")
+    path = _dataset_csv(ds, tmp_path / "m.csv")
     out = tmp_path / "out"
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(out), "--train", "0:50%", "--no-plots",
                  "--criterion", "bicc"]) == 0
@@ -586,10 +588,7 @@ def test_post_process_updating_recovers_a_changed_gain_from_the_probes_only():
 
 def test_post_process_updating_in_the_cli_report_and_summary(tmp_path):
     ds, _ = _regained(1.4)
-    path = tmp_path / "m.csv"
-    cols = ["time_s", *ds.names]
-    path.write_text(",".join(cols) + "\n" + "\n".join(
-        ",".join(f"{v:.6g}" for v in row) for row in np.column_stack([ds.time_s] + [ds[c] for c in ds.names])) + "\n")
+    path = _dataset_csv(ds, tmp_path / "m.csv")
     out = tmp_path / "out"
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(out), "--train", "0:50%",
                  "--probe-every-h", "2", "--probe-sd-um", "0.3"]) == 0

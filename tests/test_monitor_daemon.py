@@ -333,6 +333,17 @@ def test_sensor_faults_hold_then_degrade_with_events(machine, rom, rom_file, tra
     assert abs(sink.rows[i].dz_um - (-3.0) * (T_ok[i, 0] - T_ok[i, 7])) < 3.0
 
 
+def _t1_frozen_at_1h(machine, trace, tmp_path):
+    """The trace with T1 stuck from 1 h on (the spindle runs until 3 h), and a fresh CD database."""
+    _, s, T_ok = trace
+    T = T_ok.copy()
+    k0 = int(np.searchsorted(s.time_s, 3600.0))
+    T[k0:, 0] = T[k0, 0]
+    p = write_trace_csv(tmp_path / "frozen.csv", machine, s, T)
+    db, _ = make_db(tmp_path / "cd.db", machine, T_ok, warm=False)
+    return s, T_ok, p, db
+
+
 @pytest.mark.parametrize("rewind", [True, False], ids=["rewound", "not rewound"])
 def test_a_sensor_frozen_while_the_machine_heats_is_filtered_out_from_its_onset(machine, rom, rom_file, trace, drift,
                                                                                tmp_path, monkeypatch, rewind):
@@ -341,12 +352,7 @@ def test_a_sensor_frozen_while_the_machine_heats_is_filtered_out_from_its_onset(
     # moves its estimate away. Once T1 is found faulty, the observer goes back to its estimate before the onset
     # and filters the steps since again without T1: its drift (the observer strategy's offsets) stays on the
     # truth. Without the rewind (planted here by switching it off) the estimate stays wrong.
-    path, s, T_ok = trace
-    T = T_ok.copy()
-    k0 = int(np.searchsorted(s.time_s, 3600.0))
-    T[k0:, 0] = T[k0, 0]
-    p = write_trace_csv(tmp_path / "frozen.csv", machine, s, T)
-    db, _ = make_db(tmp_path / "cd.db", machine, T_ok, warm=False)
+    s, T_ok, p, db = _t1_frozen_at_1h(machine, trace, tmp_path)
     if not rewind:
         monkeypatch.setattr(Monitor, "_refilter", lambda self, sensor, onset_s, t: None)
     # the rule "unchanged for frozen_s" alone (the model-aware rule, switched off here, finds it sooner: next test)
@@ -373,12 +379,7 @@ def test_a_sensor_stuck_while_the_model_moves_it_is_found_long_before_frozen_s(m
     by frozen_model_K (0.5 K), which happens long before frozen_s (30 min); the observer is rewound to the onset
     and stays on the truth from then on. Readings quantised to 0.1 K (standing still for many minutes at a time) on
     a healthy machine never trip it."""
-    path, s, T_ok = trace
-    T = T_ok.copy()
-    k0 = int(np.searchsorted(s.time_s, 3600.0))
-    T[k0:, 0] = T[k0, 0]
-    p = write_trace_csv(tmp_path / "frozen.csv", machine, s, T)
-    db, _ = make_db(tmp_path / "cd.db", machine, T_ok, warm=False)
+    s, T_ok, p, db = _t1_frozen_at_1h(machine, trace, tmp_path)
     cfg = config(rom_file, p, tmp_path, compensation={"strategy": "observer", "max_step_um": 100.0},
                  sensors={"hold_s": 60.0, "frozen_s": 1800.0})
     assert cfg.sensors.frozen_model_K == 0.5  # the default
