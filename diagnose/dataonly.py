@@ -815,6 +815,8 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
             a, b = v["without_updating"], v["fit"]
             L.append(f"| {c} | {a['fit_percent']:.1f} ({a['rms']:.3g}) | {b['fit_percent']:.1f} ({b['rms']:.3g}, "
                      f"{b['p2p']:.3g}) | {v['probes']} | {v['final_gain']:.3f} | {v['final_offset_um']:.3g} |")
+        L += ["", "The filter per channel, as chosen on the training rows:", ""]
+        L += [f"* {c}: {u['settings'].describe()}" for c, u in d.updating.items()]
         L.append("")
     if plots:
         try:

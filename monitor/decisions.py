@@ -337,12 +337,13 @@ def check_sensor(
     against the last good value by more than ``spike_K + spike_rate_K_s · (time
     since it)`` (a spike), or has not changed at all for ``frozen_s`` or while the
     structure model moved it by ``frozen_model_K`` (a frozen sensor or a dead bus;
-    the caller accumulates ``state.model_moved_K``, see :func:`model_moved`). A bad reading is replaced by the last good value for
-    up to ``hold_s``; after that the sensor is ``"degraded"`` and the value is
-    NaN (the caller substitutes the structure model's estimate, see
-    :func:`substitute`). A good reading ends holding at once. A degraded sensor
-    recovers with the first reading that is plausible: in range, not frozen (a
-    frozen one: moving again), and within ``spike_K`` of ``reference_degC`` (the stand-in value) when the
+    the caller accumulates ``state.model_moved_K``, see :func:`model_moved`). A
+    bad reading is replaced by the last good value for up to ``hold_s``; after
+    that the sensor is ``"degraded"`` and the value is NaN (the caller
+    substitutes the structure model's estimate, see :func:`substitute`). A good
+    reading ends holding at once. A degraded sensor recovers with the first
+    reading that is plausible: in range, not frozen (a frozen one: moving again),
+    and within ``spike_K`` of ``reference_degC`` (the stand-in value) when the
     caller has one.
 
     Parameters

@@ -600,6 +600,7 @@ def test_post_process_updating_in_the_cli_report_and_summary(tmp_path):
     assert ch["without_updating"]["fit_percent"] == pytest.approx(s["held_out"]["dz_um"]["fit_percent"])
     report = (out / "report.md").read_text()
     assert "## Post-process gain updating: a probe every 2 h" in report and (out / "channels.png").is_file()
+    assert "* dz_um: probe every 2 h (repeatability 0.3 µm)" in report
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(tmp_path / "x"), "--probe-sd-um", "1"]) == 2
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(tmp_path / "x"),
                  "--probe-every-h", "0"]) == 2
