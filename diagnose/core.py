@@ -83,9 +83,9 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     log.info("%d candidate effects", len(cands))
     with single_blas_thread():
         memo: dict = {}
-        search = (kinds is None or "located_source" in kinds) and rom.V is not None
+        wanted = kinds is None or "located_source" in kinds
         d = select(problem, cands, max_effects=max_effects, progress=progress, memo=memo)
-        if d.verdict == "unexplained" and search:
+        if d.verdict == "unexplained" and wanted and rom.V is not None:
             # the machine's own elements leave a structured residual: then, and only then, a heat source the machine
             # file lacks, searched anywhere on the surface (the most flexible hypothesis comes last), on the residual
             # of the model as it is and on the one the partial candidates leave
@@ -104,7 +104,7 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
             d = select(problem, cands + more, max_effects=max_effects, progress=progress, memo=memo)
             d.timings_s["without located sources"] = timings["selection"]
             cands = cands + more
-        elif d.verdict == "unexplained" and (kinds is None or "located_source" in kinds):
+        elif d.verdict == "unexplained" and wanted:
             why = ("the search for a heat source anywhere on the surface did not run: the reduced model carries no "
                    "basis (V) to place one (reduce it from the machine file, or load it with its basis)")
             log.warning(why)

@@ -644,7 +644,7 @@ def summary(d: DataOnlyDiagnosis) -> dict:
         ch[c] = {"reference_all_temperatures": d.reference[c], "before": d.base[c], "after": after,
                  "extensions": d.extensions[c], "model": model_structure(m)}
     causes = [{"channel": c, **e} for c in d.extended for e in d.extensions[c]]
-    held_out = {c: {k: ch[c]["after"][k] for k in ("fit_percent", "rms", "p2p")} for c in d.extended}
+    held_out = {c: _headline(ch[c]["after"]) for c in d.extended}
     return {
         "mode": "data-only",
         "criterion": d.criterion_name,
@@ -668,6 +668,11 @@ def summary(d: DataOnlyDiagnosis) -> dict:
     }
 
 
+def _headline(metrics: dict) -> dict:
+    """The figures a fit is reported by: fit %, RMS and peak-to-peak."""
+    return {k: metrics[k] for k in ("fit_percent", "rms", "p2p")}
+
+
 def _updating_summary(d: DataOnlyDiagnosis) -> dict | None:
     """Fits with post-process gain updating on the validation rows (None without probes)."""
     if not d.updating:
@@ -676,10 +681,8 @@ def _updating_summary(d: DataOnlyDiagnosis) -> dict | None:
     out = {}
     for c, u in d.updating.items():
         st = u["settings"]
-        out[c] = {"fit": {k: v for k, v in channel_metrics(d.Y[c][va], u["y_hat"]).items()
-                          if k in ("fit_percent", "rms", "p2p")},
-                  "without_updating": {k: v for k, v in channel_metrics(d.Y[c][va], d.extended[c].y_hat[va]).items()
-                                       if k in ("fit_percent", "rms", "p2p")},
+        out[c] = {"fit": _headline(channel_metrics(d.Y[c][va], u["y_hat"])),
+                  "without_updating": _headline(channel_metrics(d.Y[c][va], d.extended[c].y_hat[va])),
                   "probes": int(u["probe_rows"].size), "final_gain": float(u["gain"][-1]),
                   "final_offset_um": float(u["offset_um"][-1]), "settings": {
                       "gain_walk_per_sqrt_h": st.gain_walk_per_sqrt_h,

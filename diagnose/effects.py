@@ -224,6 +224,11 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
     return out
 
 
+def params_key(p) -> tuple:
+    """Parameter values as a cache key (rounded, so that round-off does not tell equal fits apart)."""
+    return tuple(np.round(np.asarray(p, float), 12))
+
+
 def simulate(problem: Problem, effects) -> np.ndarray:
     """Channels (nt × nch) in measured units for the model with ``effects`` [(Candidate, params)]."""
     from hybridcomp.diagnose.problem import channel_outputs, new_setup, raw_outputs
@@ -233,7 +238,7 @@ def simulate(problem: Problem, effects) -> np.ndarray:
     for cand, p in effects:
         cand.apply(s, np.asarray(p, float))
         if cand.stage == "sim":
-            key.append((cand.kind, cand.target, tuple(np.round(np.asarray(p, float), 12))))
+            key.append((cand.kind, cand.target, params_key(p)))
     Y = raw_outputs(problem, s, tuple(key))
     if s.raw_ops:
         Y = Y.copy()

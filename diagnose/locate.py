@@ -200,15 +200,15 @@ def _facet_points(corners_mm: np.ndarray, body_idx: np.ndarray, spacing: float) 
     size = np.max(np.linalg.norm(corners_mm - corners_mm.mean(axis=1, keepdims=True), axis=2), axis=1) * 2.0
     pts, bodies = [corners_mm.mean(axis=1)], [body_idx]
     big = np.flatnonzero(size > spacing)
-    for k in np.unique(np.ceil(size[big] / spacing).astype(int)):
-        sel = big[np.ceil(size[big] / spacing).astype(int) == k]
+    per_edge = np.ceil(size[big] / spacing).astype(int)
+    for k in np.unique(per_edge):
+        sel = big[per_edge == k]
         u = (np.arange(k) + 0.5) / k
         c = corners_mm[sel]
+        U, W = (a.ravel() for a in np.meshgrid(u, u, indexing="ij"))
         if c.shape[1] == 4:  # quadrilateral, corners in cyclic order
-            U, W = (a.ravel() for a in np.meshgrid(u, u, indexing="ij"))
             wts = np.column_stack([(1 - U) * (1 - W), U * (1 - W), U * W, (1 - U) * W])
         else:  # triangle: the lattice points inside
-            U, W = (a.ravel() for a in np.meshgrid(u, u, indexing="ij"))
             inside = U + W < 1
             U, W = U[inside], W[inside]
             wts = np.column_stack([1 - U - W, U, W])
@@ -340,6 +340,22 @@ def refine(problem: Problem, sites: Sites, i: int, residual: np.ndarray, shape: 
     return at, best, spread
 
 
+def _adds(rows: list[int], response: np.ndarray):
+    """A raw-output operation that adds ``response`` (nt × len(rows)) to the output ``rows``, in place."""
+
+    def op(Y: np.ndarray) -> None:
+        Y[:, rows] += response
+
+    return op
+
+
+def _label(sites: Sites, i: int, shape: Shape, exponent: float | None = None) -> str:
+    """A located source's name in reports: its body, its place in machine-file coordinates, its drive."""
+    ref = np.round(sites.reference_mm[i]).astype(int)
+    return (f"missing heat source on {sites.body[i]} at ({ref[0]}, {ref[1]}, {ref[2]}) mm, "
+            f"{_describe_shape(shape, exponent)}")
+
+
 def _describe_shape(shape: Shape, exponent: float | None = None) -> str:
     if shape.form == "constant":
         return "constant (on before the record began)"
@@ -389,10 +405,9 @@ def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> 
                     "driver": shape.driver, "form": shape.form, "same_as": list(shape.also)}
 
             def apply(s, p, resp=resp):
-                s.raw_ops.append(lambda Y, P=p[0]: Y.__setitem__((slice(None), rows), Y[:, rows] + P * resp))
+                s.raw_ops.append(_adds(rows, p[0] * resp))
 
-            label = (f"missing heat source on {at.body[i]} at ({ref[0]}, {ref[1]}, {ref[2]}) mm, "
-                     f"{_describe_shape(shape)}")
+            label = _label(at, i, shape)
             out.append(Candidate("located_source", f"{where}|{shape.name}", label, ("power [W]",), (0.0,), (2000.0,),
                                  (0.0,), (0.0,), True, "raw", apply, physical=((True, False),), extra_dof=3, info=info))
             if shape.form == "proportional" and i0 == found.sites[0]:
@@ -417,12 +432,9 @@ def _power_law(problem: Problem, sites: Sites, i: int, shape: Shape, where: str,
         return cache[key]
 
     def apply(s, p):
-        resp = response(p[1])
-        s.raw_ops.append(lambda Y, P=p[0]: Y.__setitem__((slice(None), rows), Y[:, rows] + P * resp))
+        s.raw_ops.append(_adds(rows, p[0] * response(p[1])))
 
-    ref = np.round(sites.reference_mm[i]).astype(int)
-    label = (f"missing heat source on {sites.body[i]} at ({ref[0]}, {ref[1]}, {ref[2]}) mm, "
-             f"{_describe_shape(shape, exponent=1.0)}")
+    label = _label(sites, i, shape, exponent=1.0)
     return Candidate("located_source", f"{where}|{shape.driver} power law", label, ("power [W]", "exponent [-]"),
                      (0.0, 0.2), (2000.0, 4.0), (0.0, 1.0), (100.0, 1.0), False, "raw", apply, grid=(20.0, 100.0, 500.0),
                      physical=((True, False), (False, False)), extra_dof=3, info={**info, "form": "power law"})

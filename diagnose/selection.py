@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares, lsq_linear
 
-from hybridcomp.diagnose.effects import Candidate, simulate
+from hybridcomp.diagnose.effects import Candidate, params_key, simulate
 from hybridcomp.diagnose.metrics import channel_metrics, lag1_autocorrelation, rms, strongest_correlations
 from hybridcomp.diagnose.problem import Problem
 
@@ -238,7 +238,7 @@ def _conflicts(a: Candidate, chosen: list) -> bool:
 
 def _joint(problem: Problem, free: list[Candidate], start: list, memo: dict | None):
     """A joint refit of ``free`` from ``start`` (kept in ``memo`` for a later selection on the same problem)."""
-    key = ("joint", tuple(c.key for c in free), tuple(tuple(np.round(np.asarray(p, float), 12)) for p in start))
+    key = ("joint", tuple(c.key for c in free), tuple(params_key(p) for p in start))
     if memo is not None and key in memo:
         return memo[key]
     params, uncs, _ = fit(problem, [], free, start=start)
@@ -286,7 +286,7 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
                 bar.update()
             if cand.key in banned or _conflicts(cand, [f.candidate for f in chosen]):
                 continue
-            memo_key = (cand.key, tuple((c.key, tuple(np.round(np.asarray(q, float), 12))) for c, q in fixed))
+            memo_key = (cand.key, tuple((c.key, params_key(q)) for c, q in fixed))
             if memo is not None and memo_key in memo:
                 p, u, ev = memo[memo_key]
             else:

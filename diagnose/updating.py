@@ -111,13 +111,12 @@ def choose_settings(time_s: np.ndarray, y: np.ndarray, cv_blocks: list[tuple[np.
     e2 = sum(float(np.sum((y[rows] - p) ** 2)) for rows, p in cv_blocks)
     n = sum(rows.size for rows, _ in cv_blocks)
     cv_rms = float(np.sqrt(e2 / max(n, 1)))
+    probes = [probe_rows(time_s[rows], np.ones(rows.size, bool), every_h) for rows, _ in cv_blocks]
     best, best_sse = None, np.inf
     for gw, of in itertools.product(GAIN_WALK_PER_SQRT_H, OFFSET_WALK_FACTORS):
         s = UpdateSettings(every_h, probe_sd_um, max(cv_rms, probe_sd_um), gw, of * cv_rms)
         sse = 0.0
-        for rows, p in cv_blocks:
-            mask = np.ones(rows.size, bool)
-            pr = probe_rows(time_s[rows], mask, every_h)
+        for (rows, p), pr in zip(cv_blocks, probes):
             u, _ = updated_prediction(p, y[rows], time_s[rows], pr, s)
             sse += float(np.sum((y[rows] - u) ** 2))
         if sse < best_sse:
