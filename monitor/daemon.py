@@ -77,7 +77,7 @@ class StepRecord:
     end_s : end of the step [s]
     dt_s : its length [s]
     u : its model inputs (powers [W], air rises [K])
-    y_degC : the sensors' means over it [°C] (NaN: not measured)
+    y_degC : the sensors at its end, from a line through its readings [°C] (NaN: not measured)
     probe_um : a probed drift at its end [µm], or None
     before : the observer's estimate before the step (every ``SNAPSHOT_STEPS`` steps), or None
     """
@@ -172,8 +172,7 @@ class Monitor:
         self.buffer: list[Reading] = []  # samples of the current model step
         self.temps: dict[str, float] = {}  # the sensors of the last sample as the CDs read them (stand-ins included)
         self.measured: dict[str, float] = {}  # ... as the observer reads them (NaN for a degraded sensor)
-        self.step_sum = np.zeros(len(self.sensor_names))  # sums and counts of the measured sensors over the step
-        self.step_n = np.zeros(len(self.sensor_names))
+        self.step_readings: list[tuple[float, np.ndarray]] = []  # the measured sensors over the current step
         self.active = None
         self.regeneration_running = False
         # machine seconds per wall second of the source: None (no clock to ask, a replay), a number, or "observed"
@@ -409,10 +408,7 @@ class Monitor:
             measured[name] = v.value_degC if v.state.status != "degraded" else math.nan
             temps[name] = v.value_degC if math.isfinite(v.value_degC) else ref
         self.temps, self.measured = temps, measured
-        m = np.array([measured[n] for n in self.sensor_names])
-        ok = np.isfinite(m)
-        self.step_sum[ok] += m[ok]
-        self.step_n[ok] += 1
+        self.step_readings.append((r.time_s, np.array([measured[n] for n in self.sensor_names])))
 
     def _filter(self, t: float) -> None:
         """Low-pass the sensors the CDs read (first order, ``sensor_filter_s``)."""
@@ -434,8 +430,7 @@ class Monitor:
         u = self._standstill_inputs(self.buffer[-1])
         s.observer = self.observer.initial(u, t)
         s.observer, _ = self.observer.update_sensors(s.observer, [self.measured[n] for n in self.sensor_names])
-        self.step_sum[:] = 0.0
-        self.step_n[:] = 0.0
+        self.step_readings = []
         self._after_update(t, u)
         self._record(t)
         self._close_interval(t)
@@ -495,11 +490,10 @@ class Monitor:
             moved = self.observer.sensors_degC(s.observer) - self.observer.sensors_degC(before)
             for name, d in zip(self.sensor_names, moved):
                 s.sensors[name] = decisions.model_moved(s.sensors[name], before.time_s, float(d))
-        # the sensors' mean over the step (their noise averages out; the thermal state moves little in a step)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            y = np.where(self.step_n > 0, self.step_sum / self.step_n, math.nan)
-        self.step_sum[:] = 0.0
-        self.step_n[:] = 0.0
+        # the sensors at the step's end from a line through their readings over it (their noise averages out)
+        y = (decisions.step_end_values([t for t, _ in self.step_readings], [m for _, m in self.step_readings])
+             if self.step_readings else np.full(len(self.sensor_names), math.nan))
+        self.step_readings = []
         self._log_step(end_s, dt, u, y, s.probe_um, before)
         s.observer, inn = self.observer.update_sensors(s.observer, y)
         for name in inn.rejected:
@@ -568,8 +562,8 @@ class Monitor:
                 state = self.observer.update_probe(state, rec.probe_um)
         was = self.observer.drift_um(s.observer)
         s.observer = state
-        self.step_sum[j] = 0.0
-        self.step_n[j] = 0.0
+        for _, m in self.step_readings:
+            m[j] = math.nan
         if s.step_inputs is not None:
             self._after_update(s.step_time_s, np.asarray(s.step_inputs, float))
         self.event("observer", t, {

@@ -409,6 +409,37 @@ def model_moved(state: SensorState, step_start_s: float, predicted_step_K: float
     return replace(state, model_moved_K=0.0)
 
 
+def step_end_values(time_s: np.ndarray, values_degC: np.ndarray) -> np.ndarray:
+    """The sensors at the end of a model step from their readings over it [°C] (NaN: no reading).
+
+    Per sensor, a straight line through its finite readings, evaluated at its last reading; the mean where there
+    are fewer than three or they do not spread in time. The observer compares the model's sensors at the step's
+    end: the plain mean lags them by half a step, and near a source that heats within minutes that lag is read
+    as a disturbance (drift estimate on the demo day after a diagnosis: 0.34 µm RMS with the mean, 0.21 µm with
+    the line). The line keeps the mean's noise reduction (its end value has 4/n of one reading's variance).
+
+    Parameters
+    ----------
+    time_s : reading times (n,) [s]
+    values_degC : readings (n × sensors), NaN where a sensor was not measured [°C]
+    """
+    t = np.asarray(time_s, float)
+    Y = np.asarray(values_degC, float).reshape(t.size, -1)
+    out = np.full(Y.shape[1], math.nan)
+    for j in range(Y.shape[1]):
+        ok = np.isfinite(Y[:, j])
+        if not ok.any():
+            continue
+        tj, yj = t[ok], Y[ok, j]
+        out[j] = yj.mean()
+        if tj.size >= 3:
+            dt = tj - tj.mean()
+            sxx = float(dt @ dt)
+            if sxx > 0.0:
+                out[j] += float(dt @ (yj - out[j])) / sxx * dt[-1]
+    return out
+
+
 def substitute(model_degC: float, bias_K: float) -> float:
     """Stand-in value of a degraded sensor: the structure model's estimate plus the last known bias [°C].
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from hybridcomp.monitor.decisions import (
@@ -24,6 +25,7 @@ from hybridcomp.monitor.decisions import (
     limit_offsets,
     model_drift,
     model_moved,
+    step_end_values,
     substitute,
     temperature_deviation,
 )
@@ -176,6 +178,36 @@ def test_sensor_state_round_trips_json_dict():
     assert s2.status == "holding"
     assert (back.status, back.value_degC, back.bad_since_s, back.reason) == (s2.status, s2.value_degC, s2.bad_since_s, s2.reason)
     assert math.isnan(back.raw_degC)
+
+
+def test_step_end_values_follow_a_ramp_to_the_last_reading_and_average_the_noise():
+    rng = np.random.default_rng(3)
+    t = np.arange(1.0, 21.0)  # one 20 s step at 1 Hz
+    ramp = 20.0 + 0.01 * t  # a sensor near a source that starts heating: 0.6 K/min
+    ends, means = [], []
+    for _ in range(2000):
+        y = ramp + rng.normal(0.0, 0.02, t.size)
+        ends.append(step_end_values(t, y[:, None])[0])
+        means.append(y.mean())
+    ends, means = np.array(ends), np.array(means)
+    assert abs(ends.mean() - ramp[-1]) < 0.002  # no lag
+    assert abs(np.mean(means) - ramp[-1]) == pytest.approx(0.095, abs=0.002)  # the mean lags by half the step
+    # the line's end value: variance σ²(1/n + (t_n − t̄)²/Σ(t − t̄)²), under half of one reading's noise
+    var = 1 / t.size + (t[-1] - t.mean()) ** 2 / np.sum((t - t.mean()) ** 2)
+    assert ends.std() == pytest.approx(0.02 * math.sqrt(var), rel=0.05)
+    assert math.sqrt(var) < 0.45
+
+
+def test_step_end_values_without_a_line():
+    t = np.array([0.0, 1.0, 2.0, 3.0])
+    Y = np.array([[1.0, math.nan, 5.0, math.nan], [2.0, math.nan, 5.0, math.nan], [3.0, 7.0, 5.0, math.nan],
+                  [4.0, 9.0, math.nan, math.nan]])
+    out = step_end_values(t, Y)
+    assert out[0] == pytest.approx(4.0)  # a line through four readings, at the last
+    assert out[1] == pytest.approx(8.0)  # two readings: their mean
+    assert out[2] == pytest.approx(5.0)  # constant
+    assert math.isnan(out[3])  # not measured
+    assert step_end_values(np.full(3, 5.0), np.array([[1.0], [2.0], [3.0]]))[0] == pytest.approx(2.0)  # no spread
 
 
 def test_substitute():
