@@ -149,7 +149,7 @@ class MonitorConfig:
     max_offset_um: float = 200.0
     max_step_um: float = 0.2
     blend_s: float = 0.0
-    model_transient_s: float = 2700.0
+    model_transient_s: float = 57600.0
     validity: Validity = field(default_factory=Validity)
     observer: ObserverSettings = field(default_factory=ObserverSettings)
     sensors: SensorRules = field(default_factory=SensorRules)
@@ -388,8 +388,8 @@ max_offset_um = 200                # offsets are clamped to this magnitude [um]
 max_step_um = 0.2                  # and change by at most this much per compensation cycle [um]
 blend_s = 0                        # after a change of CD set, what is left of a jump decays with this time constant [s]
                                    # (0: it is taken out at max_step_um per cycle)
-model_transient_s = 2700           # hybrid: what changes faster than this comes from the structure model (driven by
-                                   # the loads), the rest from the CDs (a complementary filter; 0: the CDs alone) [s]
+model_transient_s = 57600          # hybrid: what changes faster than this comes from the corrected structure model,
+                                   # the rest from the CDs (a complementary filter; 0: the CDs alone) [s]
 
 [validity]                         # the active set's predicted compensation error decides
 keep_um = 1.5                      # keep while |CD(T) - drift| over the last interval stays below this [um]
@@ -404,7 +404,7 @@ max_candidates = 8                 # stored sets evaluated per decision
 sensor_sigma_K = 0.15              # sensor noise including model error [K]
 probe_sigma_um = 0.5               # noise of a probed drift (probe_dx_um ... columns of the trace) [um]
 # air_sigma_K, air_rate_K, scale_sigma, scale_rate, heat_sigma_W, heat_rate_W, bias_sigma_um, bias_rate_um,
-# input_sigma, initial_load, gate_sigma: see monitor/README.md
+# input_sigma, initial_load, gate_sigma, probe_widen_sigma: see monitor/README.md
 
 [sensors]
 hold_s = 60                        # a bad reading is replaced by the last good value this long [s]

@@ -661,7 +661,9 @@ class Monitor:
                     # the corrected structure model's fast part on top of the CDs' slow part (the model is not flagged)
                     dtc = 0.0 if s.complement_time_s is None else max(r.time_s - s.complement_time_s, 0.0)
                     # a fresh start trusts the corrected model (the CDs earn their part over the crossover time);
-                    # after an activation the filter starts from the new set's prediction
+                    # an activation does not restart the filter: the new set's difference enters it as slowly
+                    # as any other (restarting from the new set's prediction passed each set's fit error on at
+                    # once: hybrid 0.57 against 0.33 µm RMS on the demo day at 150 mm)
                     low = s.complement_um if s.complement_um is not None else (
                         dict.fromkeys(DRIFT_COLUMNS, 0.0) if s.complement_time_s is None else None)
                     target, s.complement_um = decisions.complementary_offsets(target, model, low, dtc,
@@ -834,7 +836,6 @@ class Monitor:
         self._eval_failed_logged = False
         self.s.activated_s = t
         self.s.blend_pending = had_set and self.cfg.blend_s > 0
-        self.s.complement_um = None  # the complementary filter starts from the new set's prediction
 
     def _request(self, t: float, est: Mapping[str, float], sig) -> dict:
         s = self.s

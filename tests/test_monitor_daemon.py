@@ -226,12 +226,12 @@ def test_replay_decides_on_the_predicted_error_and_switches_to_the_set_that_fits
 
 
 def test_the_hybrid_adds_the_structure_models_fast_part_to_the_cds(machine, rom, rom_file, trace, drift, tmp_path):
-    """Default hybrid (complementary filter, model_transient_s = 45 min): the same decisions as the CDs alone,
+    """Default hybrid (complementary filter, model_transient_s = 16 h): the same decisions as the CDs alone,
     offsets marked ``cd+model`` once the structure model runs, and the drift compensated as well after the switch."""
     path, s, T = trace
     db, ids = right_and_wrong(tmp_path, machine, T, drift)
     cfg = config(rom_file, path, tmp_path, validity={"bump_um": 100.0}, compensation={"max_step_um": 100.0})
-    assert cfg.model_transient_s == 2700.0
+    assert cfg.model_transient_s == 57600.0
     mon, sink, res = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=0))
     assert [e[2]["ids"] for e in events(db, "activation")] == [ids["wrong"], ids["right"]]
     by = [r.by for r in sink.rows]
