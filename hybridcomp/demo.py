@@ -277,9 +277,10 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
               f"({rows['hybrid monitor']['rms_um']:.2f} against {rows['static default CDs']['rms_um']:.2f} µm RMS). "
               f"After the diagnosis the structure model predicts the real machine's drift to "
               f"{rows['ROM direct after diagnosis']['rms_um']:.2f} µm RMS (before: {rows['ROM direct']['rms_um']:.2f} µm); "
-              f"the CD-based hybrid compensation goes from {rows['hybrid monitor']['rms_um']:.2f} to "
-              f"{rows['hybrid after diagnosis']['rms_um']:.2f} µm RMS: what remains is the CDs' own approximation of the "
-              "drift by a few sensors, not the model.", "",
+              f"the hybrid compensation goes from {rows['hybrid monitor']['rms_um']:.2f} to "
+              f"{rows['hybrid after diagnosis']['rms_um']:.2f} µm RMS (the observer, "
+              f"{rows['observer']['rms_um']:.2f} → {rows['observer after diagnosis']['rms_um']:.2f} µm, had corrected "
+              "the model with the sensors and probes before the diagnosis named the cause).", "",
               "E_P95 w: the 95th percentile of the residual's range (max − min) over all windows of length w; "
               "for the 3D row the largest of the three directions.", ""]
     along = summary["along_path"]
