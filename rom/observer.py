@@ -105,6 +105,11 @@ class ObserverSettings:
                 raise ObserverError(f"observer setting {name!r} must be positive, got {getattr(self, name)!r}")
 
 
+def _output_variance(H: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The variance of each output row of ``H`` under the state covariance ``P``: diag(H P Hᵀ)."""
+    return np.einsum("ij,jk,ik->i", H, P, H)
+
+
 def _b64(a: np.ndarray) -> str:
     return base64.b64encode(np.ascontiguousarray(a, dtype="<f8").tobytes()).decode("ascii")
 
@@ -289,7 +294,7 @@ class Observer:
         H = np.zeros((y.size, self.n))
         H[:, sl["z"]] = self.Cs
         pred = H @ state.x + self.reference_temperature_degC
-        var = np.einsum("ij,jk,ik->i", H, state.P, H) + self.settings.sensor_sigma_K**2
+        var = _output_variance(H, state.P) + self.settings.sensor_sigma_K**2
         res = y - pred
         norm = res / np.sqrt(var)
         use = np.isfinite(y)
@@ -322,13 +327,13 @@ class Observer:
         if k > 0:
             # an offset the prior thought unlikely, shown by a probe, is taken: a direction whose innovation lies
             # beyond k standard deviations widens its bias variance by the excess (covariance matching)
-            var = np.einsum("ij,jk,ik->i", H, state.P, H) + sigma**2
+            var = _output_variance(H, state.P) + sigma**2
             r2 = (d - H @ state.x) ** 2
             grow = np.where(use & (r2 > k**2 * var), r2 - var, 0.0)
             if np.any(grow > 0):
                 P = state.P.copy()
                 b = np.arange(sl["bias"].start, sl["bias"].stop)
-                P[b, b] += np.nan_to_num(grow)
+                P[b, b] += grow
                 state = ObserverState(state.time_s, state.x, P)
         return self._update(state, H[use], d[use], np.eye(int(use.sum())) * sigma**2)
 
@@ -346,7 +351,7 @@ class Observer:
         H = np.zeros((DRIFT_OUTPUTS, self.n))
         H[:, sl["z"]] = self.Cd
         H[:, sl["bias"]] = np.eye(DRIFT_OUTPUTS)
-        return np.sqrt(np.einsum("ij,jk,ik->i", H, state.P, H))
+        return np.sqrt(_output_variance(H, state.P))
 
     def reduced_state(self, state: ObserverState) -> np.ndarray:
         """The reduced model's coordinates ``x_r = Φ z`` [K]."""
