@@ -319,9 +319,7 @@ class Observer:
         if not use.any():
             return state
         sl = self.slices()
-        H = np.zeros((DRIFT_OUTPUTS, self.n))
-        H[:, sl["z"]] = self.Cd
-        H[:, sl["bias"]] = np.eye(DRIFT_OUTPUTS)
+        H = self._drift_rows()
         sigma = self.settings.probe_sigma_um if sigma_um is None else float(sigma_um)
         k = self.settings.probe_widen_sigma
         if k > 0:
@@ -347,11 +345,15 @@ class Observer:
 
     def drift_sigma_um(self, state: ObserverState) -> np.ndarray:
         """Standard deviation of the drift estimate [µm]."""
+        return np.sqrt(_output_variance(self._drift_rows(), state.P))
+
+    def _drift_rows(self) -> np.ndarray:
+        """The drift dx, dy, dz as rows on the state: the model's drift outputs plus the bias only probes see."""
         sl = self.slices()
         H = np.zeros((DRIFT_OUTPUTS, self.n))
         H[:, sl["z"]] = self.Cd
         H[:, sl["bias"]] = np.eye(DRIFT_OUTPUTS)
-        return np.sqrt(_output_variance(H, state.P))
+        return H
 
     def reduced_state(self, state: ObserverState) -> np.ndarray:
         """The reduced model's coordinates ``x_r = Φ z`` [K]."""
