@@ -15,7 +15,8 @@ an ``apply`` function that changes a :class:`~hybridcomp.diagnose.problem.Setup`
 | ``htc_motion`` | h moving, h standstill [W/(m² K)] | a zone's coefficient switching with machine activity (heating vs cooling) |
 | ``sensor_lag`` | τ [min] | a temperature sensor reads its point through a first-order lag |
 | ``sensor_offset`` | offset [unit], drift [unit/h] | a channel reads with an offset and a linear drift |
-| ``workspace_offset`` | ΔT [K] | every workspace (enclosure) zone's air is off by a constant |
+| ``workspace_offset`` | ΔT [K] (τ [h]) | every workspace (enclosure) zone's air is off by a constant, all along or |
+|  |  | rising from the record's start through a first-order lag τ (target ``rising``: an enclosure that warms) |
 | ``expansion`` | α [µm/(m K)] | a body's thermal expansion coefficient (drift channels) |
 """
 
@@ -204,6 +205,17 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
 
         out.append(Candidate("workspace_offset", "", "workspace (enclosure) air temperature offset", ("dT [K]",), (-15.0,),
                              (15.0,), (0.0,), (0.0,), True, "sim", apply))
+
+        def apply_rising(s: Setup, p, cols=problem.zone_columns("workspace"), age_s=problem.time_s - t0):  # noqa: B008
+            # from the machine's state at the record's start (no offset in the first row), the air's offset builds
+            # up through a first-order lag; τ at its lower bound is a step at the start
+            rise = -np.expm1(-age_s / max(p[1] * 3600.0, 1.0))
+            s.U[:, cols] += p[0] * rise[:, None]
+
+        out.append(Candidate("workspace_offset", "rising", "workspace (enclosure) air temperature offset, rising from "
+                             "the record's start", ("dT [K]", "tau [h]"), (-15.0, 0.0), (15.0, 12.0), (0.0, 1.0),
+                             (1.0, 1.0), False, "sim", apply_rising, grid=(-4.0, -1.0, 1.0, 4.0),
+                             physical=((False, False), (True, False))))
 
     if "expansion" in kinds and problem.body_names and any(c.endswith("_um") for c in problem.channels):
         out_names = list(problem.rom.output_names)
