@@ -193,6 +193,26 @@ def test_ambient_air_reaching_the_surfaces_at_once_is_accepted_at_tau_0(machine,
     assert abs(gain - 1.0) <= 0.1 and tau_h <= 0.1, (gain, tau_h)
 
 
+def test_workspace_air_ramped_in_is_named_as_a_rising_offset(machine, fe, rom, loads):
+    """The enclosure air warms by 1.5 K over the first 2 h (a linear ramp, a shape the library does not have) from a
+    machine at the reference: named as the workspace offset rising from the record's start, with its size within 20 %
+    and a time constant near the ramp's (its centroid is at 1 h). The constant offset, which starts the model warm,
+    leaves a structured residual in the first hours."""
+    t_ref = machine.reference_temperature_degC
+    t, U = loads.time_s, loads.as_inputs(t_ref)
+    ramp = 1.5 * np.clip((t - t[0]) / 7200.0, 0.0, 1.0)
+    for z in machine.zones:
+        if z.air == "workspace":
+            U[:, column(loads, f"{z.name}_degC")] += ramp
+    s, d = fe_run(fe, t, U)
+    dg = diagnose(machine, dataset(machine, loads, s, d, seed=97), "0:60%", rom=rom)
+    assert dg.verdict == "explained", (dg.verdict, dg.message, [f.candidate.label for f in dg.partial])
+    assert [f.candidate.key for f in dg.causes] == [("workspace_offset", "rising")], \
+        [f.candidate.describe(f.params) for f in dg.causes]
+    dT, tau_h = dg.causes[0].params
+    assert abs(dT - 1.5) <= 0.2 * 1.5 and 0.5 <= tau_h <= 1.5, (dT, tau_h)
+
+
 def test_two_effects_at_once(machine, fe, rom, loads):
     t = loads.time_s
     U = loads.as_inputs(machine.reference_temperature_degC)
