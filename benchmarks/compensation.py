@@ -42,6 +42,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from hybridcomp.models import jsonio
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -194,8 +196,6 @@ def planted_cause(disturbance, causes, element_size_mm: float) -> tuple[str, boo
     """What a correct diagnosis of ``disturbance`` names, whether ``causes`` (the diagnosis's fitted effects) name
     it (the parameter within 20 % of the planted deviation, a missing source also within one element size), and
     whether the extended machine file holds it."""
-    import numpy as np
-
     if disturbance.source_factor is not None:
         name, f = disturbance.source_factor
         ok = any(c.candidate.kind == "power_scale" and c.candidate.target == name
@@ -216,8 +216,6 @@ def planted_cause(disturbance, causes, element_size_mm: float) -> tuple[str, boo
 
 def _campaign_record(recorded: Path, noise_um: float, seed: int) -> Path:
     """The recorded day as a measuring campaign has it: the drift with a dial gauge's or probe's noise."""
-    import numpy as np
-
     if noise_um == 0:
         return recorded
     lines = recorded.read_text().splitlines()
