@@ -77,7 +77,8 @@ class ObserverSettings:
     on their recorded sensors and probes) measured the drift estimate's RMS against the old priors (air 1 K,
     scale 0.5, heat 30 W, bias 2 µm): 0.44 → 0.23 µm on the demo day, 0.43 → 0.22 after its diagnosis,
     0.50 → 0.23 ambient swing, 0.41 → 0.24 mis-scaled source, 0.46 → 0.16 workspace air, 1.15 → 1.22 µm
-    with the unmodelled pump (heat no sensor sees, which only the probes catch).
+    with the unmodelled pump (heat at one place on a body, which no disturbance here represents: the column sensor
+    sees it, 0.1 K above the model in 4 h, but the drift it makes is caught only at the probes, as an offset).
     """
 
     sensor_sigma_K: float = 0.15
