@@ -41,7 +41,7 @@ from hybridcomp.diagnose.data import parse_split
 from hybridcomp.diagnose.problem import build_problem, first_order_lag
 from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.model import build_model
-from hybridcomp.fem.transient import simulate as fe_simulate
+from hybridcomp.fem.stepping import integrate_inputs
 from hybridcomp.histogram.scenarios import jobshop_loads
 from hybridcomp.models import jsonio, load_machine
 
@@ -68,7 +68,7 @@ class Case:
 
 
 def _fe(model, loads, U):
-    r = fe_simulate(model, loads.time_s, U, theta=0.5)
+    r = integrate_inputs(model, loads.time_s, U, scheme="theta", theta=0.5)
     return r.sensors_degC, r.drift_um
 
 

@@ -251,7 +251,7 @@ def main(argv=None) -> int:
 
     from hybridcomp.fem.loads import example_loads
     from hybridcomp.fem.model import build_model
-    from hybridcomp.fem.transient import simulate
+    from hybridcomp.fem.stepping import integrate_inputs
     from hybridcomp.models import load_machine
     from hybridcomp.rom.krylov import Reduction, Reductor, orthonormal_extension
     from hybridcomp.rom.machine import (
@@ -284,12 +284,12 @@ def main(argv=None) -> int:
 
     # -- FE references -------------------------------------------------------------------------------
     t0 = time.perf_counter()
-    fe_be = simulate(model, t, U)  # backward Euler, the FE default: the speed reference
+    fe_be = integrate_inputs(model, t, U, scheme="theta", theta=1.0)  # backward Euler: the speed reference
     fe_be_wall = time.perf_counter() - t0
-    fe_cn = simulate(model, t, U, theta=0.5)
+    fe_cn = integrate_inputs(model, t, U, scheme="theta", theta=0.5)
     t_fine = np.arange(t[0], t[-1] + 0.5 * args.fine_dt, args.fine_dt)
     U_fine = np.column_stack([np.interp(t_fine, t, U[:, j]) for j in range(U.shape[1])])
-    fe_fine = simulate(model, t_fine, U_fine, theta=0.5)
+    fe_fine = integrate_inputs(model, t_fine, U_fine, scheme="theta", theta=0.5)
     step = round(60.0 / args.fine_dt)
     fine_s, fine_d = fe_fine.sensors_degC[::step], fe_fine.drift_um[::step]
 

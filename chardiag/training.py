@@ -250,11 +250,12 @@ def simulate_load_cases(
     pose_mm: Mapping[str, float] | None = None,
     element_size_mm: float | None = None,
     dt_s: float | None = 60.0,
-    theta: float = 0.5,
+    theta: float | None = None,
     model=None,
     progress: bool = False,
     executor: str | object | None = None,
     workers: int | None = None,
+    scheme: str = "theta",
 ) -> TrainingData:
     """Run load cases on the FE model and collect the training table.
 
@@ -266,36 +267,38 @@ def simulate_load_cases(
     element_size_mm : FE element size [mm] (default: the machine file's)
     dt_s : FE time step [s] (the loads are interpolated onto it; outputs are taken at the loads rows);
         None: the loads rows themselves
-    theta : θ-method (0.5 Crank–Nicolson, 1 backward Euler)
+    theta : θ of the θ-method (default here 0.5, Crank–Nicolson; 1 backward Euler)
     model : an already built ``ThermoElasticModel`` of the same machine and pose (reused; serial run)
     progress : show a progress bar
     executor : None: serial in this process; else run the cases as a batch with ``fem.batch.run_batch``:
         ``"process"`` (local process pool), ``"local"`` (Dask LocalCluster), a Dask scheduler address
         ``"tcp://HOST:8786"``, or an executor object
     workers : worker processes for ``"process"`` / ``"local"``
+    scheme : ``"theta"`` (default here: the θ-method at ``dt_s``) or ``"trbdf2"`` (TR-BDF2 to the default
+        tolerance of :meth:`ThermoElasticModel.simulate`; give ``dt_s=None`` and no ``theta``)
     """
+    if scheme == "theta" and theta is None:
+        theta = 0.5
     pose = machine.check_pose(dict(pose_mm or {}))
     full = {name: in_model_order(case.loads, machine) for name, case in cases.items()}
     outputs = {}  # name -> (sensor names, sensors at the loads rows, drift at the loads rows)
     if executor is None:
         from hybridcomp.fem.model import build_model
-        from hybridcomp.fem.transient import simulate
 
         if model is None:
             model = build_model(machine, pose, element_size_mm)
         for name, L in full.items():
             t = L.time_s
             tt = np.union1d(np.arange(t[0], t[-1], dt_s), t) if dt_s is not None else t
-            U = L.as_inputs(machine.reference_temperature_degC)
-            Ut = np.column_stack([np.interp(tt, t, U[:, j]) for j in range(U.shape[1])])
-            log.info("load case %s: %d steps", name, len(tt) - 1)
-            res = simulate(model, tt, Ut, theta=theta, initial="steady", progress=progress)
+            Vt = np.column_stack([np.interp(tt, t, L.values[:, j]) for j in range(L.values.shape[1])])
+            log.info("load case %s: %d loads intervals", name, len(tt) - 1)
+            res = model.simulate(Loads(tt, Vt, L.names), "steady", scheme=scheme, theta=theta, progress=progress)
             pick = np.searchsorted(tt, t)
             outputs[name] = (model.sensor_names, res.sensors_degC[pick], res.drift_um[pick])
     else:
         from hybridcomp.fem.batch import run_batch
 
-        results = run_batch(machine, full, pose_mm=pose, element_size_mm=element_size_mm, theta=theta,
+        results = run_batch(machine, full, pose_mm=pose, element_size_mm=element_size_mm, scheme=scheme, theta=theta,
                             dt_s=dt_s, executor=executor, workers=workers, progress=progress)
         for name, r in results.items():
             t = full[name].time_s

@@ -23,7 +23,7 @@ from hybridcomp._lazy import lazy_exports
 __all__, __getattr__, __dir__ = lazy_exports(__name__, {
     "core": ("DEFAULT_SPLIT", "dataset_from_trace", "diagnose", "prepare_model", "read_measured"),
     "data": ("Dataset", "DatasetError", "Split", "parse_split", "read_column_map", "read_dataset"),
-    "effects": ("KINDS", "Candidate", "library", "simulate"),
+    "effects": ("KINDS", "Candidate", "library", "predicted_channels"),
     "selection": ("Diagnosis", "Fitted"),
     "report": ("write_report",),
 })

@@ -89,11 +89,11 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
             # the machine's own elements leave a structured residual: then, and only then, a heat source the machine
             # file lacks, searched anywhere on the surface (the most flexible hypothesis comes last), on the residual
             # of the model as it is and on the one the partial candidates leave
-            from hybridcomp.diagnose.effects import simulate
+            from hybridcomp.diagnose.effects import predicted_channels
             from hybridcomp.diagnose.locate import candidates as located
 
             t1 = time.perf_counter()
-            more = located(problem, problem.Y - simulate(problem, []))
+            more = located(problem, problem.Y - predicted_channels(problem, []))
             if d.partial:
                 seen = {c.key for c in more}
                 more += [c for c in located(problem, problem.Y - d.Y_after) if c.key not in seen]

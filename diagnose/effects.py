@@ -241,7 +241,7 @@ def params_key(p) -> tuple:
     return tuple(np.round(np.asarray(p, float), 12))
 
 
-def simulate(problem: Problem, effects) -> np.ndarray:
+def predicted_channels(problem: Problem, effects) -> np.ndarray:
     """Channels (nt × nch) in measured units for the model with ``effects`` [(Candidate, params)]."""
     from hybridcomp.diagnose.problem import channel_outputs, new_setup, raw_outputs
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares, lsq_linear
 
-from hybridcomp.diagnose.effects import Candidate, params_key, simulate
+from hybridcomp.diagnose.effects import Candidate, params_key, predicted_channels
 from hybridcomp.diagnose.metrics import channel_metrics, lag1_autocorrelation, rms, strongest_correlations
 from hybridcomp.diagnose.problem import Problem
 
@@ -74,7 +74,7 @@ def _weighted(problem: Problem, Yhat: np.ndarray) -> np.ndarray:
 
 def evaluate(problem: Problem, effects, k: int) -> tuple[Evaluation, np.ndarray]:
     """Weighted residual energies of the model with ``effects`` (``k`` parameters), and its channels."""
-    Yhat = simulate(problem, effects)
+    Yhat = predicted_channels(problem, effects)
     R = _weighted(problem, Yhat)
     tr, va = problem.split.train, problem.split.validation
     return Evaluation(float(np.sum(R[tr] ** 2)), float(np.sum(R[va] ** 2)), int(R[tr].size), k), Yhat
@@ -100,7 +100,7 @@ def fit(problem: Problem, fixed: list, free: list[Candidate], start: list | None
         return list(fixed) + [(c, x[cuts[i]:cuts[i + 1]]) for i, c in enumerate(free)]
 
     def resid(x):
-        return _weighted(problem, simulate(problem, effects_at(x)))[tr].ravel()
+        return _weighted(problem, predicted_channels(problem, effects_at(x)))[tr].ravel()
 
     if len(free) == 1 and free[0].linear:
         nom = np.concatenate([c.nominal for c in free])
@@ -140,7 +140,7 @@ def fit(problem: Problem, fixed: list, free: list[Candidate], start: list | None
         unc = np.sqrt(np.clip(np.diag(cov), 0, None))
     except np.linalg.LinAlgError:
         unc = np.full(k, np.nan)
-    Yhat = simulate(problem, effects_at(x))
+    Yhat = predicted_channels(problem, effects_at(x))
     return ([x[cuts[i]:cuts[i + 1]] for i in range(len(free))], [unc[cuts[i]:cuts[i + 1]] for i in range(len(free))], Yhat)
 
 
@@ -352,7 +352,7 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
             log.info("dropped %s: not needed next to the others", chosen[worst[1]].candidate.label)
             banned.add(chosen[worst[1]].candidate.key)
             chosen, current = worst[2], worst[3]
-        Ycur = simulate(problem, [(f.candidate, f.params) for f in chosen])
+        Ycur = predicted_channels(problem, [(f.candidate, f.params) for f in chosen])
         if at_noise_level(problem, Ycur).all():
             break
     # what each named effect is worth next to the others (leave-one-out, the rest refitted)

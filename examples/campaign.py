@@ -52,7 +52,7 @@ def make_runs(out_dir: Path, element_size_mm: float = 150.0, runs: int = 6, hour
         V[:, heat] = np.roll(base.values[:, heat], shift, axis=0) * work
         V[:3, heat] = 0.0  # a cold machine: nothing runs before the first samples
         V[:, air] = air_degC + (base.values[:, air] - base.values[0, air])  # the day's air, with the example's swing
-        res = model.simulate(hc.Loads(base.time_s, V, tuple(names)), initial="steady", theta=0.5)
+        res = model.simulate(hc.Loads(base.time_s, V, tuple(names)), initial="steady", scheme="theta", theta=0.5)
         zero = rng.normal(0.0, 20.0, 3)  # the gauges' reading when they were zeroed
         drift = res.drift_um - res.drift_um[0] + zero + rng.normal(0.0, 0.3, res.drift_um.shape)
         sensors = res.sensors_degC + rng.normal(0.0, 0.02, res.sensors_degC.shape)

@@ -64,6 +64,7 @@ import numpy as np
 from hybridcomp.errors import HybridcompError
 from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.loads import Loads, LoadsFileError, in_model_order, input_columns, read_loads, write_outputs
+from hybridcomp.fem.stepping import DEFAULT_THETA, check_scheme
 from hybridcomp.models.layout import LoadsColumnError
 from hybridcomp.models.machine import Machine
 from hybridcomp.models.toml import open_text
@@ -117,16 +118,18 @@ class ModelSpec:
 
 @dataclass(frozen=True)
 class SimulationOptions:
-    """Options of :func:`hybridcomp.fem.transient.simulate` shared by all cases.
+    """Options of :meth:`ThermoElasticModel.simulate` shared by all cases.
 
     Attributes
     ----------
-    theta : θ of the θ-method, in [0.5, 1]
+    scheme : ``"theta"`` (the θ-method on each case's times) or ``"trbdf2"`` (TR-BDF2 to the default tolerance)
+    theta : θ of the θ-method, in [0.5, 1]; None for TR-BDF2
     initial : ``"steady"`` (steady state of the first loads row) or ``"reference"``
     dt_s : resample every case to this uniform step [s]; None keeps each case's own times
     """
 
-    theta: float = 1.0
+    scheme: str = "theta"
+    theta: float | None = DEFAULT_THETA
     initial: str = "steady"
     dt_s: float | None = None
 
@@ -212,8 +215,6 @@ def clear_model_cache() -> None:
 
 def run_case(spec: ModelSpec, options: SimulationOptions, name: str, loads: Loads) -> CaseResult:
     """Simulate one load case on the cached model of ``spec`` (the task every executor runs)."""
-    from hybridcomp.fem.transient import simulate
-
     global _MALLOC_WARNED
     t0, c0 = time.perf_counter(), time.process_time()
     if os.environ.get("MALLOC_TRIM_THRESHOLD_") and not _MALLOC_WARNED:
@@ -225,8 +226,7 @@ def run_case(spec: ModelSpec, options: SimulationOptions, name: str, loads: Load
     if options.dt_s is not None:
         loads = resample(loads, options.dt_s)
     with lock:  # the model's factorisation cache is not shared between threads of one worker
-        res = simulate(model, loads.time_s, loads.as_inputs(model.reference_temperature_degC), theta=options.theta,
-                       initial=options.initial)
+        res = model.simulate(loads, options.initial, scheme=options.scheme, theta=options.theta)
     return CaseResult(
         name=name,
         time_s=res.time_s,
@@ -488,7 +488,8 @@ def run_batch(
     *,
     pose_mm: Mapping[str, float] | None = None,
     element_size_mm: float | None = None,
-    theta: float = 1.0,
+    scheme: str = "theta",
+    theta: float | None = None,
     initial: str = "steady",
     dt_s: float | None = None,
     executor: str | object = "process",
@@ -509,7 +510,9 @@ def run_batch(
     loads : case name → :class:`~hybridcomp.fem.loads.Loads`, or a directory of loads CSVs (case = file stem)
     pose_mm : axis positions [mm]; missing axes at mid travel
     element_size_mm : largest element edge [mm]; default from the machine file
-    theta, initial : as :func:`hybridcomp.fem.transient.simulate`
+    scheme, theta : as :meth:`ThermoElasticModel.simulate`, but the θ-method by default here (θ = 1, backward Euler,
+        on each case's own times or on ``dt_s``): a batch's cases are many and its callers chose their step
+    initial : as :meth:`ThermoElasticModel.simulate`
     dt_s : resample every case to this uniform time step [s] (default: each case's own times)
     executor : ``"serial"``, ``"process"`` (default), ``"local"`` (Dask LocalCluster), a Dask scheduler address
         (``"tcp://HOST:8786"``), a ``concurrent.futures.Executor`` or a ``distributed.Client``
@@ -529,8 +532,7 @@ def run_batch(
     -------
     case name → :class:`CaseResult`, in the order of ``loads``
     """
-    if not 0.5 <= theta <= 1.0:
-        raise ValueError(f"theta must be in [0.5, 1], got {theta}")
+    theta = check_scheme(scheme, theta)
     if initial not in ("steady", "reference"):
         raise ValueError(f"initial must be 'steady' or 'reference', got {initial!r}")
     if dt_s is not None and not dt_s > 0:
@@ -553,12 +555,12 @@ def run_batch(
     spec = ModelSpec(machine, tuple(sorted((k, float(v)) for k, v in pose.items())),
                      None if element_size_mm is None else float(element_size_mm),
                      hashlib.sha256(pickle.dumps(machine)).hexdigest())
-    options = SimulationOptions(theta=float(theta), initial=initial, dt_s=dt_s)
+    options = SimulationOptions(scheme=scheme, theta=theta, initial=initial, dt_s=dt_s)
     if resume and out_dir is None:
         raise ValueError("resume needs out_dir (the outputs of the interrupted run)")
     settings = json.loads(json.dumps({
         "machine": machine.name, "machine_sha256": machine.sha256, "machine_digest": spec.machine_digest,
-        "pose_mm": pose, "element_size_mm": spec.element_size_mm, "theta": float(theta), "initial": initial,
+        "pose_mm": pose, "element_size_mm": spec.element_size_mm, "scheme": scheme, "theta": theta, "initial": initial,
         "dt_s": dt_s}))
     out = None
     results: dict[str, CaseResult] = {}

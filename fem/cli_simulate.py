@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
-from hybridcomp.fem.timestep import DEFAULT_TOLERANCE, TimeTolerance
+from hybridcomp.fem.stepping import DEFAULT_TOLERANCE, TimeTolerance
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
@@ -167,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
         return run_rom(args, machine, pose, loads)
 
     from hybridcomp.fem.model import build_model
-    from hybridcomp.fem.transient import simulate, solver_backends
+    from hybridcomp.fem.stepping import solver_backends
 
     t0 = time.perf_counter()
     progress = not args.no_progress
@@ -180,20 +180,18 @@ def run(args: argparse.Namespace) -> int:
         return 2
     nt = len(loads.time_s)
     store = stored_steps(args, nt)
-    U = loads.as_inputs(machine.reference_temperature_degC)
     if tolerance is not None:
-        from hybridcomp.fem.timestep import simulate_controlled
-
-        res, estimate = simulate_controlled(model, loads.time_s, U, tolerance, initial=args.initial, store_steps=store,
-                                            progress=progress)
-        time_info = estimate.as_dict()
-        if not estimate.met:
-            print(f"warning: estimated time error {estimate.sensor_K:.3g} K, {estimate.drift_um:.3g} um exceeds the "
-                  f"tolerance ({tolerance.sensor_K} K, {tolerance.drift_um} um) at {estimate.substeps} sub-steps per "
-                  "loads interval", file=sys.stderr)
+        res = model.simulate(loads, args.initial, scheme="trbdf2", tolerance=tolerance, store_steps=store,
+                             progress=progress)
+        time_info = res.time_error
+        if not time_info["met"]:
+            print(f"warning: estimated time error {time_info['estimate_sensor_K']:.3g} K, "
+                  f"{time_info['estimate_drift_um']:.3g} um exceeds the tolerance ({tolerance.sensor_K} K, "
+                  f"{tolerance.drift_um} um) at {time_info['substeps_per_interval']} sub-steps per loads interval",
+                  file=sys.stderr)
     else:
         theta = 1.0 if args.theta is None else args.theta
-        res = simulate(model, loads.time_s, U, theta=theta, initial=args.initial, store_steps=store, progress=progress)
+        res = model.simulate(loads, args.initial, scheme="theta", theta=theta, store_steps=store, progress=progress)
         time_info = {
             "scheme": "theta-method", "theta": theta,
             "steps": nt - 1, "step_sizes_s": sorted(set(np.round(np.diff(loads.time_s), 9).tolist())),

@@ -156,7 +156,7 @@ class ScrewModel:
         """Steady temperature rise [K] under constant inputs."""
         return spla.spsolve(self.A.tocsc(), self.Bu @ u)
 
-    def simulate(self, time_s: np.ndarray, U: np.ndarray, initial: str | np.ndarray = "steady") -> np.ndarray:
+    def temperature_rise(self, time_s: np.ndarray, U: np.ndarray, initial: str | np.ndarray = "steady") -> np.ndarray:
         """Temperature rise [K] at the times (nt × n) under the inputs ``U`` (nt × inputs, layout order).
 
         The inputs are linear between the samples, as for the FE model: the trapezoidal rule (Crank–Nicolson),
@@ -179,9 +179,9 @@ class ScrewModel:
             out[i] = x
         return out
 
-    def simulate_loads(self, loads: Loads, initial: str | np.ndarray = "steady") -> np.ndarray:
-        """:meth:`simulate` on a loads time series (the FE model's columns: powers [W], air [°C])."""
-        return self.simulate(loads.time_s, self.layout.inputs(loads.names, loads.values, "loads"), initial)
+    def temperature_rise_of_loads(self, loads: Loads, initial: str | np.ndarray = "steady") -> np.ndarray:
+        """:meth:`temperature_rise` on a loads time series (the FE model's columns: powers [W], air [°C])."""
+        return self.temperature_rise(loads.time_s, self.layout.inputs(loads.names, loads.values, "loads"), initial)
 
 
 def _line_matrix(diag_e: np.ndarray, off_e: np.ndarray) -> sp.csr_matrix:

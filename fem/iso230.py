@@ -123,7 +123,7 @@ def feedback_errors_um(model, axis: str, loads: Loads, positions_mm, fields: dic
         X = np.array([fields[i] for i in range(loads.time_s.size)])
         return X @ R.T, None
     screw = build_screw(machine, drive)
-    T = screw.simulate_loads(loads, initial)
+    T = screw.temperature_rise_of_loads(loads, initial)
     left = screw.prestretch_left_um(T) if drive.mounting == "pre-stretched" else None
     return T @ screw.error_rows(positions_mm).T, left
 

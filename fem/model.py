@@ -24,6 +24,7 @@ import scipy.sparse as sp
 from hybridcomp.fem import assembly
 from hybridcomp.fem.mesh import MM, MachineMesh, mesh_machine
 from hybridcomp.fem.solvers import solve_spd_few
+from hybridcomp.fem.stepping import DEFAULT_SCHEME, TimeTolerance, integrate_inputs
 from hybridcomp.models.layout import (
     DRIFT_OUTPUTS,
     InputLayout,
@@ -130,7 +131,8 @@ class ThermoElasticModel:
         return layout_from_names(self.input_names, self.sensor_names + DRIFT_OUTPUTS, self.reference_temperature_degC,
                                  f"machine {self.machine.name!r}")
 
-    def simulate(self, loads: Loads, initial: str | np.ndarray = "steady", theta: float | None = None,
+    def simulate(self, loads: Loads, initial: str | np.ndarray = "steady", *, scheme: str = DEFAULT_SCHEME,
+                 theta: float | None = None, tolerance: TimeTolerance | None = None,
                  store_steps: tuple[int, ...] | None = None, progress: bool = False) -> SimulationResult:
         """Run the model on a loads time series: sensor temperatures [°C] and drift [µm] at the loads' times.
 
@@ -139,21 +141,16 @@ class ThermoElasticModel:
         loads : heat powers [W] and air temperatures [°C] by loads column; a missing column is zero power or
             the reference temperature, an unknown one an error
         initial : ``"steady"`` (steady state of the first loads row), ``"reference"`` (zero rise) or a state [K]
-        theta : None (default): TR-BDF2 sub-steps refined until the time error meets
-            :data:`hybridcomp.fem.timestep.DEFAULT_TOLERANCE` (the estimate is ``result.time_error``); a number:
-            the θ-method on the loads' own times (:func:`hybridcomp.fem.transient.simulate`)
-        store_steps, progress : see :func:`hybridcomp.fem.transient.simulate`
+        scheme : ``"trbdf2"`` (default): TR-BDF2 sub-steps refined until the time error meets ``tolerance``
+            (default :data:`hybridcomp.fem.stepping.DEFAULT_TOLERANCE`; the estimate is ``result.time_error``);
+            ``"theta"``: the θ-method on the loads' own times
+        theta : θ of the θ-method in [0.5, 1] (default 1, backward Euler); ``scheme="theta"`` only
+        tolerance : accepted time error of the outputs; ``scheme="trbdf2"`` only
+        store_steps, progress : see :func:`hybridcomp.fem.stepping.integrate_inputs`
         """
-        from hybridcomp.fem.timestep import simulate_controlled  # both build on this module
-        from hybridcomp.fem.transient import simulate
-
         U = self.layout().inputs(loads.names, loads.values, "loads")
-        if theta is not None:
-            return simulate(self, loads.time_s, U, theta=theta, initial=initial, store_steps=store_steps,
-                            progress=progress)
-        result, estimate = simulate_controlled(self, loads.time_s, U, initial=initial, store_steps=store_steps,
-                                               progress=progress)
-        return dataclasses.replace(result, time_error=estimate.as_dict())
+        return integrate_inputs(self, loads.time_s, U, scheme=scheme, theta=theta, tolerance=tolerance,
+                                initial=initial, store_steps=store_steps, progress=progress)
 
     def with_heat_input(self, source: HeatSource) -> ThermoElasticModel:
         """The model with one more heat input after the others: ``source``'s patch on this mesh.

@@ -76,7 +76,8 @@ def simulate(model, loads: Loads, initial: str | np.ndarray = "steady", **option
     loads : heat powers [W] and air temperatures [°C] by loads column (``read_loads``, ``boundary_conditions``)
     initial : ``"steady"`` (steady state of the first loads row), ``"reference"`` (zero rise) or a state
         (``SimulationResult.final_state`` of an earlier run of the same model)
-    options : the model's own: ``theta``, ``store_steps``, ``progress`` (FE); ``hold`` (reduced model)
+    options : the model's own: ``scheme`` (FE: ``"trbdf2"`` to a tolerance, the default, or ``"theta"``; reduced
+        model: ``"exact"``), ``theta``, ``tolerance``, ``store_steps``, ``progress`` (FE); ``hold`` (reduced model)
 
     Returns
     -------

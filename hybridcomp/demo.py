@@ -133,7 +133,7 @@ def _pictures(machine, out: Path, options: DemoOptions) -> dict:
         from hybridcomp.fem.export import render_png
         from hybridcomp.fem.loads import full_power_inputs
         from hybridcomp.fem.model import build_model
-        from hybridcomp.fem.transient import steady_state
+        from hybridcomp.fem.stepping import steady_state
 
         model = build_model(machine, {}, options.element_size_mm)
         x = steady_state(model, 0.5 * full_power_inputs(machine))

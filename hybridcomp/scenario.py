@@ -235,7 +235,8 @@ def build_models(out_dir, machine_name: str = "vmc800", element_size_mm: float =
     timings["reduction_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     cases = standard_load_cases(machine, ("basic",), heat_h=basic_hours, cool_h=basic_hours)
-    train = simulate_load_cases(machine, cases, pose, element_size_mm, dt_s=dt_s, model=model)
+    train = simulate_load_cases(machine, cases, pose, element_size_mm, dt_s=dt_s, model=model, scheme="theta",
+                                theta=0.5)
     timings["training_s"] = time.perf_counter() - t0
     default = fit_cd_set(train.columns, machine=machine.name, machine_sha256=machine.sha256, pose_mm=pose,
                          load_case="basic", signature=train.signature(), source="basic load cases")
@@ -326,7 +327,6 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     """
     from hybridcomp.chardiag.cd import pose_key
     from hybridcomp.fem.model import build_model
-    from hybridcomp.fem.transient import simulate
     from hybridcomp.histogram.bcs import boundary_conditions
     from hybridcomp.histogram.increments import increments_from_trace
     from hybridcomp.histogram.scenarios import JOBSHOP_HOURS, write_scenario
@@ -365,8 +365,7 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
                                                                                          real_dt_s)),
                                  real_machine, real_dt_s)
     real_loads = planted_air(real_machine, real_loads, disturbance)
-    res = simulate(real_model, real_loads.time_s, real_loads.as_inputs(real_machine.reference_temperature_degC),
-                   theta=0.5)
+    res = real_model.simulate(real_loads, "steady", scheme="theta", theta=0.5)
     t = loads.time_s
     truth = np.column_stack([np.interp(t, res.time_s, res.drift_um[:, j]) for j in range(3)])
     timings["real_machine_s"] = time.perf_counter() - t0

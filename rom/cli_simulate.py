@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from hybridcomp.fem.loads import Loads, write_outputs
-from hybridcomp.fem.timestep import DEFAULT_TOLERANCE
+from hybridcomp.fem.stepping import DEFAULT_TOLERANCE
 from hybridcomp.models import jsonio
 from hybridcomp.models.machine import Machine
 from hybridcomp.rom.machine import inputs_from_columns, split_outputs

@@ -114,9 +114,9 @@ class CheckResult:
 
 def fe_reference(model, time_s, inputs, theta: float = 0.5):
     """FE outputs (sensors [°C], drift [µm]) for the check: Crank–Nicolson by default (second order in Δt)."""
-    from hybridcomp.fem.transient import simulate
+    from hybridcomp.fem.stepping import integrate_inputs
 
-    res = simulate(model, time_s, inputs, theta=theta)
+    res = integrate_inputs(model, time_s, inputs, scheme="theta", theta=theta)
     return res.sensors_degC, res.drift_um
 
 

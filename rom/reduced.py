@@ -39,6 +39,7 @@ from hybridcomp.models.toml import open_regular_file, read_text
 log = logging.getLogger(__name__)
 
 HOLDS = ("linear", "step")
+SCHEMES = ("exact",)
 FORMAT = "hybridcomp-rom"
 _ONE = np.ones(1)
 _STEPWISE_MAX_PER_MODE = 10  # runs of at most 10 steps per mode: step by step (crossover measured at 13, order 150)
@@ -313,16 +314,24 @@ class ReducedModel:
         except LoadsColumnError as exc:
             raise RomInputError(f"not a machine ROM: {exc}") from None
 
-    def simulate(self, loads: Loads, initial: str | np.ndarray = "steady", hold: str = "linear") -> SimulationResult:
+    def simulate(self, loads: Loads, initial: str | np.ndarray = "steady", *, scheme: str = "exact",
+                 hold: str = "linear") -> SimulationResult:
         """Run a machine ROM on a loads time series: sensor temperatures [°C] and drift [µm].
+
+        The signature of :meth:`hybridcomp.fem.model.ThermoElasticModel.simulate`; the reduced model's one scheme
+        is exact for inputs that hold as ``hold`` says, at any step size (the module docstring).
 
         Parameters
         ----------
         loads : heat powers [W] and air temperatures [°C] by loads column; a missing column is zero power or
             the reference temperature, an unknown one an error
         initial : ``"steady"`` (steady state of the first loads row), ``"reference"`` (zero rise) or a reduced state
+        scheme : ``"exact"``, the only one (the FE model's ``"trbdf2"`` and ``"theta"`` approximate what this
+            scheme integrates exactly)
         hold : how the inputs vary between samples, see :meth:`integrate`
         """
+        if scheme not in SCHEMES:
+            raise RomInputError(f"unknown time scheme {scheme!r} of a reduced model (schemes: {', '.join(SCHEMES)})")
         layout = self.layout()
         U = layout.inputs(loads.names, loads.values, "loads")
         Y, x = self.integrate(loads.time_s, U, initial, hold=hold)

@@ -143,11 +143,10 @@ def test_xdmf_time_series_round_trip(machine, tmp_path):
     pytest.importorskip("h5py", reason="XDMF export needs h5py (extra 'xdmf')")
     from hybridcomp.fem.export import write_fields
     from hybridcomp.fem.model import build_model
-    from hybridcomp.fem.transient import simulate
 
     model = build_model(machine, None, 200.0)
     loads = example_loads(machine, duration_h=1.0, dt_s=600.0)
-    res = simulate(model, loads.time_s, loads.as_inputs(20.0), store_steps=(0, 3, 6))
+    res = model.simulate(loads, scheme="theta", store_steps=(0, 3, 6))
     (path,) = write_fields(model, tmp_path, res.fields_K, res.time_s, fmt="xdmf", with_displacement=False)
     with meshio.xdmf.TimeSeriesReader(path) as r:
         points, cells = r.read_points_cells()

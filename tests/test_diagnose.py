@@ -14,7 +14,7 @@ from hybridcomp.diagnose import Dataset, diagnose, parse_split, prepare_model, w
 from hybridcomp.diagnose.problem import first_order_lag
 from hybridcomp.fem.loads import example_loads
 from hybridcomp.fem.model import build_model
-from hybridcomp.fem.transient import simulate as fe_simulate
+from hybridcomp.fem.stepping import integrate_inputs
 from hybridcomp.models.machine import HeatSource, Material
 
 # every test but one needs the module's FE model and reduced model (the longest module setup of the suite)
@@ -43,7 +43,7 @@ def loads(machine):
 
 def fe_run(model, time_s, U):
     """FE by Crank–Nicolson (the time error at 120 s is far below the noise)."""
-    r = fe_simulate(model, time_s, U, theta=0.5)
+    r = integrate_inputs(model, time_s, U, scheme="theta", theta=0.5)
     return r.sensors_degC, r.drift_um
 
 
@@ -107,7 +107,8 @@ def plant(kind, machine, fe, loads, rng):
         x = "steady"
         for k0, k1 in zip(edges[:-1], edges[1:]):
             model = fe.with_htc(ws_spindle=h_run if state[k0] else 18.0)
-            r = fe_simulate(model, t[k0:k1 + 1], U[k0:k1 + 1], theta=0.5, initial=x, store_steps=(k1 - k0,))
+            r = integrate_inputs(model, t[k0:k1 + 1], U[k0:k1 + 1], scheme="theta", theta=0.5, initial=x,
+                                 store_steps=(k1 - k0,))
             S[k0:k1 + 1], D[k0:k1 + 1] = r.sensors_degC, r.drift_um
             x = r.fields_K[k1 - k0]
         return dict(sensors=S, drift=D), ("htc_motion", "ws_spindle"), (h_run, 18.0), (18.0, 18.0)

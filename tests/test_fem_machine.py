@@ -16,7 +16,7 @@ import pytest
 from hybridcomp.fem.export import displacement_fields
 from hybridcomp.fem.loads import full_power_inputs, input_columns
 from hybridcomp.fem.model import build_model
-from hybridcomp.fem.transient import simulate, steady_state
+from hybridcomp.fem.stepping import integrate_inputs, steady_state
 
 # every test builds the demonstrator's FE model (at two poses, or the module's own)
 pytestmark = pytest.mark.slow
@@ -116,7 +116,7 @@ def test_adjoint_drift_rows_equal_direct_displacement(model):
 def test_transient_reaches_steady_state(model):
     u = full_power(model)
     t = np.arange(0, 400 * 3600.0, 3600.0)
-    res = simulate(model, t, np.tile(u, (t.size, 1)), initial="reference")
+    res = integrate_inputs(model, t, np.tile(u, (t.size, 1)), scheme="theta", initial="reference")
     x_ss = steady_state(model, u)
     np.testing.assert_allclose(res.sensors_degC[-1], model.C @ x_ss + 20.0, atol=1e-3)
     np.testing.assert_allclose(res.drift_um[-1], model.G @ x_ss * 1e6, atol=1e-3)
@@ -132,7 +132,7 @@ def test_theta_method_converges_at_its_order(model, theta, order):
         t = np.arange(0.0, t_end + dt / 2, dt)
         U = np.zeros((t.size, len(model.input_names)))
         U[:, j] = 100.0 * np.sin(0.5 * np.pi * t / t_end) ** 2
-        return simulate(model, t, U, theta=theta, initial="reference").sensors_degC[-1, 0]
+        return integrate_inputs(model, t, U, scheme="theta", theta=theta, initial="reference").sensors_degC[-1, 0]
 
     ref = run(7.5)
     e = [abs(run(dt) - ref) for dt in (240.0, 120.0, 60.0)]

@@ -152,11 +152,11 @@ def test_pose_aware_rom_matches_fe_at_a_support_pose_and_beats_the_model_pose_of
     grid = grid_of(pr)
     k = 2  # X at its upper end
     at = grid.pose_mm(k)
-    fe = build_model(vmc, at, H_MM).simulate(loads, theta=0.5).drift_um
+    fe = build_model(vmc, at, H_MM).simulate(loads, scheme="theta", theta=0.5).drift_um
     got = drift_along(pr, Y, np.array([[at[a] for a in grid.axes]]), feedback=False)  # FE knows the structure only
     assert np.abs(got - fe).max() < pr.meta["tol_um"]
     off = {"X": 250.0, "Y": -180.0, "Z": 160.0}
-    fe = build_model(vmc, off, H_MM).simulate(loads, theta=0.5).drift_um
+    fe = build_model(vmc, off, H_MM).simulate(loads, scheme="theta", theta=0.5).drift_um
     got = drift_along(pr, Y, np.array([[off[a] for a in grid.axes]]), feedback=False)
     mid_only = pr.simulate(loads).drift_um
     # on this coarse mesh the grid itself changes with the pose (the FE models at support poses, interpolated,
@@ -164,7 +164,7 @@ def test_pose_aware_rom_matches_fe_at_a_support_pose_and_beats_the_model_pose_of
     assert np.abs(got - fe).max() < 0.4 * np.abs(mid_only - fe).max()
     # what the reduced models approximate: FE models at the support poses, interpolated the same way; against that
     # the pose-aware model is held to the reduction tolerance at the off-grid pose too
-    runs = np.array([build_model(vmc, grid.pose_mm(j), H_MM).simulate(loads, theta=0.5).drift_um
+    runs = np.array([build_model(vmc, grid.pose_mm(j), H_MM).simulate(loads, scheme="theta", theta=0.5).drift_um
                      for j in range(len(grid.poses))])
     assert np.abs(got - np.tensordot(grid.weights(off), runs, axes=1)).max() < pr.meta["tol_um"]
     # along a path: the positions of every row

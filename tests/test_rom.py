@@ -25,7 +25,7 @@ from hybridcomp.fem.loads import (
     write_loads,
 )
 from hybridcomp.fem.model import build_model
-from hybridcomp.fem.transient import steady_state
+from hybridcomp.fem.stepping import steady_state
 from hybridcomp.models import load_machine
 from hybridcomp.models.machine import resolve_machine_path
 from hybridcomp.rom import (

@@ -1,4 +1,4 @@
-"""TR-BDF2 and the tolerance-controlled default of ``hybridcomp simulate`` (fem/timestep.py)."""
+"""TR-BDF2 and the tolerance-controlled default of ``hybridcomp simulate`` (fem/stepping.py)."""
 
 from __future__ import annotations
 
@@ -11,15 +11,15 @@ import scipy.sparse as sp
 
 from hybridcomp.cli import main
 from hybridcomp.fem.loads import Loads, example_loads, read_loads, write_loads
-from hybridcomp.fem.timestep import (
+from hybridcomp.fem.stepping import (
     DEFAULT_TOLERANCE,
     TimeTolerance,
     amplification,
     error_bound,
+    integrate_controlled,
+    integrate_theta,
     integrate_trbdf2,
-    simulate_controlled,
 )
-from hybridcomp.fem.transient import integrate
 
 COARSE = ["--element-size-mm", "150", "--no-progress"]
 
@@ -110,7 +110,7 @@ def test_no_ringing_after_a_power_step_at_huge_steps():
     assert np.abs(X[1]).max() < 1e-4 * np.abs(x0).max()
     assert np.abs(X[2:]).max() < 1e-8 * np.abs(x0).max()
     # Crank-Nicolson (not L-stable) rings here: the check can fail
-    (Xcn,), _, _ = integrate(M, A, Bu, (C,), t[1:], U[1:], theta=0.5, x0=x0)
+    (Xcn,), _, _ = integrate_theta(M, A, Bu, (C,), t[1:], U[1:], theta=0.5, x0=x0)
     assert np.abs(Xcn[1:]).max(axis=1).min() > 0.9 * np.abs(x0).max()
     assert np.all(np.sign(Xcn[1]) == -np.sign(Xcn[2])) and np.all(np.sign(Xcn[2]) == -np.sign(Xcn[3]))
 
@@ -157,10 +157,8 @@ def short_day(machine):
 def fine_reference(model, loads: Loads, substeps: int = 64):
     """Crank–Nicolson at 1/substeps of the loads step (a different scheme than the one checked), at the loads times."""
     from hybridcomp.fem.cli_simulate import resample
-    from hybridcomp.fem.transient import simulate
-
     fine = resample(loads, float(np.diff(loads.time_s)[0]) / substeps)
-    res = simulate(model, fine.time_s, fine.as_inputs(model.reference_temperature_degC), theta=0.5)
+    res = model.simulate(fine, scheme="theta", theta=0.5)
     idx = np.searchsorted(fine.time_s, loads.time_s)
     np.testing.assert_allclose(fine.time_s[idx], loads.time_s)
     return res.sensors_degC[idx], res.drift_um[idx]
@@ -174,7 +172,7 @@ def reference(coarse_model, short_day):
 @pytest.mark.slow
 @pytest.mark.parametrize("tolerance", [DEFAULT_TOLERANCE, TimeTolerance(sensor_K=2e-4, drift_um=1e-3)])
 def test_estimate_bounds_the_true_error_on_the_fe_model(coarse_model, short_day, reference, tolerance):
-    res, est = simulate_controlled(coarse_model, short_day.time_s, short_day.as_inputs(20.0), tolerance)
+    res, est = integrate_controlled(coarse_model, short_day.time_s, short_day.as_inputs(20.0), tolerance)
     true_K = np.abs(res.sensors_degC - reference[0]).max()
     true_um = np.abs(res.drift_um - reference[1]).max()
     assert est.met and est.sensor_K <= tolerance.sensor_K and est.drift_um <= tolerance.drift_um
@@ -188,7 +186,7 @@ def test_estimate_bounds_the_true_error_on_the_fe_model(coarse_model, short_day,
 
 @pytest.mark.slow
 def test_a_tolerance_out_of_reach_is_reported_not_met(coarse_model, short_day, caplog):
-    _, est = simulate_controlled(coarse_model, short_day.time_s, short_day.as_inputs(20.0),
+    _, est = integrate_controlled(coarse_model, short_day.time_s, short_day.as_inputs(20.0),
                                  TimeTolerance(sensor_K=1e-12, drift_um=1e-12), max_substeps=4)
     assert not est.met and est.substeps == 4 and est.runs == 3
     assert "did not meet the time tolerance" in caplog.text

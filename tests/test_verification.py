@@ -29,7 +29,7 @@ import pytest
 import scipy.sparse as sp
 import skfem
 
-from hybridcomp.fem import assembly, solvers, transient
+from hybridcomp.fem import assembly, solvers, stepping
 
 PENALTY_FILM_COEFFICIENT_W_M2K = 1e9  # penalty Robin coefficient for Dirichlet conditions
 
@@ -120,7 +120,7 @@ def solve_nafems_t3_degC(n_elements_x: int, time_step_s: float, theta: float) ->
     time_s = np.linspace(0.0, T3_PROBE_TIME_S, n_steps + 1)
     boundary_temperature_degC = (T3_AMPLITUDE_DEGC * np.sin(np.pi * time_s / T3_PERIOD_PARAMETER_S))[:, None]
     probe = _probe_at(mesh, basis, np.array([[T3_PROBE_X_M], [0.005], [0.005]]))
-    (probe_history,), _, _ = transient.integrate(
+    (probe_history,), _, _ = stepping.integrate_theta(
         capacity,
         system,
         input_matrix,

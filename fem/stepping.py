@@ -1,32 +1,41 @@
-"""Tolerance-controlled time stepping of an assembled model: TR-BDF2 with an estimated error bound.
+"""Time stepping of an assembled thermal model: the θ-method and TR-BDF2, steady states.
 
-TR-BDF2 (Bank et al. 1985; Hosea & Shampine 1996) takes a step h of
-``M x' + A x = Bu u(t)`` in two stages: the trapezoidal rule to t + γh, then
-BDF2 through t, t + γh and t + h.  With γ = 2 − √2 both stages solve with the
-same matrix ``M + d h A``, d = γ/2 = 1 − 1/√2, so one factorisation serves a
-step size.  The scheme is second order and L-stable (its amplification factor
-R(z) → 0 as z → −∞): a step in power does not ring at any step size, unlike
-Crank–Nicolson.
+Every model runs through ``model.simulate(loads, initial, scheme=...)``; this module holds the schemes it
+dispatches to, on the model's operators (:func:`integrate_inputs`) or on any sparse SPD pair (``M x' + A x = Bu u``,
+:func:`integrate_theta`, :func:`integrate_trbdf2`).
 
-The step policy keeps the loads grid: every interval of the loads CSV is split
-into equal sub-steps (the loads are linear between samples, so their kinks lie
-on step boundaries and the scheme keeps its order), the same number in every
-interval of equal length, so a uniform loads grid needs one step size.  The
-error of the outputs (sensor temperatures [K], drift [µm]) at the loads
-times is estimated from two runs, with 2m and with m sub-steps per interval:
-``max |y_2m − y_m|``.  If halving the step at least halves the error (order
-≥ 1, which holds before the second-order regime is reached), this difference
-bounds the error of the 2m run; in the second-order regime it is about three
-times that error (Richardson: error ≈ |y_2m − y_m| / (2² − 1)).  While the
-estimate exceeds the tolerance, m doubles; the previous fine run becomes the
-coarse one, so each refinement costs one run and one factorisation.
+θ-method (``scheme="theta"``) on the loads' own times::
 
-Pure functions; the time loop uses sparse products and einsum only (no dense
-BLAS call: OpenBLAS threads spinning after it starve the sparse solver).
+    (M/Δt + θA) x_{k+1} = (M/Δt − (1−θ)A) x_k + Bu (θ u_{k+1} + (1−θ) u_k)
+
+θ = 1 (backward Euler) is L-stable: no oscillation after load steps at large Δt.  θ = 0.5 (Crank–Nicolson) is
+second order for smooth loads and small steps.  One factorisation per (Δt, θ), cached on the model, so repeated
+calls and non-uniform time grids with a few distinct steps stay cheap.
+
+TR-BDF2 (``scheme="trbdf2"``, the default; Bank et al. 1985; Hosea & Shampine 1996) takes a step h in two stages:
+the trapezoidal rule to t + γh, then BDF2 through t, t + γh and t + h.  With γ = 2 − √2 both stages solve with
+the same matrix ``M + d h A``, d = γ/2 = 1 − 1/√2, so one factorisation serves a step size.  The scheme is second
+order and L-stable (its amplification factor R(z) → 0 as z → −∞): a step in power does not ring at any step size,
+unlike Crank–Nicolson.
+
+The TR-BDF2 step policy keeps the loads grid: every interval of the loads CSV is split into equal sub-steps (the
+loads are linear between samples, so their kinks lie on step boundaries and the scheme keeps its order), the same
+number in every interval of equal length, so a uniform loads grid needs one step size.  The error of the outputs
+(sensor temperatures [K], drift [µm]) at the loads times is estimated from two runs, with 2m and with m sub-steps
+per interval: ``max |y_2m − y_m|``.  If halving the step at least halves the error (order ≥ 1, which holds before
+the second-order regime is reached), this difference bounds the error of the 2m run; in the second-order regime it
+is about three times that error (Richardson: error ≈ |y_2m − y_m| / (2² − 1)).  While the estimate exceeds the
+tolerance, m doubles; the previous fine run becomes the coarse one, so each refinement costs one run and one
+factorisation.
+
+Pure functions; the time loops use sparse products and einsum only (no dense BLAS call: OpenBLAS threads spinning
+after it starve the sparse solver).  The model type is needed for annotations only: :mod:`hybridcomp.fem.model`
+imports this module, never the reverse.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -34,13 +43,23 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.sparse as sp
 
+from hybridcomp.fem.solvers import Factor, factorize_spd
 from hybridcomp.models.simulation import SimulationResult, initial_state
 
-if TYPE_CHECKING:  # the FE modules are imported where used: the CLI reads the default tolerance from here
+if TYPE_CHECKING:
     from hybridcomp.fem.model import ThermoElasticModel
 
 log = logging.getLogger(__name__)
+
+SCHEMES = ("trbdf2", "theta")
+"""Time schemes of :meth:`ThermoElasticModel.simulate`: TR-BDF2 to a tolerance, the θ-method on the loads' times."""
+DEFAULT_SCHEME = "trbdf2"
+"""The default scheme of the library and of every command that runs the FE model (``simulate``, ``batch run``,
+``cd train-data``): second order, L-stable, and the only one whose time error is estimated and controlled."""
+DEFAULT_THETA = 1.0
+"""θ of ``scheme="theta"`` when none is given: backward Euler."""
 
 GAMMA = 2.0 - math.sqrt(2.0)
 """Stage point of TR-BDF2 [-]: the trapezoidal stage ends at t + γh."""
@@ -49,6 +68,100 @@ D = GAMMA / 2.0
 _BDF_NEW = 1.0 / (GAMMA * (2.0 - GAMMA))
 _BDF_OLD = (1.0 - GAMMA) ** 2 / (GAMMA * (2.0 - GAMMA))
 SCHEME = "TR-BDF2"
+
+
+def _cached_factor(cache: dict, key: tuple, build, coords) -> Factor:
+    """The factorisation of ``build()`` under ``key`` in ``cache``, made on first use."""
+    if key not in cache:
+        t0 = time.perf_counter()
+        cache[key] = factorize_spd(build(), coords)
+        log.debug("factorised %s in %.2f s (%s)", key, time.perf_counter() - t0, cache[key].backend)
+    return cache[key]
+
+
+def steady_state(model: ThermoElasticModel, u: np.ndarray) -> np.ndarray:
+    """Temperature rise [K] at steady state for constant inputs ``u``."""
+    f = _cached_factor(model._cache, ("steady",), model.A, model.coords_m)
+    return f(model.input_matrix() @ np.asarray(u, float))
+
+
+def integrate_theta(
+    M,
+    A,
+    Bu: np.ndarray,
+    outputs: tuple,
+    time_s: np.ndarray,
+    inputs: np.ndarray,
+    theta: float = DEFAULT_THETA,
+    x0: np.ndarray | None = None,
+    coords: np.ndarray | None = None,
+    cache: dict | None = None,
+    store_steps: tuple[int, ...] | None = None,
+    progress: bool = False,
+) -> tuple[list[np.ndarray], dict[int, np.ndarray], dict]:
+    """θ-method for ``M x' + A x = Bu u(t)`` on any sparse SPD pair (M, A).
+
+    Parameters
+    ----------
+    M, A : sparse SPD matrices (n × n)
+    Bu : input matrix (n × nu); ``inputs`` (nt × nu) are its inputs at ``time_s``
+    outputs : matrices (r × n) evaluated at every step
+    x0 : initial state (default zero)
+    coords : (n, 3) node coordinates for the fill-reducing ordering
+    cache : dict for factorisations keyed by (Δt, θ), kept across calls
+
+    Returns
+    -------
+    per output an (nt × r) array, the stored states, and timings [s]
+    """
+    t = np.asarray(time_s, float)
+    U = np.asarray(inputs, float)
+    if t.ndim != 1 or t.size < 1:
+        raise ValueError("time_s must be a non-empty vector")
+    if np.any(np.diff(t) <= 0):
+        k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
+        raise ValueError(f"time_s must increase strictly; step {k} goes from {t[k - 1]} s to {t[k]} s")
+    if U.shape != (t.size, Bu.shape[1]):
+        raise ValueError(f"inputs must be ({t.size}, {Bu.shape[1]}), got {U.shape}")
+    if not 0.5 <= theta <= 1.0:
+        raise ValueError(f"theta must be in [0.5, 1] for an unconditionally stable scheme, got {theta}")
+    n = M.shape[0]
+    # No dense BLAS call inside the loop: numpy's OpenBLAS threads spin after each call and starve
+    # the sparse solver's own BLAS threads (measured 8x slower steps on 2 cores).  Sparse products
+    # and einsum do not touch BLAS.
+    Bu = sp.csr_matrix(Bu)
+    nt = t.size
+    st = _loop_start(n, nt, outputs, x0, cache, store_steps)
+    products, x, cache, store, ys, fields = st.products, st.x, st.cache, st.store, st.ys, st.fields
+    t_factor = t_solve = 0.0
+    t0_all = time.perf_counter()
+    bar = _progress_bar(progress, nt - 1, "transient")
+    dts = np.diff(t)
+    for k in range(1, nt):
+        dt = float(dts[k - 1])
+        key = ("step", round(dt, 9), float(theta))
+        tf = time.perf_counter()
+        f = _cached_factor(cache, key, lambda: M / dt + theta * A, coords)  # noqa: B023 - called at once, in this step
+        if ("Mdt", key[1]) not in cache:
+            cache[("Mdt", key[1])] = (M / dt).tocsr()
+        Mdt = cache[("Mdt", key[1])]
+        t_factor += time.perf_counter() - tf
+        rhs = Mdt @ x + Bu @ (theta * U[k] + (1 - theta) * U[k - 1])
+        if theta != 1.0:
+            rhs -= (1 - theta) * (A @ x)
+        ts = time.perf_counter()
+        x = f(rhs)
+        t_solve += time.perf_counter() - ts
+        for y, prod in zip(ys, products):
+            y[k] = prod(x)
+        if k in store:
+            fields[k] = x.copy()
+        if bar is not None:
+            bar.update()
+    if bar is not None:
+        bar.close()
+    total = time.perf_counter() - t0_all
+    return ys, fields, {"factorisation": t_factor, "triangular_solves": t_solve, "stepping_total": total - t_factor}
 
 
 @dataclass(frozen=True)
@@ -137,8 +250,6 @@ def step_sizes_s(time_s: np.ndarray, substeps: int) -> tuple[float, ...]:
 
 def _output_product(C):
     """``v ↦ C v`` without dense BLAS: a sparse product, or einsum for a dense ``C``."""
-    import scipy.sparse as sp
-
     if sp.issparse(C):
         return lambda v: C @ v
     C = np.asarray(C)
@@ -197,7 +308,7 @@ def integrate_trbdf2(
     """TR-BDF2 for ``M x' + A x = Bu u(t)``, ``substeps`` equal steps per interval of ``time_s``.
 
     The inputs are linear between the samples ``inputs`` (nt × nu) at ``time_s`` [s]; outputs and
-    stored states are those at ``time_s``.  Parameters as :func:`hybridcomp.fem.transient.integrate`;
+    stored states are those at ``time_s``.  Parameters as :func:`integrate_theta`;
     factorisations of ``M + d h A`` are cached under ``("trbdf2", h)``.
 
     Returns
@@ -215,10 +326,6 @@ def integrate_trbdf2(
         raise ValueError(f"inputs must be ({t.size}, {Bu.shape[1]}), got {U.shape}")
     if not (isinstance(substeps, (int, np.integer)) and substeps >= 1):
         raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
-    import scipy.sparse as sp
-
-    from hybridcomp.fem.transient import _cached_factor
-
     n = M.shape[0]
     Bu = sp.csr_matrix(Bu)
     M = sp.csr_matrix(M)
@@ -273,7 +380,7 @@ def error_bound(y_fine: np.ndarray, y_coarse: np.ndarray) -> float:
     return float(np.max(np.abs(y_fine - y_coarse), initial=0.0))
 
 
-def simulate_controlled(
+def integrate_controlled(
     model: ThermoElasticModel,
     time_s: np.ndarray,
     inputs: np.ndarray,
@@ -296,12 +403,10 @@ def simulate_controlled(
     time_s : strictly increasing loads and output times [s]
     inputs : heat powers [W] and air temperature rises over the reference [K] per time (nt × nu)
     tolerance : accepted error of the outputs
-    initial : ``"steady"``, ``"reference"`` or a state [K], as :func:`hybridcomp.fem.transient.simulate`
+    initial : ``"steady"``, ``"reference"`` or a state [K], as :func:`integrate_inputs`
     store_steps : indices of loads times whose full field is kept
     max_substeps : largest number of sub-steps per loads interval
     """
-    from hybridcomp.fem.transient import steady_state
-
     U = np.asarray(inputs, float)
     if U.ndim != 2 or U.shape[1] != len(model.input_names):
         raise ValueError(f"inputs must have {len(model.input_names)} columns ({model.input_names}), got shape {U.shape}")
@@ -348,3 +453,104 @@ def simulate_controlled(
     estimate = TimeErrorEstimate(scheme=SCHEME, tolerance=tolerance, sensor_K=est_K, drift_um=est_um, met=met,
                                  substeps=m, steps=(t.size - 1) * m, step_sizes_s=step_sizes_s(t, m), runs=runs)
     return result, estimate
+
+
+def check_scheme(scheme: str, theta: float | None = None, tolerance: TimeTolerance | None = None) -> float | None:
+    """The θ of a run of ``scheme`` (None for TR-BDF2), after checking that its options belong to it.
+
+    Raises
+    ------
+    ValueError
+        an unknown scheme, a ``theta`` with TR-BDF2 or a ``tolerance`` with the θ-method (an option the scheme
+        would ignore), or θ outside [0.5, 1]
+    """
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown time scheme {scheme!r} (schemes: {', '.join(SCHEMES)})")
+    if scheme == "trbdf2":
+        if theta is not None:
+            raise ValueError(f"theta={theta!r} applies to scheme='theta', not to the default 'trbdf2'")
+        return None
+    if tolerance is not None:
+        raise ValueError("a time tolerance applies to scheme='trbdf2' (the θ-method at the loads' times has no error "
+                         "control)")
+    theta = DEFAULT_THETA if theta is None else float(theta)
+    if not 0.5 <= theta <= 1.0:
+        raise ValueError(f"theta must be in [0.5, 1] for an unconditionally stable scheme, got {theta}")
+    return theta
+
+
+def integrate_inputs(
+    model: ThermoElasticModel,
+    time_s: np.ndarray,
+    inputs: np.ndarray,
+    *,
+    scheme: str = DEFAULT_SCHEME,
+    theta: float | None = None,
+    tolerance: TimeTolerance | None = None,
+    initial: str | np.ndarray = "steady",
+    store_steps: tuple[int, ...] | None = None,
+    progress: bool = False,
+) -> SimulationResult:
+    """Integrate the model over ``time_s`` with an input array in model input order (what ``model.simulate`` runs).
+
+    Parameters
+    ----------
+    model : the assembled FE model
+    time_s : strictly increasing loads and output times [s]
+    inputs : heat powers [W] and air temperature rises over the reference [K] per time (nt × nu)
+    scheme : ``"trbdf2"`` (default): TR-BDF2 sub-steps of the loads intervals, refined until the estimated time
+        error meets ``tolerance`` (the estimate is ``result.time_error``); ``"theta"``: the θ-method on the times
+        ``time_s`` themselves, not error-controlled
+    theta : θ of the θ-method, in [0.5, 1] (default 1, backward Euler); θ-method only
+    tolerance : accepted time error of the outputs (default :data:`DEFAULT_TOLERANCE`); TR-BDF2 only
+    initial : ``"steady"`` (steady state of the first inputs), ``"reference"`` (x = 0) or a state [K]
+    store_steps : indices of loads times whose full field is kept
+    progress : show a progress bar over the steps
+    """
+    theta = check_scheme(scheme, theta, tolerance)
+    if theta is None:
+        result, estimate = integrate_controlled(model, time_s, inputs, DEFAULT_TOLERANCE if tolerance is None else
+                                                tolerance, initial=initial, store_steps=store_steps, progress=progress)
+        return dataclasses.replace(result, time_error=estimate.as_dict())
+    U = np.asarray(inputs, float)
+    if U.ndim != 2 or U.shape[1] != len(model.input_names):
+        raise ValueError(f"inputs must have {len(model.input_names)} columns ({model.input_names}), got shape {U.shape}")
+    x0 = initial_state(initial, model.n, lambda: steady_state(model, U[0]))
+    (sens, drift), fields, timings = integrate_theta(
+        model.M,
+        model.A(),
+        model.input_matrix(),
+        (model.C, model.G),
+        time_s,
+        U,
+        theta=theta,
+        x0=x0,
+        coords=model.coords_m,
+        cache=model._cache,
+        store_steps=store_steps,
+        progress=progress,
+    )
+    return SimulationResult(
+        time_s=np.asarray(time_s, float),
+        sensors_degC=sens + model.reference_temperature_degC,
+        drift_um=drift * 1e6,
+        fields_K=fields,
+        timings_s=timings,
+        sensor_names=model.sensor_names,
+    )
+
+
+def solver_backends(model: ThermoElasticModel) -> dict[str, str]:
+    """The sparse solvers a model used so far: ``{"heat": ..., "elastic": ...}``.
+
+    ``heat`` names the backends of the cached factorisations (comma-separated when
+    they differ, empty before the first solve); ``elastic`` the backend of the
+    adjoint solves for the drift rows.
+    """
+    heat = sorted({f.backend for f in model._cache.values() if isinstance(f, Factor)})
+    return {"heat": ", ".join(heat), "elastic": str(model.timings_s.get("elastic_backend", ""))}
+
+
+def step_factor_for_benchmark(model: ThermoElasticModel, dt_s: float, theta: float) -> Factor:
+    """The cached factorisation of M/Δt + θA that :func:`integrate_theta` used (for timing the bare solves)."""
+    return model._cache[("step", round(float(dt_s), 9), float(theta))]
