@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.fem.cli_simulate import SCHEME_HELP, chosen_scheme
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, check_output_path, write_text_atomic
@@ -43,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t = sub.add_parser("train-data", help="simulate load cases on the FE model → training table CSV",
                        description="Simulate load cases on the FE model at one pose and write the training table: "
                        "load_case, time_s, T*_degC, <axis>_mm, dx_um, dy_um, dz_um (signatures in '# signature' "
-                       "lines at the top).")
+                       "lines at the top). " + SCHEME_HELP)
     add_machine_argument(t)
     t.add_argument("--cases", default="basic,simultaneous,jobshop",
                    help="comma-separated: bundled groups 'basic' (each axis alone at max feed, the spindle alone, "
@@ -52,8 +53,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--out", required=True, type=Path, help="training table CSV to write")
     t.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     t.add_argument("--element-size-mm", type=float, help="FE element size [mm] (default: the machine file's)")
-    t.add_argument("--dt", type=float, default=60.0, help="FE time step [s] (default %(default)s)")
-    t.add_argument("--theta", type=float, default=0.5, help="θ-method: 0.5 Crank-Nicolson (default), 1 backward Euler")
+    t.add_argument("--dt", type=float, help="θ-method at this FE time step [s] (loads interpolated onto it, outputs at "
+                   "the loads rows); default: TR-BDF2 at the loads rows, see the description")
+    t.add_argument("--theta", type=float, help="θ of the θ-method, in [0.5, 1]: 1 backward Euler (with --dt alone), "
+                   "0.5 Crank-Nicolson; default: TR-BDF2, see the description")
     t.add_argument("--heat-h", type=float, default=8.0, help="heating time of the basic/simultaneous cases [h]")
     t.add_argument("--cool-h", type=float, default=8.0, help="cooling time after them [h]")
     t.add_argument("--scheduler", help="run the load cases as a batch: 'process' (local process pool), 'local' "
@@ -198,10 +201,11 @@ def _train_data(args) -> int:
 
     machine = load_machine(args.machine)
     pose = machine.check_pose(_pose(args.pose))
-    if not args.dt > 0:
+    if args.dt is not None and not args.dt > 0:
         raise ValueError(f"--dt must be positive, got {args.dt}")
-    if not 0.5 <= args.theta <= 1.0:
+    if args.theta is not None and not 0.5 <= args.theta <= 1.0:
         raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
+    scheme, theta = chosen_scheme(args)
     items = [c.strip() for c in args.cases.split(",") if c.strip()]
     check_output_path(args.out, inputs=[machine.source, *(i for i in items if i not in STANDARD_CASES)],
                       force=args.force)
@@ -213,7 +217,7 @@ def _train_data(args) -> int:
             lc = load_case_from_file(machine, item)
             cases[lc.name] = lc
     print(f"simulating {len(cases)} load case(s) on {machine.name} at {pose}: {', '.join(cases)}", file=sys.stderr)
-    data = simulate_load_cases(machine, cases, pose, args.element_size_mm, args.dt, args.theta,
+    data = simulate_load_cases(machine, cases, pose, args.element_size_mm, args.dt, theta, scheme=scheme,
                                progress=not args.no_progress, executor=args.scheduler, workers=args.workers)
     with atomic_path(args.out) as tmp:
         write_training_csv(tmp, data)

@@ -14,7 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
-from hybridcomp.fem.cli_simulate import parse_pose
+from hybridcomp.fem.cli_simulate import SCHEME_HELP, chosen_scheme, parse_pose
 from hybridcomp.fem.loads import LoadsFileError
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
@@ -28,7 +28,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="simulate every loads CSV of a directory and write one outputs CSV per case",
         description="Simulate every loads CSV in LOADS_DIR (case name = file stem) on one FE model and write "
         "OUT/<case>.csv (time_s, <sensor>_degC ..., dx_um, dy_um, dz_um) plus OUT/batch.json. Each worker "
-        "builds the model once and reuses it for all its cases; each output file is written atomically.",
+        "builds the model once and reuses it for all its cases; each output file is written atomically. "
+        + SCHEME_HELP,
     )
     r.add_argument("loads_dir", type=Path, metavar="LOADS_DIR", help="directory of loads CSVs (see 'hybridcomp simulate --help')")
     add_machine_argument(r)
@@ -41,8 +42,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("--serial", action="store_true", help="run in this process, one case after another")
     r.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     r.add_argument("--element-size-mm", type=float, help="largest element edge [mm] (default: from the machine file)")
-    r.add_argument("--dt", type=float, help="resample every case to this time step [s]; default: each CSV's own times")
-    r.add_argument("--theta", type=float, default=1.0, help="θ of the θ-method: 1 backward Euler (default), 0.5 Crank-Nicolson")
+    r.add_argument("--dt", type=float, help="θ-method at this time step [s] (every case resampled linearly); default: "
+                   "TR-BDF2 at each CSV's own times, see the description")
+    r.add_argument("--theta", type=float, help="θ of the θ-method, in [0.5, 1]: 1 backward Euler (with --dt alone), "
+                   "0.5 Crank-Nicolson; default: TR-BDF2, see the description")
     r.add_argument("--initial", choices=("steady", "reference"), default="steady",
                    help="initial state: steady state of the first loads row (default) or the reference temperature")
     r.add_argument("--resume", action="store_true",
@@ -81,7 +84,9 @@ def run(args: argparse.Namespace) -> int:
                 logging.getLogger("distributed").setLevel(logging.WARNING)
         if not args.no_progress:
             print(f"{len(cases)} load cases of {machine.name} at {pose} on {executor} ...", file=sys.stderr)
-        results = run_batch(machine, cases, pose_mm=pose, element_size_mm=args.element_size_mm, theta=args.theta,
+        scheme, theta = chosen_scheme(args)
+        results = run_batch(machine, cases, pose_mm=pose, element_size_mm=args.element_size_mm, scheme=scheme,
+                            theta=theta,
                             initial=args.initial, dt_s=args.dt, executor=executor, workers=args.workers,
                             out_dir=args.out, resume=args.resume, progress=not args.no_progress)
     except (MachineFileError, LoadsFileError, ValueError, ImportError) as exc:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
-from hybridcomp.fem.stepping import DEFAULT_TOLERANCE, TimeTolerance
+from hybridcomp.fem.stepping import DEFAULT_THETA, DEFAULT_TOLERANCE, TimeTolerance
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
@@ -52,6 +52,22 @@ def resample(loads: Loads, dt_s: float) -> Loads:
     t = np.append(t, t1) if t1 - t[-1] > 1e-9 * max(1.0, abs(t1)) else t
     values = np.column_stack([np.interp(t, loads.time_s, loads.values[:, j]) for j in range(loads.values.shape[1])])
     return Loads(t, values, loads.names)
+
+
+SCHEME_HELP = (
+    f"Default time scheme: TR-BDF2 (second order, L-stable: no ringing after a step in power) in sub-steps of the "
+    f"loads intervals, refined until the estimated time error is within {DEFAULT_TOLERANCE.sensor_K} K and "
+    f"{DEFAULT_TOLERANCE.drift_um} um at the loads times; --dt and/or --theta choose the θ-method instead (θ = 1, "
+    f"backward Euler, unless --theta says otherwise): cheaper per run, without error control."
+)
+"""What the help of every command that runs the FE model says of its default time scheme (one default for all)."""
+
+
+def chosen_scheme(args: argparse.Namespace) -> tuple[str, float | None]:
+    """The time scheme and θ that ``--dt`` and ``--theta`` choose: TR-BDF2 without either, else the θ-method."""
+    if args.dt is None and args.theta is None:
+        return "trbdf2", None
+    return "theta", DEFAULT_THETA if args.theta is None else float(args.theta)
 
 
 def time_tolerance(args: argparse.Namespace) -> TimeTolerance | None:
@@ -190,7 +206,7 @@ def run(args: argparse.Namespace) -> int:
                   f"{tolerance.drift_um} um) at {time_info['substeps_per_interval']} sub-steps per loads interval",
                   file=sys.stderr)
     else:
-        theta = 1.0 if args.theta is None else args.theta
+        _, theta = chosen_scheme(args)
         res = model.simulate(loads, args.initial, scheme="theta", theta=theta, store_steps=store, progress=progress)
         time_info = {
             "scheme": "theta-method", "theta": theta,

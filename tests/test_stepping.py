@@ -96,3 +96,48 @@ def test_default_scheme_is_trbdf2_and_options_must_fit_the_scheme(small_model, m
         small_model.simulate(loads, scheme="euler")
     with pytest.raises(ValueError, match=r"theta must be in \[0.5, 1\]"):
         small_model.simulate(loads, scheme="theta", theta=0.3)
+
+
+# -- one default time scheme across the commands -----------------------------------------------------------------
+@pytest.mark.parametrize("command", [["simulate"], ["batch", "run"], ["cd", "train-data"]])
+def test_every_fe_command_says_its_default_scheme_is_trbdf2(command, capsys):
+    from hybridcomp.cli import main
+
+    with pytest.raises(SystemExit):
+        main([*command, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "Default: TR-BDF2" in text or "Default time scheme: TR-BDF2" in text
+
+
+@pytest.mark.parametrize(("options", "scheme", "theta"), [
+    ([], "trbdf2", None),
+    (["--theta", "0.5"], "theta", 0.5),
+    (["--dt", "600"], "theta", 1.0),
+])
+def test_batch_and_train_data_pass_the_one_default_scheme(options, scheme, theta, monkeypatch, tmp_path, machine):
+    """``batch run`` and ``cd train-data`` run TR-BDF2 unless --dt or --theta ask for the θ-method (θ = 1 with --dt)."""
+    from hybridcomp.chardiag import training
+    from hybridcomp.cli import main
+    from hybridcomp.fem import batch
+    from hybridcomp.fem.loads import write_loads
+
+    seen = []
+
+    def fake_batch(machine, cases, **kw):
+        seen.append((kw["scheme"], kw["theta"], kw["dt_s"]))
+        return {}
+
+    def fake_training(machine, cases, pose, element_size_mm, dt_s, theta, **kw):
+        seen.append((kw["scheme"], theta, dt_s))
+        raise SystemExit(0)  # the table is not the point
+
+    monkeypatch.setattr(batch, "run_batch", fake_batch)
+    monkeypatch.setattr(training, "simulate_load_cases", fake_training)
+    write_loads(tmp_path / "loads" / "a.csv", example_loads(machine, duration_h=1.0, dt_s=600.0))
+    assert main(["batch", "run", str(tmp_path / "loads"), "--out", str(tmp_path / "b"), "--serial", "--no-progress",
+                 *options]) == 0
+    with pytest.raises(SystemExit):
+        main(["cd", "train-data", "--cases", "basic", "--heat-h", "0.1", "--cool-h", "0.1", "--out", str(tmp_path / "t.csv"),
+              "--no-progress", *options])
+    dt = 600.0 if "--dt" in options else None
+    assert seen == [(scheme, theta, dt), (scheme, theta, dt)]
