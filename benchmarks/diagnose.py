@@ -58,8 +58,8 @@ def main(argv=None) -> int:
                                   position_mm=(-450.0, 720.0, 1310.0), size_mm=(100.0, 100.0, 100.0), power_W=1.0)
         b = model.with_heat_input(src).B[:, -1:]
         m = rom.B.shape[1]
-        plus = dataclasses.replace(rom, B=np.hstack([rom.B, rom.V.T @ b]), input_names=(*rom.input_names[:m], "planted_W",
-                                   *rom.input_names[m:]), _cache={})
+        plus = rom.with_operators(B=np.hstack([rom.B, rom.V.T @ b]), input_names=(*rom.input_names[:m], "planted_W",
+                                  *rom.input_names[m:]))
         on = (U[:, loads.names.index("spindle_motor_W")] > 0).astype(float)
         Y = plus.integrate(loads.time_s, np.hstack([U[:, :m], 60.0 * on[:, None], U[:, m:]]))[0]
     else:

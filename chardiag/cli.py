@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridcomp.fem.cli_simulate import SCHEME_HELP, chosen_scheme
+from hybridcomp.fem.cli_simulate import SCHEME_HELP, add_scheme_arguments, chosen_scheme
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, check_output_path, write_text_atomic
@@ -53,10 +53,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--out", required=True, type=Path, help="training table CSV to write")
     t.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     t.add_argument("--element-size-mm", type=float, help="FE element size [mm] (default: the machine file's)")
-    t.add_argument("--dt", type=float, help="θ-method at this FE time step [s] (loads interpolated onto it, outputs at "
-                   "the loads rows); default: TR-BDF2 at the loads rows, see the description")
-    t.add_argument("--theta", type=float, help="θ of the θ-method, in [0.5, 1]: 1 backward Euler (with --dt alone), "
-                   "0.5 Crank-Nicolson; default: TR-BDF2, see the description")
+    add_scheme_arguments(t, "loads interpolated onto it, outputs at the loads rows; TR-BDF2 steps the loads rows")
     t.add_argument("--heat-h", type=float, default=8.0, help="heating time of the basic/simultaneous cases [h]")
     t.add_argument("--cool-h", type=float, default=8.0, help="cooling time after them [h]")
     t.add_argument("--scheduler", help="run the load cases as a batch: 'process' (local process pool), 'local' "

@@ -11,7 +11,6 @@ Everything the effect library changes is one of four things, applied in this ord
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -183,7 +182,7 @@ def with_body_rows(rom, bodies: tuple[str, ...], rows: np.ndarray):
         raise ValueError("the reduced model has no basis V: per-body drift rows cannot be projected")
     extra = np.vstack([rows[i] @ rom.V for i in range(len(bodies))])
     names = tuple(f"{d}@{b}" for b in bodies for d in DRIFT)
-    return dataclasses.replace(rom, C=np.vstack([rom.C, extra]), output_names=tuple(rom.output_names) + names, _cache={})
+    return rom.with_operators(C=np.vstack([rom.C, extra]), output_names=tuple(rom.output_names) + names)
 
 
 def _factor(machine, s, P: np.ndarray) -> np.ndarray | None:

@@ -14,7 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
-from hybridcomp.fem.cli_simulate import SCHEME_HELP, chosen_scheme, parse_pose
+from hybridcomp.fem.cli_simulate import SCHEME_HELP, add_scheme_arguments, chosen_scheme, parse_pose
 from hybridcomp.fem.loads import LoadsFileError
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
@@ -42,10 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("--serial", action="store_true", help="run in this process, one case after another")
     r.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     r.add_argument("--element-size-mm", type=float, help="largest element edge [mm] (default: from the machine file)")
-    r.add_argument("--dt", type=float, help="θ-method at this time step [s] (every case resampled linearly); default: "
-                   "TR-BDF2 at each CSV's own times, see the description")
-    r.add_argument("--theta", type=float, help="θ of the θ-method, in [0.5, 1]: 1 backward Euler (with --dt alone), "
-                   "0.5 Crank-Nicolson; default: TR-BDF2, see the description")
+    add_scheme_arguments(r, "every case resampled linearly; TR-BDF2 keeps each CSV's own times")
     r.add_argument("--initial", choices=("steady", "reference"), default="steady",
                    help="initial state: steady state of the first loads row (default) or the reference temperature")
     r.add_argument("--resume", action="store_true",

@@ -63,6 +63,14 @@ SCHEME_HELP = (
 """What the help of every command that runs the FE model says of its default time scheme (one default for all)."""
 
 
+def add_scheme_arguments(p: argparse.ArgumentParser, dt_help: str) -> None:
+    """``--dt`` and ``--theta`` of a command whose default scheme is TR-BDF2 (:data:`SCHEME_HELP`)."""
+    p.add_argument("--dt", type=float, help=f"θ-method at this time step [s] ({dt_help}); default: TR-BDF2, see the "
+                   "description")
+    p.add_argument("--theta", type=float, help="θ of the θ-method, in [0.5, 1]: 1 backward Euler (with --dt alone), "
+                   "0.5 Crank-Nicolson; default: TR-BDF2, see the description")
+
+
 def chosen_scheme(args: argparse.Namespace) -> tuple[str, float | None]:
     """The time scheme and θ that ``--dt`` and ``--theta`` choose: TR-BDF2 without either, else the θ-method."""
     if args.dt is None and args.theta is None:

@@ -23,6 +23,7 @@ import scipy.sparse as sp
 
 from hybridcomp.fem import assembly
 from hybridcomp.fem.mesh import MM, MachineMesh, mesh_machine
+from hybridcomp.fem.operators import HasOperators, ThermalOperators
 from hybridcomp.fem.solvers import solve_spd_few
 from hybridcomp.fem.stepping import DEFAULT_SCHEME, TimeTolerance, integrate_inputs
 from hybridcomp.models.layout import (
@@ -41,33 +42,26 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class ThermoElasticModel:
+class ThermoElasticModel(HasOperators):
     """Assembled operators of one machine at one pose (SI units).
 
     Attributes
     ----------
-    M : heat capacity matrix [J/K]
-    K : conduction matrix [W/K]
-    H : unit convection matrix per zone [m^2]
-    h_W_m2K : heat-transfer coefficient per zone [W/(m^2 K)]
-    B : heat distribution per input (n × m), columns sum to 1 [-]
-    C : sensor interpolation rows (s × n) [-]
+    machine : the machine it was built from
+    mesh : its mesh at the pose
+    operators : the thermal system, read through the attributes of :class:`~hybridcomp.fem.operators.HasOperators`:
+        ``M`` heat capacity [J/K], ``K`` conduction [W/K], ``H`` unit convection per zone (sparse, n × n each)
+        [m^2], ``h_W_m2K`` [W/(m^2 K)], ``B`` heat distribution per input (n × m, columns sum to 1) [-], ``Hb``
+        ``H_i 1`` per zone [m^2], ``C`` sensor interpolation rows (s × n, sparse) [-], ``input_names`` the loads
+        columns in input order, ``output_names`` the sensors
     G : drift rows dx, dy, dz of TCP minus table reference (3 × n) [m/K]
     reference_temperature_degC : the state x = 0 [°C]
     """
 
     machine: Machine
     mesh: MachineMesh
-    M: sp.csr_matrix
-    K: sp.csr_matrix
-    H: tuple[sp.csr_matrix, ...]
-    h_W_m2K: np.ndarray
-    B: np.ndarray
-    C: sp.csr_matrix
+    operators: ThermalOperators
     G: np.ndarray
-    heat_names: tuple[str, ...]
-    zone_names: tuple[str, ...]
-    sensor_names: tuple[str, ...]
     reference_temperature_degC: float
     timings_s: dict = field(default_factory=dict, compare=False)
     _cache: dict = field(default_factory=dict, compare=False, repr=False)
@@ -77,9 +71,9 @@ class ThermoElasticModel:
         return self.M.shape[0]
 
     @property
-    def input_names(self) -> tuple[str, ...]:
-        """Column names of the loads CSV this model reads, in input order."""
-        return tuple(map(power_column, self.heat_names)) + tuple(map(temperature_column, self.zone_names))
+    def sensor_names(self) -> tuple[str, ...]:
+        """The sensors, one per row of ``C``."""
+        return self.output_names
 
     @property
     def coords_m(self) -> np.ndarray:
@@ -159,18 +153,9 @@ class ThermoElasticModel:
         """
         b, names = heat_input_matrix(dataclasses.replace(self.machine, heat_sources=(source,)), self.mesh,
                                      assembly.cell_basis(self.mesh.mesh))
-        return dataclasses.replace(self, B=np.hstack([self.B, b]), heat_names=self.heat_names + names, _cache={})
-
-    def with_htc(self, **h_W_m2K: float) -> ThermoElasticModel:
-        """A copy with changed zone heat-transfer coefficients (no re-assembly)."""
-        h = self.h_W_m2K.copy()
-        for name, value in h_W_m2K.items():
-            if name not in self.zone_names:
-                raise KeyError(f"unknown zone {name!r} (zones: {self.zone_names})")
-            if not value > 0:
-                raise ValueError(f"h of zone {name!r} must be positive, got {value}")
-            h[self.zone_names.index(name)] = value
-        return dataclasses.replace(self, h_W_m2K=h, _cache={})
+        m = self.B.shape[1]
+        return self.with_operators(B=np.hstack([self.B, b]), input_names=(
+            *self.input_names[:m], *map(power_column, names), *self.input_names[m:]))
 
 
 def _material_arrays(machine: Machine, mm: MachineMesh) -> dict[str, np.ndarray]:
@@ -370,19 +355,12 @@ def build_model(
     timings["elastic_adjoint"] = time.perf_counter() - t0
     timings["elastic_backend"] = backend
     log.info("assembled %s: %d nodes, %d heat inputs, %d zones, %s", machine.name, mm.n_nodes, len(heat_names), len(H), timings)
-    return ThermoElasticModel(
-        machine=machine,
-        mesh=mm,
-        M=M,
-        K=K,
-        H=H,
-        h_W_m2K=np.array([z.h_W_m2K for z in machine.zones]),
-        B=B,
-        C=C,
-        G=G,
-        heat_names=heat_names,
-        zone_names=tuple(z.name for z in machine.zones),
-        sensor_names=tuple(s.name for s in machine.sensors),
-        reference_temperature_degC=machine.reference_temperature_degC,
-        timings_s=timings,
+    n = M.shape[0]
+    operators = ThermalOperators(
+        M=M, K=K, H=H, h_W_m2K=np.array([z.h_W_m2K for z in machine.zones]), B=B,
+        Hb=np.column_stack([Hi @ np.ones(n) for Hi in H]) if H else np.zeros((n, 0)), C=C,
+        input_names=tuple(map(power_column, heat_names)) + tuple(temperature_column(z.name) for z in machine.zones),
+        output_names=tuple(s.name for s in machine.sensors),
     )
+    return ThermoElasticModel(machine=machine, mesh=mm, operators=operators, G=G,
+                              reference_temperature_degC=machine.reference_temperature_degC, timings_s=timings)

@@ -85,6 +85,20 @@ def steady_state(model: ThermoElasticModel, u: np.ndarray) -> np.ndarray:
     return f(model.input_matrix() @ np.asarray(u, float))
 
 
+def _times_and_inputs(time_s, inputs, n_inputs: int) -> tuple[np.ndarray, np.ndarray]:
+    """``time_s`` [s] and ``inputs`` (nt × n_inputs) as float arrays, checked: times a strictly increasing vector."""
+    t = np.asarray(time_s, float)
+    U = np.asarray(inputs, float)
+    if t.ndim != 1 or t.size < 1:
+        raise ValueError("time_s must be a non-empty vector")
+    if np.any(np.diff(t) <= 0):
+        k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
+        raise ValueError(f"time_s must increase strictly; step {k} goes from {t[k - 1]} s to {t[k]} s")
+    if U.shape != (t.size, n_inputs):
+        raise ValueError(f"inputs must be ({t.size}, {n_inputs}), got {U.shape}")
+    return t, U
+
+
 def integrate_theta(
     M,
     A,
@@ -114,15 +128,7 @@ def integrate_theta(
     -------
     per output an (nt × r) array, the stored states, and timings [s]
     """
-    t = np.asarray(time_s, float)
-    U = np.asarray(inputs, float)
-    if t.ndim != 1 or t.size < 1:
-        raise ValueError("time_s must be a non-empty vector")
-    if np.any(np.diff(t) <= 0):
-        k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
-        raise ValueError(f"time_s must increase strictly; step {k} goes from {t[k - 1]} s to {t[k]} s")
-    if U.shape != (t.size, Bu.shape[1]):
-        raise ValueError(f"inputs must be ({t.size}, {Bu.shape[1]}), got {U.shape}")
+    t, U = _times_and_inputs(time_s, inputs, Bu.shape[1])
     if not 0.5 <= theta <= 1.0:
         raise ValueError(f"theta must be in [0.5, 1] for an unconditionally stable scheme, got {theta}")
     n = M.shape[0]
@@ -132,7 +138,7 @@ def integrate_theta(
     Bu = sp.csr_matrix(Bu)
     nt = t.size
     st = _loop_start(n, nt, outputs, x0, cache, store_steps)
-    products, x, cache, store, ys, fields = st.products, st.x, st.cache, st.store, st.ys, st.fields
+    x, cache, ys, fields = st.x, st.cache, st.ys, st.fields
     t_factor = t_solve = 0.0
     t0_all = time.perf_counter()
     bar = _progress_bar(progress, nt - 1, "transient")
@@ -152,16 +158,10 @@ def integrate_theta(
         ts = time.perf_counter()
         x = f(rhs)
         t_solve += time.perf_counter() - ts
-        for y, prod in zip(ys, products):
-            y[k] = prod(x)
-        if k in store:
-            fields[k] = x.copy()
+        st.record(k, x)
         if bar is not None:
             bar.update()
-    if bar is not None:
-        bar.close()
-    total = time.perf_counter() - t0_all
-    return ys, fields, {"factorisation": t_factor, "triangular_solves": t_solve, "stepping_total": total - t_factor}
+    return ys, fields, _finish(bar, t0_all, t_factor, t_solve)
 
 
 @dataclass(frozen=True)
@@ -267,6 +267,21 @@ class _LoopStart:
     ys: list
     fields: dict
 
+    def record(self, k: int, x: np.ndarray) -> None:
+        """The outputs of state ``x`` at time index ``k``, and the state itself if ``k`` is stored."""
+        for y, prod in zip(self.ys, self.products):
+            y[k] = prod(x)
+        if k in self.store:
+            self.fields[k] = x.copy()
+
+
+def _finish(bar, t0_all: float, t_factor: float, t_solve: float) -> dict:
+    """Close the progress bar; the loop's timings [s]."""
+    if bar is not None:
+        bar.close()
+    total = time.perf_counter() - t0_all
+    return {"factorisation": t_factor, "triangular_solves": t_solve, "stepping_total": total - t_factor}
+
 
 def _loop_start(n: int, nt: int, outputs, x0, cache, store_steps) -> _LoopStart:
     """The initial state (zero or ``x0``, checked), the outputs at the first time and the stored fields."""
@@ -315,15 +330,7 @@ def integrate_trbdf2(
     -------
     per output an (nt × r) array, the stored states {loads index: state}, and timings [s]
     """
-    t = np.asarray(time_s, float)
-    U = np.asarray(inputs, float)
-    if t.ndim != 1 or t.size < 1:
-        raise ValueError("time_s must be a non-empty vector")
-    if np.any(np.diff(t) <= 0):
-        k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
-        raise ValueError(f"time_s must increase strictly; step {k} goes from {t[k - 1]} s to {t[k]} s")
-    if U.shape != (t.size, Bu.shape[1]):
-        raise ValueError(f"inputs must be ({t.size}, {Bu.shape[1]}), got {U.shape}")
+    t, U = _times_and_inputs(time_s, inputs, Bu.shape[1])
     if not (isinstance(substeps, (int, np.integer)) and substeps >= 1):
         raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
     n = M.shape[0]
@@ -331,7 +338,7 @@ def integrate_trbdf2(
     M = sp.csr_matrix(M)
     nt = t.size
     st = _loop_start(n, nt, outputs, x0, cache, store_steps)
-    products, x, cache, store, ys, fields = st.products, st.x, st.cache, st.store, st.ys, st.fields
+    x, cache, ys, fields = st.x, st.cache, st.ys, st.fields
     t_factor = t_solve = 0.0
     t0_all = time.perf_counter()
     bar = _progress_bar(progress, (nt - 1) * substeps, "transient TR-BDF2")
@@ -358,14 +365,8 @@ def integrate_trbdf2(
             f_old = f_new
             if bar is not None:
                 bar.update()
-        for y, prod in zip(ys, products):
-            y[k] = prod(x)
-        if k in store:
-            fields[k] = x.copy()
-    if bar is not None:
-        bar.close()
-    total = time.perf_counter() - t0_all
-    return ys, fields, {"factorisation": t_factor, "triangular_solves": t_solve, "stepping_total": total - t_factor}
+        st.record(k, x)
+    return ys, fields, _finish(bar, t0_all, t_factor, t_solve)
 
 
 def error_bound(y_fine: np.ndarray, y_coarse: np.ndarray) -> float:

@@ -24,6 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from hybridcomp.errors import HybridcompError
+from hybridcomp.fem.operators import ThermalOperators
 from hybridcomp.models.toml import read_bytes
 from hybridcomp.rom.krylov import ReductionError, ThermalSystem
 
@@ -143,11 +144,11 @@ def system_from_matrices(mats: dict[str, object], source: str = "<matrices>") ->
     if np.any(A.diagonal() >= 0):
         raise MatrixFileError(f"{source}: variable 'A' must be negative definite, but its diagonal has entries ≥ 0")
     try:
-        return ThermalSystem(
-            M=E, K=sp.csr_matrix(-A), H=(), h=np.zeros(0), B=B, Hb=np.zeros((n, 0)), C=C,
+        return ThermalSystem(ThermalOperators(
+            M=E, K=sp.csr_matrix(-A), H=(), h_W_m2K=np.zeros(0), B=B, Hb=np.zeros((n, 0)), C=C,
             input_names=tuple(f"u{j + 1}" for j in range(B.shape[1])),
             output_names=tuple(f"y{i + 1}" for i in range(C.shape[0])),
-        )
+        ))
     except ReductionError as exc:
         raise MatrixFileError(f"{source}: {exc}") from None
 
@@ -304,8 +305,8 @@ def reduce_matrices(
     }
     if h2_tol is not None:
         meta |= {"h2_tol": h2_tol, "h2_orders_tried": [[r, e] for r, e in tried], "h2_tol_met": err <= h2_tol}
-    return ReducedModel(M=P["M"], K=P["K"], H=P["H"], h_W_m2K=np.zeros(0), B=P["B"], Hb=P["Hb"], C=P["C"],
-                        input_names=system.input_names, output_names=system.output_names,
+    return ReducedModel(ThermalOperators(M=P["M"], K=P["K"], H=P["H"], h_W_m2K=np.zeros(0), B=P["B"], Hb=P["Hb"],
+                                         C=P["C"], input_names=system.input_names, output_names=system.output_names),
                         V=red.V if keep_basis else None, meta=meta)
 
 

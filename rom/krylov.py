@@ -38,6 +38,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from hybridcomp.errors import HybridcompError
+from hybridcomp.fem.operators import HasOperators, ThermalOperators
 from hybridcomp.fem.solvers import Factor, factor_backend, factorize_spd
 
 log = logging.getLogger(__name__)
@@ -48,53 +49,35 @@ class ReductionError(HybridcompError, ValueError):
 
 
 @dataclass(frozen=True)
-class ThermalSystem:
+class ThermalSystem(HasOperators):
     """A full-order parametric thermal system (SI units).
 
     Attributes
     ----------
-    M : capacity matrix, symmetric positive definite (n × n) [J/K]
-    K : conduction matrix, symmetric (n × n) [W/K]
-    H : unit convection matrix per zone (n × n each) [m^2]
-    h : nominal heat-transfer coefficient per zone (z,) [W/(m^2 K)]
-    B : heat input columns (n × m) [-]
-    Hb : ``H_i 1`` per zone (n × z) [m^2]; input ``m + i`` is the air temperature rise of zone i [K]
-    C : output rows (q × n), in output units per kelvin
-    input_names, output_names : names of the inputs and outputs
+    operators : the system, read through the attributes of :class:`~hybridcomp.fem.operators.HasOperators`:
+        ``M`` capacity, symmetric positive definite (n × n, sparse) [J/K], ``K`` conduction, symmetric (n × n,
+        sparse) [W/K], ``H`` unit convection per zone (sparse, n × n each) [m^2], ``h_W_m2K`` nominal
+        heat-transfer coefficient per zone (z,) [W/(m^2 K)] (also ``h``), ``B`` heat input columns (n × m) [-],
+        ``Hb`` ``H_i 1`` per zone (n × z) [m^2], ``C`` output rows (q × n, dense) in output units per kelvin,
+        ``input_names`` and ``output_names``
     coords : (n, 3) node coordinates for the fill-reducing ordering, or None
     """
 
-    M: sp.csr_matrix
-    K: sp.csr_matrix
-    H: tuple[sp.csr_matrix, ...]
-    h: np.ndarray
-    B: np.ndarray
-    Hb: np.ndarray
-    C: np.ndarray
-    input_names: tuple[str, ...]
-    output_names: tuple[str, ...]
+    operators: ThermalOperators
     coords: np.ndarray | None = None
 
     def __post_init__(self):
-        n = self.M.shape[0]
-        checks = [
-            ("M", self.M.shape, (n, n)),
-            ("K", self.K.shape, (n, n)),
-            ("B", self.B.shape[0], n),
-            ("Hb", self.Hb.shape, (n, len(self.H))),
-            ("h", np.shape(self.h), (len(self.H),)),
-            ("C", self.C.shape[1], n),
-            ("input_names", len(self.input_names), self.B.shape[1] + len(self.H)),
-            ("output_names", len(self.output_names), self.C.shape[0]),
-        ]
-        checks += [(f"H[{i}]", Hi.shape, (n, n)) for i, Hi in enumerate(self.H)]
-        for name, got, want in checks:
-            if got != want:
-                raise ReductionError(f"system field {name!r} has shape {got}, expected {want}")
+        for name, got, want in self.operators.shape_problems():
+            raise ReductionError(f"system field {name!r} has shape {got}, expected {want}")
 
     @property
     def n(self) -> int:
         return self.M.shape[0]
+
+    @property
+    def h(self) -> np.ndarray:
+        """Nominal heat-transfer coefficient per zone (z,) [W/(m^2 K)]."""
+        return self.h_W_m2K
 
     def stiffness(self, h: np.ndarray) -> sp.csr_matrix:
         """K + Σ h_i H_i [W/K]."""

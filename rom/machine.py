@@ -7,7 +7,6 @@ TCP-minus-table drifts dx, dy, dz [m]; :func:`split_outputs` turns them into
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from hybridcomp.fem.operators import ThermalOperators
 from hybridcomp.models.layout import DRIFT_OUTPUTS, LoadsColumnError
 from hybridcomp.rom.krylov import ExpansionPoint, Reduction, Reductor, ThermalSystem, orthonormal_extension, project
 from hybridcomp.rom.reduced import ReducedModel, RomInputError
@@ -30,15 +30,12 @@ def system_from_model(model) -> ThermalSystem:
 
     Outputs are the sensor rows ``C`` [K/K] and the drift rows ``G`` [m/K].
     """
-    n = model.n
-    Hb = np.column_stack([H @ np.ones(n) for H in model.H]) if model.H else np.zeros((n, 0))
     C = np.vstack([model.C.toarray() if sp.issparse(model.C) else np.asarray(model.C), np.asarray(model.G)])
-    return ThermalSystem(
+    return ThermalSystem(ThermalOperators(
         M=sp.csr_matrix(model.M), K=sp.csr_matrix(model.K), H=tuple(sp.csr_matrix(H) for H in model.H),
-        h=np.asarray(model.h_W_m2K, float), B=np.asarray(model.B, float), Hb=Hb, C=C,
+        h_W_m2K=np.asarray(model.h_W_m2K, float), B=np.asarray(model.B, float), Hb=np.asarray(model.Hb, float), C=C,
         input_names=tuple(model.input_names), output_names=tuple(model.sensor_names) + DRIFT_NAMES,
-        coords=model.coords_m,
-    )
+    ), coords=model.coords_m)
 
 
 def h_samples(h_nominal: np.ndarray, h_range: tuple[float, float], n_random: int = 4, seed: int = 0) -> np.ndarray:
@@ -65,9 +62,9 @@ def to_reduced(system: ThermalSystem, red: Reduction, meta: dict, keep_basis: bo
     P = project(system, red.V)
     D, names = (None, ()) if disturbances is None else (red.V.T @ disturbances[0], tuple(disturbances[1]))
     return ReducedModel(
-        M=P["M"], K=P["K"], H=P["H"], h_W_m2K=np.asarray(system.h, float), B=P["B"], Hb=P["Hb"], C=P["C"],
-        input_names=system.input_names, output_names=system.output_names, V=red.V if keep_basis else None,
-        D=D, disturbance_names=names, meta=meta,
+        ThermalOperators(M=P["M"], K=P["K"], H=P["H"], h_W_m2K=np.asarray(system.h, float), B=P["B"], Hb=P["Hb"],
+                         C=P["C"], input_names=system.input_names, output_names=system.output_names),
+        V=red.V if keep_basis else None, D=D, disturbance_names=names, meta=meta,
     )
 
 
@@ -327,7 +324,7 @@ def reduce_model(
 
     def checks(V, theta=check_theta):
         rom = to_reduced(system, Reduction(V, (), 0.0, ()), base_meta, keep_basis=False)
-        return [compare(dataclasses.replace(rom, h_W_m2K=h, _cache={}), loads.time_s, U, ref, theta)
+        return [compare(rom.with_operators(h_W_m2K=h), loads.time_s, U, ref, theta)
                 for h, ref in zip(check_h, fe)]
 
     def accept(V):

@@ -32,6 +32,7 @@ import scipy.linalg as la
 
 from hybridcomp.fem.drives import build_screw, scale_line
 from hybridcomp.fem.iso230 import axis_sign
+from hybridcomp.fem.operators import ThermalOperators
 from hybridcomp.fem.poses import PoseGrid, carry_field, pose_grid
 from hybridcomp.models.layout import DRIFT_OUTPUTS
 from hybridcomp.rom.krylov import Reductor, orthonormal_extension, project
@@ -123,9 +124,9 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     meta = {**rom.meta, "poses": grid.as_dict() | {"orders": orders, "enrich": enrich,
                                                    "build_s": time.perf_counter() - t0},
             "feedback": feedback}
-    return ReducedModel(M=M, K=K, H=H, h_W_m2K=np.asarray(rom.h_W_m2K, float), B=B, Hb=Hb, C=C,
-                        input_names=rom.input_names,
-                        output_names=tuple(rom.output_names) + mid_names + tuple(names), meta=meta)
+    return ReducedModel(ThermalOperators(M=M, K=K, H=H, h_W_m2K=np.asarray(rom.h_W_m2K, float), B=B, Hb=Hb, C=C,
+                                         input_names=rom.input_names,
+                                         output_names=tuple(rom.output_names) + mid_names + tuple(names)), meta=meta)
 
 
 def pose_block(model, V_mid: np.ndarray, pose_mm: dict, enrich: int, tol: np.ndarray, scale: np.ndarray,

@@ -20,7 +20,6 @@ steps a week at 1 s in well under a second.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import logging
@@ -31,6 +30,7 @@ import numpy as np
 import scipy.linalg as la
 
 from hybridcomp.errors import HybridcompError
+from hybridcomp.fem.operators import HasOperators, ThermalOperators
 from hybridcomp.models import jsonio
 from hybridcomp.models.layout import InputLayout, Loads, LoadsColumnError, layout_from_names
 from hybridcomp.models.simulation import SimulationResult, initial_state
@@ -113,20 +113,17 @@ def _g_coefficients(lam: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray,
 
 
 @dataclass(frozen=True)
-class ReducedModel:
+class ReducedModel(HasOperators):
     """A reduced thermal model with convection affine in ``h`` (SI units).
 
     Attributes
     ----------
-    M : reduced capacity (r × r) [J/K]
-    K : reduced conduction (r × r) [W/K]
-    H : reduced unit convection per zone (z × r × r) [m^2]
-    h_W_m2K : heat-transfer coefficient per zone (z,) [W/(m^2 K)]
-    B : reduced heat input columns (r × m) [-]
-    Hb : reduced ``H_i 1`` per zone (r × z) [m^2]
-    C : reduced output rows (q × r); outputs are temperature rises [K] or drifts [m]
-    input_names : loads column per input (``*_W`` powers, ``*_degC`` zone air)
-    output_names : name per output
+    operators : the reduced system, read through the attributes of :class:`~hybridcomp.fem.operators.HasOperators`:
+        ``M`` reduced capacity (r × r) [J/K], ``K`` reduced conduction (r × r) [W/K], ``H`` reduced unit
+        convection per zone (z × r × r) [m^2], ``h_W_m2K`` heat-transfer coefficient per zone (z,) [W/(m^2 K)],
+        ``B`` reduced heat input columns (r × m) [-], ``Hb`` reduced ``H_i 1`` per zone (r × z) [m^2], ``C``
+        reduced output rows (q × r; outputs are temperature rises [K] or drifts [m]), ``input_names`` the loads
+        column per input (``*_W`` powers, ``*_degC`` zone air), ``output_names`` the name per output
     V : basis (n × r) for reconstructing the full field, or None
     D : reduced disturbance heat columns (r × d): heat the model does not know, as shapes for a state observer
         (:meth:`hybridcomp.fem.model.ThermoElasticModel.disturbance_columns`), [-] per W; None: none
@@ -134,15 +131,7 @@ class ReducedModel:
     meta : provenance (machine, hash, pose, expansion points, achieved errors)
     """
 
-    M: np.ndarray
-    K: np.ndarray
-    H: np.ndarray
-    h_W_m2K: np.ndarray
-    B: np.ndarray
-    Hb: np.ndarray
-    C: np.ndarray
-    input_names: tuple[str, ...]
-    output_names: tuple[str, ...]
+    operators: ThermalOperators
     V: np.ndarray | None = None
     D: np.ndarray | None = None
     disturbance_names: tuple[str, ...] = ()
@@ -151,19 +140,10 @@ class ReducedModel:
 
     def __post_init__(self):
         r = self.M.shape[0]
-        z = len(self.h_W_m2K)
-        for name, got, want in [
-            ("M", self.M.shape, (r, r)),
-            ("K", self.K.shape, (r, r)),
-            ("H", self.H.shape, (z, r, r)),
-            ("B", self.B.shape[0], r),
-            ("Hb", self.Hb.shape, (r, z)),
-            ("C", self.C.shape[1], r),
-            ("input_names", len(self.input_names), self.B.shape[1] + z),
-            ("output_names", len(self.output_names), self.C.shape[0]),
-        ]:
-            if got != want:
-                raise RomInputError(f"reduced model field {name!r} has shape {got}, expected {want}")
+        if np.ndim(self.H) != 3:
+            raise RomInputError(f"reduced model field 'H' has shape {np.shape(self.H)}, expected (zones, {r}, {r})")
+        for name, got, want in self.operators.shape_problems():
+            raise RomInputError(f"reduced model field {name!r} has shape {got}, expected {want}")
         if self.V is not None and self.V.shape[1] != r:
             raise RomInputError(f"reduced model field 'V' has {self.V.shape[1]} columns, expected {r}")
         d = 0 if self.D is None else self.D.shape[1]
@@ -189,28 +169,6 @@ class ReducedModel:
                 hsh.update(np.ascontiguousarray(a, dtype=float).tobytes())
             self._cache["rom_id"] = hsh.hexdigest()[:16]
         return self._cache["rom_id"]
-
-    def with_htc(self, **h_W_m2K: float) -> ReducedModel:
-        """A copy with changed zone heat-transfer coefficients [W/(m^2 K)] (no new reduction).
-
-        Zones are named as in ``input_names`` without ``_degC``.  Outside the
-        range the basis was enriched for (``meta['h_range']``) the model stays
-        stable but its error is not controlled.
-        """
-        zones = self.zone_names
-        h = np.array(self.h_W_m2K, float)
-        for name, value in h_W_m2K.items():
-            if name not in zones:
-                raise KeyError(f"unknown zone {name!r} (zones: {zones})")
-            if not value > 0:
-                raise ValueError(f"h of zone {name!r} must be positive, got {value}")
-            h[zones.index(name)] = value
-        return dataclasses.replace(self, h_W_m2K=h, _cache={})
-
-    @property
-    def zone_names(self) -> tuple[str, ...]:
-        z = len(self.h_W_m2K)
-        return tuple(n.removesuffix("_degC") for n in self.input_names[len(self.input_names) - z:]) if z else ()
 
     # -- operators -------------------------------------------------------------------------------
     def stiffness(self) -> np.ndarray:
@@ -466,8 +424,9 @@ def load_rom(path: str | Path, machine=None) -> ReducedModel:
                 f"but machine file {machine.source} has sha256 {machine.sha256!r}; reduce it again"
             )
     rom = ReducedModel(
-        M=data["M"], K=data["K"], H=data["H"], h_W_m2K=data["h_W_m2K"], B=data["B"], Hb=data["Hb"], C=data["C"],
-        input_names=tuple(meta["input_names"]), output_names=tuple(meta["output_names"]), V=data.get("V"),
+        ThermalOperators(M=data["M"], K=data["K"], H=data["H"], h_W_m2K=data["h_W_m2K"], B=data["B"], Hb=data["Hb"],
+                         C=data["C"], input_names=tuple(meta["input_names"]), output_names=tuple(meta["output_names"])),
+        V=data.get("V"),
         D=data.get("D"), disturbance_names=tuple(meta.get("disturbance_names", ())) if "D" in data else (), meta=meta,
     )
     if rom.rom_id != meta.get("rom_id"):

@@ -25,6 +25,7 @@ from hybridcomp.fem.loads import (
     write_loads,
 )
 from hybridcomp.fem.model import build_model
+from hybridcomp.fem.operators import ThermalOperators
 from hybridcomp.fem.stepping import steady_state
 from hybridcomp.models import load_machine
 from hybridcomp.models.machine import resolve_machine_path
@@ -178,9 +179,9 @@ def test_changed_h_within_range_stays_within_tolerance(model, rom, loads):
 # -- exact stepping -------------------------------------------------------------------------------------
 def one_mode(c=2.0e4, k=4.0) -> ReducedModel:
     """One lumped mass: c T' = -k T + q, output T."""
-    return ReducedModel(M=np.array([[c]]), K=np.array([[k]]), H=np.zeros((0, 1, 1)), h_W_m2K=np.zeros(0),
-                        B=np.array([[1.0]]), Hb=np.zeros((1, 0)), C=np.array([[1.0]]), input_names=("q_W",),
-                        output_names=("T",))
+    return ReducedModel(ThermalOperators(M=np.array([[c]]), K=np.array([[k]]), H=np.zeros((0, 1, 1)),
+                                         h_W_m2K=np.zeros(0), B=np.array([[1.0]]), Hb=np.zeros((1, 0)),
+                                         C=np.array([[1.0]]), input_names=("q_W",), output_names=("T",)))
 
 
 def test_exact_stepping_matches_the_analytic_ramp_response_at_any_step():
@@ -404,9 +405,9 @@ def small_system(model, n=240):
     system = system_from_model(model)
     V = Reductor(system, np.ones(11), np.ones(40), system.h[None, :], n_s=10, fastest_time_s=5.0).reduce(order=n).V
     P = project(system, V)
-    return ThermalSystem(M=sp.csr_matrix(P["M"]), K=sp.csr_matrix(P["K"]), H=tuple(sp.csr_matrix(H) for H in P["H"]),
-                         h=system.h, B=P["B"], Hb=P["Hb"], C=P["C"], input_names=system.input_names,
-                         output_names=system.output_names)
+    return ThermalSystem(ThermalOperators(
+        M=sp.csr_matrix(P["M"]), K=sp.csr_matrix(P["K"]), H=tuple(sp.csr_matrix(H) for H in P["H"]), h_W_m2K=system.h,
+        B=P["B"], Hb=P["Hb"], C=P["C"], input_names=system.input_names, output_names=system.output_names))
 
 
 @pytest.fixture(scope="module")
