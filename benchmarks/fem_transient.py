@@ -49,7 +49,7 @@ def one_run(target_nodes: int, hours: float, dt_s: float) -> dict:
         h -= 1.0
     model = build_model(machine, None, h)
     loads = example_loads(machine, hours, dt_s)
-    res = simulate(model, loads.time_s, loads.as_inputs(machine.reference_temperature_degC))
+    res = simulate(model, loads.time_s, machine.layout().inputs(loads))
     wall = time.perf_counter() - t_all
     cpu = time.process_time() - cpu_all
     # the bare triangular solves: the same factor, the same number of right-hand sides, nothing else

@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     heat_J = {}
     for inc_s in INCREMENTS_S:
         loads = full_inputs(m, boundary_conditions(m, increments_from_motion(m, motion, inc_s, air_degC=air), a.power))
-        res = simulate(model, loads.time_s, loads.as_inputs(m.reference_temperature_degC))
+        res = simulate(model, loads.time_s, m.layout().inputs(loads))
         drift_at_hours[inc_s] = np.column_stack([np.interp(hours_s, res.time_s, res.drift_um[:, j]) for j in range(3)])
         w = [j for j, c in enumerate(loads.names) if c.endswith("_W")]
         heat_J[inc_s] = float(np.sum(loads.values[1:, w].sum(axis=1) * np.diff(loads.time_s)))

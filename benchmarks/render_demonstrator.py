@@ -26,7 +26,7 @@ def main(argv=None) -> int:
     m = load_machine("vmc800")
     model = build_model(m, None, a.element_size_mm)
     loads = example_loads(m, 16.0, 60.0)
-    res = simulate(model, loads.time_s, loads.as_inputs(m.reference_temperature_degC), store_steps=(len(loads.time_s) - 1,),
+    res = simulate(model, loads.time_s, m.layout().inputs(loads), store_steps=(len(loads.time_s) - 1,),
                    progress=True)
     render_png(model, res.fields_K[len(loads.time_s) - 1], a.out,
                title=f"vmc800 after the 16 h example day ({model.n} nodes), mid travel")

@@ -264,8 +264,8 @@ def simulate_load_cases(
     cases : load cases by name
     pose_mm : pose of the FE model (default mid travel); the positions of loads-only cases
     element_size_mm : FE element size [mm] (default: the machine file's)
-    dt_s : FE time step [s] (the loads are interpolated onto it; outputs are taken at the loads rows);
-        None: the loads rows themselves
+    dt_s : FE time step [s] (the loads resampled with :meth:`~hybridcomp.models.layout.Loads.resample`, the
+        outputs interpolated linearly at the loads rows); None: the loads rows themselves
     theta : θ-method (0.5 Crank–Nicolson, 1 backward Euler)
     model : an already built ``ThermoElasticModel`` of the same machine and pose (reused; serial run)
     progress : show a progress bar
@@ -285,13 +285,13 @@ def simulate_load_cases(
             model = build_model(machine, pose, element_size_mm)
         for name, L in full.items():
             t = L.time_s
-            tt = np.union1d(np.arange(t[0], t[-1], dt_s), t) if dt_s is not None else t
-            U = L.as_inputs(machine.reference_temperature_degC)
-            Ut = np.column_stack([np.interp(tt, t, U[:, j]) for j in range(U.shape[1])])
+            R = L.resample(dt_s) if dt_s is not None else L
+            tt, Ut = R.time_s, machine.layout().inputs(R)
             log.info("load case %s: %d steps", name, len(tt) - 1)
             res = simulate(model, tt, Ut, theta=theta, initial="steady", progress=progress)
-            pick = np.searchsorted(tt, t)
-            outputs[name] = (model.sensor_names, res.sensors_degC[pick], res.drift_um[pick])
+            sens = np.column_stack([np.interp(t, tt, res.sensors_degC[:, j]) for j in range(len(model.sensor_names))])
+            drift = np.column_stack([np.interp(t, tt, res.drift_um[:, j]) for j in range(3)])
+            outputs[name] = (model.sensor_names, sens, drift)
     else:
         from hybridcomp.fem.batch import run_batch
 

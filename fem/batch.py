@@ -62,7 +62,6 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.loads import Loads, LoadsFileError, in_model_order, input_columns, read_loads, write_outputs
 from hybridcomp.models.layout import LoadsColumnError
 from hybridcomp.models.machine import Machine
@@ -223,9 +222,9 @@ def run_case(spec: ModelSpec, options: SimulationOptions, name: str, loads: Load
                     os.environ["MALLOC_TRIM_THRESHOLD_"])
     model, built, lock = cached_model(spec)
     if options.dt_s is not None:
-        loads = resample(loads, options.dt_s)
+        loads = loads.resample(options.dt_s)
     with lock:  # the model's factorisation cache is not shared between threads of one worker
-        res = simulate(model, loads.time_s, loads.as_inputs(model.reference_temperature_degC), theta=options.theta,
+        res = simulate(model, loads.time_s, model.layout().inputs(loads), theta=options.theta,
                        initial=options.initial)
     return CaseResult(
         name=name,

@@ -14,44 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
+from hybridcomp.fem.loads import LoadsFileError, read_loads, write_outputs
 from hybridcomp.fem.timestep import DEFAULT_TOLERANCE, TimeTolerance
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.pose import parse_pose
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, write_text_atomic
 
 log = logging.getLogger(__name__)
-
-
-def parse_pairs(text: str | None, what: str) -> dict[str, float]:
-    """``"X=100,Y=-50"`` → {"X": 100.0, "Y": -50.0}; errors name the option ``what`` and the bad part."""
-    if not text:
-        return {}
-    out = {}
-    for part in text.split(","):
-        if "=" not in part:
-            raise ValueError(f"{what}: {part!r} is not NAME=VALUE")
-        k, v = part.split("=", 1)
-        try:
-            out[k.strip()] = float(v)
-        except ValueError:
-            raise ValueError(f"{what}: value {v!r} of {k.strip()!r} is not a number") from None
-    return out
-
-
-def parse_pose(text: str | None) -> dict[str, float]:
-    """``"X=100,Y=-50"`` → {"X": 100.0, "Y": -50.0} [mm]."""
-    return parse_pairs(text, "--pose")
-
-
-def resample(loads: Loads, dt_s: float) -> Loads:
-    """Loads at a uniform step ``dt_s`` [s] by linear interpolation (the end time is kept)."""
-    t0, t1 = loads.time_s[0], loads.time_s[-1]
-    t = np.arange(t0, t1, dt_s)
-    t = np.append(t, t1) if t1 - t[-1] > 1e-9 * max(1.0, abs(t1)) else t
-    values = np.column_stack([np.interp(t, loads.time_s, loads.values[:, j]) for j in range(loads.values.shape[1])])
-    return Loads(t, values, loads.names)
 
 
 def time_tolerance(args: argparse.Namespace) -> TimeTolerance | None:
@@ -148,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         if args.dt is not None:
             if not args.dt > 0:
                 raise ValueError(f"--dt must be positive, got {args.dt}")
-            loads = resample(loads, args.dt)
+            loads = loads.resample(args.dt)
         if len(loads.time_s) < 2:
             raise LoadsFileError(f"{args.loads}: needs at least two rows (a start and an end time)")
         if args.element_size_mm is not None and not args.element_size_mm > 0:
@@ -180,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     nt = len(loads.time_s)
     store = stored_steps(args, nt)
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     if tolerance is not None:
         from hybridcomp.fem.timestep import simulate_controlled
 

@@ -36,7 +36,7 @@ import numpy as np
 from hybridcomp.errors import HybridcompError
 from hybridcomp.metrics import DIRS, drift_metrics, largest_step_um, metrics_table
 from hybridcomp.models import jsonio
-from hybridcomp.models.layout import PROBE_COLUMNS
+from hybridcomp.models.layout import PROBE_COLUMNS, in_model_order
 from hybridcomp.models.toml import open_text
 
 log = logging.getLogger(__name__)
@@ -260,16 +260,6 @@ class ScenarioResult:
     summary: dict
 
 
-def _resample_loads(loads, machine, dt_s: float):
-    from hybridcomp.fem.loads import Loads, in_model_order
-
-    L = in_model_order(loads, machine)
-    t = np.arange(L.time_s[0], L.time_s[-1] + 0.5 * dt_s, dt_s)
-    t = t[t <= L.time_s[-1] + 1e-9]
-    V = np.column_stack([np.interp(t, L.time_s, L.values[:, j]) for j in range(L.values.shape[1])])
-    return Loads(t, V, L.names)
-
-
 def planted_air(machine, loads, d: Disturbance):
     """The loads with the disturbance's air: workspace zones warmer (ramped in over 2 h), every zone swinging."""
     from hybridcomp.fem.loads import Loads
@@ -359,13 +349,14 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     t_end = (day_hours or JOBSHOP_HOURS) * 3600.0
     controller = out / "jobshop_controller_trace.csv"
     _write_trace(files["jobshop_trace.csv"], controller, trace_rate_hz, t_end=t_end)
-    loads = _resample_loads(boundary_conditions(machine, increments_from_trace(controller, machine, dt_s)), machine, dt_s)
+    loads = in_model_order(boundary_conditions(machine, increments_from_trace(controller, machine, dt_s)),
+                           machine).resample(dt_s)
     real_model = model if real_machine.sha256 == machine.sha256 else build_model(real_machine, pose, element_size_mm)
-    real_loads = _resample_loads(boundary_conditions(real_machine, increments_from_trace(controller, real_machine,
-                                                                                         real_dt_s)),
-                                 real_machine, real_dt_s)
+    real_loads = in_model_order(boundary_conditions(real_machine, increments_from_trace(controller, real_machine,
+                                                                                        real_dt_s)),
+                                real_machine).resample(real_dt_s)
     real_loads = planted_air(real_machine, real_loads, disturbance)
-    res = simulate(real_model, real_loads.time_s, real_loads.as_inputs(real_machine.reference_temperature_degC),
+    res = simulate(real_model, real_loads.time_s, real_machine.layout().inputs(real_loads),
                    theta=0.5)
     t = loads.time_s
     truth = np.column_stack([np.interp(t, res.time_s, res.drift_um[:, j]) for j in range(3)])

@@ -26,7 +26,7 @@ def test_missing_columns_mean_zero_power_and_reference_temperature(machine, tmp_
     assert not loads.values[:, others].any()
     np.testing.assert_array_equal(loads.values[:, loads.names.index("ambient_degC")], [21, 22])
     np.testing.assert_array_equal(loads.values[:, loads.names.index("floor_degC")], [20, 20])
-    U = loads.as_inputs(20.0)
+    U = machine.layout().inputs(loads)
     np.testing.assert_array_equal(U[:, loads.names.index("ambient_degC")], [1, 2])
 
 
@@ -147,7 +147,7 @@ def test_xdmf_time_series_round_trip(machine, tmp_path):
 
     model = build_model(machine, None, 200.0)
     loads = example_loads(machine, duration_h=1.0, dt_s=600.0)
-    res = simulate(model, loads.time_s, loads.as_inputs(20.0), store_steps=(0, 3, 6))
+    res = simulate(model, loads.time_s, machine.layout().inputs(loads), store_steps=(0, 3, 6))
     (path,) = write_fields(model, tmp_path, res.fields_K, res.time_s, fmt="xdmf", with_displacement=False)
     with meshio.xdmf.TimeSeriesReader(path) as r:
         points, cells = r.read_points_cells()
