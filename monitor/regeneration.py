@@ -161,7 +161,7 @@ def forecast_scenarios(machine, loads_names, loads_inputs, horizon_h: float) -> 
             continue
         u = drives.setdefault(driver, np.zeros(nh))
         cols = list(layout.source_columns(src.name))
-        u[cols] = src.power_W * BASIC_FACTOR ** src.exponent / len(cols)
+        u[cols] = machine.source_power_W(src, BASIC_FACTOR) / len(cols)
     out |= {f"{d} alone": held(u) for d, u in drives.items()}
     return out
 
