@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from hybridcomp import __version__
+from hybridcomp._version import __version__
 from hybridcomp.chardiag.cd import DIRECTIONS, TARGETS, CDError, CDInput, CharDiagram, Term, _term_weights
 from hybridcomp.errors import HybridcompError
 

@@ -320,7 +320,7 @@ def check_loads(loads: Loads, source: str = "loads") -> Loads:
 
     Times must be finite, within ±:data:`MAX_TIME_S`, strictly increasing and span at most
     :data:`MAX_SPAN_S`; a power negative only by round-off is set to 0.  For loads made in memory
-    (rows counted from 1); :func:`hybridcomp.fem.loads.read_loads` makes the same checks naming
+    (rows counted from 1); :func:`hybridcomp.models.loads.read_loads` makes the same checks naming
     the file's lines.
 
     Raises
