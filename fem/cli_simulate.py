@@ -106,8 +106,12 @@ def output_files(args: argparse.Namespace, nt: int) -> list[str]:
     return files
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run ``hybridcomp simulate``; returns the exit code (2: bad input, named on stderr)."""
+def run(args: argparse.Namespace, reduced=None) -> int:
+    """Run ``hybridcomp simulate``; returns the exit code (2: bad input, named on stderr).
+
+    ``reduced(args, machine, pose, loads) -> int`` runs the checked inputs on ``--rom``'s reduced model
+    (:func:`hybridcomp.rom.cli_simulate.run_rom`, which the ``simulate`` subcommand passes; fem knows no rom).
+    """
     bad = refuse_unused(args, [("field_format", args.fields <= 0, "applies with --fields N only")])
     if bad:
         print(f"error: {bad}", file=sys.stderr)
@@ -133,9 +137,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if getattr(args, "rom", None) is not None:
-        from hybridcomp.rom.cli_simulate import run_rom
-
-        return run_rom(args, machine, pose, loads)
+        if reduced is None:
+            raise TypeError("--rom needs the reduced-model path: run(args, reduced=hybridcomp.rom.cli_simulate.run_rom)")
+        return reduced(args, machine, pose, loads)
 
     from hybridcomp.fem.model import build_model
     from hybridcomp.fem.transient import simulate, solver_backends
