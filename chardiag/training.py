@@ -36,8 +36,8 @@ from hybridcomp.histogram.gcode import increments_from_motion, parse_gcode
 from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S, Increments, increments_from_trace
 from hybridcomp.histogram.scenarios import basic_programs, jobshop_ambient, jobshop_program
 from hybridcomp.histogram.signature import signatures
-from hybridcomp.histogram.trace import AMBIENT
-from hybridcomp.models.layout import DRIFT_COLUMNS
+from hybridcomp.histogram.trace import AMBIENT, position_column
+from hybridcomp.models.layout import DRIFT_COLUMNS, temperature_column
 from hybridcomp.models.machine import Machine
 from hybridcomp.models.toml import open_text, read_text
 
@@ -311,10 +311,10 @@ def simulate_load_cases(
         rows_case += [name] * len(t)
         block = {"time_s": t.copy()}
         for j, s in enumerate(sensor_names):
-            block[f"{s}_degC"] = sensors[:, j]
+            block[temperature_column(s)] = sensors[:, j]
         pos = case.positions_mm if case.positions_mm is not None else np.tile([pose[a] for a in axes], (len(t), 1))
         for j, a in enumerate(axes):
-            block[f"{a.lower()}_mm"] = pos[:, j]
+            block[position_column(a)] = pos[:, j]
         for j, d in enumerate(DRIFT_COLUMNS):
             block[d] = drift[:, j]
         for k, v in block.items():

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from hybridcomp.models.cli import refuse_unused
+from hybridcomp.models.layout import temperature_column
 from hybridcomp.models.machine import MachineFileError, bundled_machines, load_machine
 
 
@@ -35,8 +36,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"  bodies: {', '.join(b.name for b in m.bodies)}")
     for a in m.axes:
         print(f"  axis {a.name}: {'xyz'[a.direction]}, travel {a.travel_mm} mm, {a.n_segments} segments, moves {a.moves}")
-    print(f"  heat inputs ({len(m.heat_inputs())}): {', '.join(f'{q}_W' for q in m.heat_inputs())}")
-    print(f"  zones: {', '.join(f'{z.name}_degC (h = {z.h_W_m2K} W/m2K, {z.air})' for z in m.zones)}")
+    print(f"  heat inputs ({len(m.heat_inputs())}): {', '.join(m.layout().heat_columns)}")
+    print(f"  zones: {', '.join(f'{temperature_column(z.name)} (h = {z.h_W_m2K} W/m2K, {z.air})' for z in m.zones)}")
     print(f"  sensors: {', '.join(s.name + '@' + s.body for s in m.sensors)}")
     for d in m.drives:
         where = f"scale on {d.scale_body}, {d.scale_expansion_1_K:g} 1/K" if d.feedback == "linear_scale" else \
