@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     rom = prepare_model(machine, model=model, order=args.order, check_loads=example_loads(machine, 4.0, 60.0))
     t_prepare = time.perf_counter() - t0
     loads = example_loads(machine, 24.0 * args.days, args.dt)
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     if args.case == "htc":
         Y = rom.with_htc(ws_table=14.0).integrate(loads.time_s, U)[0]
     elif args.case == "located":

@@ -39,7 +39,6 @@ sys.path.insert(0, str(Path(__file__).parent))
 from hybridcomp.diagnose import Dataset, diagnose, prepare_model
 from hybridcomp.diagnose.data import parse_split
 from hybridcomp.diagnose.problem import build_problem, first_order_lag
-from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.stepping import integrate_inputs
 from hybridcomp.histogram.scenarios import jobshop_loads
@@ -189,7 +188,7 @@ FORMS = ("on/off", "on/off", "proportional", "power law", "constant", "switched 
 
 
 def make_case(kind, machine, fe, loads, rng, h_mm, activity=None) -> Case:
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     if kind == "null":
         s, d = _fe(fe, loads, U)
         return Case(kind, "nothing planted", [], s, d, {}, ())
@@ -315,7 +314,7 @@ def main(argv=None) -> int:
     p.add_argument("--dt", type=float, default=120.0, help="sampling of the day [s]")
     a = p.parse_args(argv)
     machine = load_machine("vmc800")
-    loads = resample(jobshop_loads(machine), a.dt)
+    loads = jobshop_loads(machine).resample(a.dt)
     fe = build_model(machine, None, a.element_size_mm)
     t0 = time.perf_counter()
     rom = prepare_model(machine, model=fe, order=150)

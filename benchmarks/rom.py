@@ -75,7 +75,7 @@ def pymor_check(model, orders: list[int], irka_maxit: int = 50, input_scaling: s
     h = system.h
     w = np.r_[np.full(len(model.sensor_names), 1 / 0.05), np.full(3, 1e6 / 0.2)]
     if input_scaling == "range":
-        U = example_loads(model.machine, 16.0, 60.0).as_inputs(model.machine.reference_temperature_degC)
+        U = model.machine.layout().inputs(example_loads(model.machine, 16.0, 60.0))
         scale = np.abs(U).max(axis=0)
         scale[scale == 0] = 1.0
     else:
@@ -196,7 +196,7 @@ def speed_child(path: str, hours: float, repeats: int) -> dict:
     machine = load_machine("vmc800")
     rom = load_rom(path, machine)
     loads = example_loads(machine, hours, 60.0)
-    t, U = loads.time_s, loads.as_inputs(machine.reference_temperature_degC)
+    t, U = loads.time_s, machine.layout().inputs(loads)
     rom.integrate(t, U)  # discretisation cached, as in the monitor's steady operation
     runs = []
     for _ in range(repeats):
@@ -210,7 +210,7 @@ def speed_child(path: str, hours: float, repeats: int) -> dict:
         x = rom.step(x, U[k % len(t)], U[(k + 1) % len(t)], 60.0)
     one_step_us = (time.perf_counter() - t0) / n_steps * 1e6
     week = example_loads(machine, 168.0, 1.0)
-    Uw = week.as_inputs(machine.reference_temperature_degC)
+    Uw = machine.layout().inputs(week)
     week_runs = []
     for _ in range(max(1, repeats // 2)):
         t0 = time.perf_counter()
@@ -271,7 +271,7 @@ def main(argv=None) -> int:
     model = build_model(machine, None, args.element_size_mm)
     result.update(nodes=model.n, element_size_mm=args.element_size_mm, build_s=time.perf_counter() - t0)
     loads = example_loads(machine, args.hours, 60.0)
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     t = loads.time_s
 
     # -- reduction to the tolerances -----------------------------------------------------------------

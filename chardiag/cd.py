@@ -30,7 +30,8 @@ from functools import cached_property
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.layout import DIRECTIONS, TEMPERATURE_RANGE_DEGC, control_character
+from hybridcomp.histogram.trace import position_column
+from hybridcomp.models.layout import DIRECTIONS, TEMPERATURE_RANGE_DEGC, control_character, temperature_column
 
 TARGETS = {"X": "dx_um", "Y": "dy_um", "Z": "dz_um"}
 UNITS = ("degC", "mm")
@@ -73,7 +74,7 @@ class CDInput:
     @property
     def column(self) -> str:
         """Its column in a training table: ``T3_degC``, ``x_mm``."""
-        return f"{self.name}_degC" if self.unit == "degC" else f"{self.name.lower()}_mm"
+        return temperature_column(self.name) if self.unit == "degC" else position_column(self.name)
 
     def grid(self) -> np.ndarray:
         """Support points [unit]."""

@@ -31,7 +31,7 @@ READ_ONLY_DB_ACTIONS = ("list", "show", "search", "export")
 
 
 def _pose(text):
-    from hybridcomp.fem.cli_simulate import parse_pose
+    from hybridcomp.models.pose import parse_pose
 
     return parse_pose(text)
 
@@ -142,7 +142,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _pairs(text: str, what: str) -> dict[str, float]:
-    from hybridcomp.fem.cli_simulate import parse_pairs
+    from hybridcomp.models.pose import parse_pairs
 
     return parse_pairs(text, what)
 

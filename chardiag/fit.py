@@ -28,9 +28,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from hybridcomp import __version__
+from hybridcomp._version import __version__
 from hybridcomp.chardiag.cd import DIRECTIONS, TARGETS, CDError, CDInput, CharDiagram, Term, _term_weights
 from hybridcomp.errors import HybridcompError
+from hybridcomp.histogram.trace import position_column
+from hybridcomp.models.layout import temperature_column
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +108,7 @@ def candidate_inputs(columns: Sequence[str], positions: bool = False) -> list[tu
 
 
 def _column(name: str, unit: str) -> str:
-    return f"{name}_degC" if unit == "degC" else f"{name.lower()}_mm"
+    return temperature_column(name) if unit == "degC" else position_column(name)
 
 
 def check_table(table: Mapping[str, np.ndarray], columns: Sequence[str], source: str = "training data") -> int:

@@ -36,8 +36,8 @@ from hybridcomp.histogram.gcode import increments_from_motion, parse_gcode
 from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S, Increments, increments_from_trace
 from hybridcomp.histogram.scenarios import basic_programs, jobshop_ambient, jobshop_program
 from hybridcomp.histogram.signature import signatures
-from hybridcomp.histogram.trace import AMBIENT
-from hybridcomp.models.layout import DRIFT_COLUMNS
+from hybridcomp.histogram.trace import AMBIENT, position_column
+from hybridcomp.models.layout import DRIFT_COLUMNS, temperature_column
 from hybridcomp.models.machine import Machine
 from hybridcomp.models.toml import open_text, read_text
 
@@ -265,9 +265,9 @@ def simulate_load_cases(
     cases : load cases by name
     pose_mm : pose of the FE model (default mid travel); the positions of loads-only cases
     element_size_mm : FE element size [mm] (default: the machine file's)
-    dt_s : FE time step [s] (the loads are interpolated onto it; outputs are taken at the loads rows);
-        None: the loads rows themselves
-    theta : θ of the θ-method (default here 0.5, Crank–Nicolson; 1 backward Euler)
+    dt_s : FE time step [s] (the loads resampled with :meth:`~hybridcomp.models.layout.Loads.resample`, the
+        outputs interpolated linearly at the loads rows); None: the loads rows themselves
+    theta : θ-method (0.5 Crank–Nicolson, 1 backward Euler)
     model : an already built ``ThermoElasticModel`` of the same machine and pose (reused; serial run)
     progress : show a progress bar
     executor : None: serial in this process; else run the cases as a batch with ``fem.batch.run_batch``:
@@ -314,10 +314,10 @@ def simulate_load_cases(
         rows_case += [name] * len(t)
         block = {"time_s": t.copy()}
         for j, s in enumerate(sensor_names):
-            block[f"{s}_degC"] = sensors[:, j]
+            block[temperature_column(s)] = sensors[:, j]
         pos = case.positions_mm if case.positions_mm is not None else np.tile([pose[a] for a in axes], (len(t), 1))
         for j, a in enumerate(axes):
-            block[f"{a.lower()}_mm"] = pos[:, j]
+            block[position_column(a)] = pos[:, j]
         for j, d in enumerate(DRIFT_COLUMNS):
             block[d] = drift[:, j]
         for k, v in block.items():

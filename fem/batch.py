@@ -62,10 +62,9 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.fem.cli_simulate import resample
 from hybridcomp.fem.loads import Loads, LoadsFileError, in_model_order, input_columns, read_loads, write_outputs
 from hybridcomp.fem.stepping import DEFAULT_THETA, check_scheme
-from hybridcomp.models.layout import LoadsColumnError
+from hybridcomp.models.layout import DRIFT_COLUMNS, LoadsColumnError, temperature_column
 from hybridcomp.models.machine import Machine
 from hybridcomp.models.toml import open_text
 from hybridcomp.safeio import write_text_atomic
@@ -166,8 +165,8 @@ class CaseResult:
     def columns(self) -> dict[str, np.ndarray]:
         """The outputs-CSV columns: ``time_s``, ``<sensor>_degC`` ..., ``dx_um``, ``dy_um``, ``dz_um``."""
         cols = {"time_s": self.time_s}
-        cols |= {f"{s}_degC": self.sensors_degC[:, j] for j, s in enumerate(self.sensor_names)}
-        cols |= {f"d{a}_um": self.drift_um[:, j] for j, a in enumerate("xyz")}
+        cols |= {temperature_column(s): self.sensors_degC[:, j] for j, s in enumerate(self.sensor_names)}
+        cols |= {c: self.drift_um[:, j] for j, c in enumerate(DRIFT_COLUMNS)}
         return cols
 
 
@@ -224,7 +223,7 @@ def run_case(spec: ModelSpec, options: SimulationOptions, name: str, loads: Load
                     os.environ["MALLOC_TRIM_THRESHOLD_"])
     model, built, lock = cached_model(spec)
     if options.dt_s is not None:
-        loads = resample(loads, options.dt_s)
+        loads = loads.resample(options.dt_s)
     with lock:  # the model's factorisation cache is not shared between threads of one worker
         res = model.simulate(loads, options.initial, scheme=options.scheme, theta=options.theta)
     return CaseResult(
@@ -305,7 +304,7 @@ def write_case_atomically(out_dir: Path, result: CaseResult) -> Path:
 
 def read_case(path: Path, name: str, sensor_names: tuple[str, ...]) -> CaseResult:
     """An outputs CSV written by :func:`write_case_atomically` back as a result (values as written, 6 decimals)."""
-    expected = ["time_s", *(f"{s}_degC" for s in sensor_names), "dx_um", "dy_um", "dz_um"]
+    expected = ["time_s", *(temperature_column(s) for s in sensor_names), *DRIFT_COLUMNS]
     with open_text(path, ValueError, "outputs") as fh:
         header = fh.readline().strip().split(",")
         if header != expected:

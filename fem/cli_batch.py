@@ -14,10 +14,11 @@ import logging
 import sys
 from pathlib import Path
 
-from hybridcomp.fem.cli_simulate import SCHEME_HELP, add_scheme_arguments, chosen_scheme, parse_pose
+from hybridcomp.fem.cli_simulate import SCHEME_HELP, add_scheme_arguments, chosen_scheme
 from hybridcomp.fem.loads import LoadsFileError
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.pose import parse_pose
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

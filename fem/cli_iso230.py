@@ -17,6 +17,7 @@ import numpy as np
 
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument
+from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.models.machine import load_machine
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, write_text_atomic
 
@@ -103,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
         res = etve_test(model, args.hours, args.amplitude_K, args.period_h, args.step_s, progress=progress)
         summary = res.summary()
         cols = {"time_h": res.time_s / 3600, "air_rise_K": res.air_rise_K}
-        cols |= {f"d{c}_um": res.drift_um[:, j] for j, c in enumerate("xyz")}
+        cols |= {c: res.drift_um[:, j] for j, c in enumerate(DRIFT_COLUMNS)}
         for axis, e in res.feedback_um.items():
             lo, hi = machine.axis(axis).travel_mm
             cols |= {f"{axis}_feedback_um@{lo:g}": e[:, 0], f"{axis}_feedback_um@{hi:g}": e[:, 1]}

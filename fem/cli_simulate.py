@@ -14,44 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_outputs
+from hybridcomp.fem.loads import LoadsFileError, read_loads, write_outputs
 from hybridcomp.fem.stepping import DEFAULT_THETA, DEFAULT_TOLERANCE, TimeTolerance
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.pose import parse_pose
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, write_text_atomic
 
 log = logging.getLogger(__name__)
-
-
-def parse_pairs(text: str | None, what: str) -> dict[str, float]:
-    """``"X=100,Y=-50"`` → {"X": 100.0, "Y": -50.0}; errors name the option ``what`` and the bad part."""
-    if not text:
-        return {}
-    out = {}
-    for part in text.split(","):
-        if "=" not in part:
-            raise ValueError(f"{what}: {part!r} is not NAME=VALUE")
-        k, v = part.split("=", 1)
-        try:
-            out[k.strip()] = float(v)
-        except ValueError:
-            raise ValueError(f"{what}: value {v!r} of {k.strip()!r} is not a number") from None
-    return out
-
-
-def parse_pose(text: str | None) -> dict[str, float]:
-    """``"X=100,Y=-50"`` → {"X": 100.0, "Y": -50.0} [mm]."""
-    return parse_pairs(text, "--pose")
-
-
-def resample(loads: Loads, dt_s: float) -> Loads:
-    """Loads at a uniform step ``dt_s`` [s] by linear interpolation (the end time is kept)."""
-    t0, t1 = loads.time_s[0], loads.time_s[-1]
-    t = np.arange(t0, t1, dt_s)
-    t = np.append(t, t1) if t1 - t[-1] > 1e-9 * max(1.0, abs(t1)) else t
-    values = np.column_stack([np.interp(t, loads.time_s, loads.values[:, j]) for j in range(loads.values.shape[1])])
-    return Loads(t, values, loads.names)
 
 
 SCHEME_HELP = (
@@ -159,8 +130,12 @@ def output_files(args: argparse.Namespace, nt: int) -> list[str]:
     return files
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run ``hybridcomp simulate``; returns the exit code (2: bad input, named on stderr)."""
+def run(args: argparse.Namespace, reduced=None) -> int:
+    """Run ``hybridcomp simulate``; returns the exit code (2: bad input, named on stderr).
+
+    ``reduced(args, machine, pose, loads) -> int`` runs the checked inputs on ``--rom``'s reduced model
+    (:func:`hybridcomp.rom.cli_simulate.run_rom`, which the ``simulate`` subcommand passes; fem knows no rom).
+    """
     bad = refuse_unused(args, [("field_format", args.fields <= 0, "applies with --fields N only")])
     if bad:
         print(f"error: {bad}", file=sys.stderr)
@@ -172,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
         if args.dt is not None:
             if not args.dt > 0:
                 raise ValueError(f"--dt must be positive, got {args.dt}")
-            loads = resample(loads, args.dt)
+            loads = loads.resample(args.dt)
         if len(loads.time_s) < 2:
             raise LoadsFileError(f"{args.loads}: needs at least two rows (a start and an end time)")
         if args.element_size_mm is not None and not args.element_size_mm > 0:
@@ -186,9 +161,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if getattr(args, "rom", None) is not None:
-        from hybridcomp.rom.cli_simulate import run_rom
-
-        return run_rom(args, machine, pose, loads)
+        if reduced is None:
+            raise TypeError("--rom needs the reduced-model path: run(args, reduced=hybridcomp.rom.cli_simulate.run_rom)")
+        return reduced(args, machine, pose, loads)
 
     from hybridcomp.fem.model import build_model
     from hybridcomp.fem.stepping import solver_backends

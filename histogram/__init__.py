@@ -3,7 +3,7 @@
 Data flow: trace CSV (streamed) or G-code → :class:`Increments` (load factors,
 position histograms over the rail segments, spindle factor, air temperatures
 per time increment) → :func:`boundary_conditions` (heat power per source and
-rail segment, zone air) → ``fem.loads.write_loads`` → ``hybridcomp simulate``.
+rail segment, zone air) → ``models.loads.write_loads`` → ``hybridcomp simulate``.
 :func:`signatures` gives the fixed-length load-case vectors the CD database
 is searched by.
 """

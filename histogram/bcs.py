@@ -40,9 +40,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from hybridcomp.fem.loads import write_loads
 from hybridcomp.histogram.increments import Increments
 from hybridcomp.models.layout import Loads
+from hybridcomp.models.loads import write_loads
 from hybridcomp.models.machine import SPINDLE, Machine
 
 
@@ -141,5 +141,5 @@ def boundary_conditions(machine: Machine, inc: Increments, power: str = "mean") 
 
 
 def write_bcs(path, loads: Loads) -> None:
-    """Write a BC time series as a loads CSV (``fem.loads.write_loads``)."""
+    """Write a BC time series as a loads CSV (``models.loads.write_loads``)."""
     write_loads(path, loads)

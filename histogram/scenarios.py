@@ -32,7 +32,6 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridcomp.fem.loads import Loads
 from hybridcomp.histogram.bcs import boundary_conditions, write_bcs
 from hybridcomp.histogram.gcode import (
     increments_from_motion,
@@ -41,6 +40,7 @@ from hybridcomp.histogram.gcode import (
 )
 from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S
 from hybridcomp.histogram.trace import AMBIENT, write_trace
+from hybridcomp.models.layout import Loads
 from hybridcomp.models.machine import Machine
 from hybridcomp.safeio import atomic_path, write_text_atomic
 

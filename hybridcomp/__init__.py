@@ -22,6 +22,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from hybridcomp._lazy import lazy_exports
+from hybridcomp._version import __version__
 from hybridcomp.errors import HybridcompError
 
 if TYPE_CHECKING:
@@ -30,7 +31,6 @@ if TYPE_CHECKING:
     from hybridcomp.models.layout import Loads
     from hybridcomp.models.simulation import SimulationResult
 
-__version__ = "0.1.0"
 
 # module -> the public names it defines (imported on first use)
 _names, __getattr__, __dir__ = lazy_exports(__name__, {

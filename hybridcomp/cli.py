@@ -13,9 +13,9 @@ from hybridcomp.errors import HybridcompError
 # subcommand -> module with add_arguments(parser) and run(args) -> int
 SUBCOMMANDS = {
     "demo": ("hybridcomp.demo", "the whole hybrid cycle on the bundled demonstrator: CDs, monitor, diagnosis, report"),
-    "simulate": ("hybridcomp.fem.cli_simulate", "simulate a load case on the FE model and write outputs.csv"),
+    "simulate": ("hybridcomp.rom.cli_simulate", "simulate a load case on the FE model and write outputs.csv"),
     "example-loads": ("hybridcomp.fem.cli_example_loads", "write a reproducible example loads CSV for a machine"),
-    "machine": ("hybridcomp.models.cli", "check a machine file and print its inputs, sensors and mesh size"),
+    "machine": ("hybridcomp.fem.cli_machine", "check a machine file and print its inputs, sensors and mesh size"),
     "histogram": ("hybridcomp.histogram.cli", "turn a trace CSV or G-code into load factors, histograms and a loads CSV"),
     "scenario": ("hybridcomp.histogram.cli_scenario",
                  "write a bundled scenario (basic load cases, job-shop day): G-code, trace, loads"),
@@ -27,6 +27,11 @@ SUBCOMMANDS = {
     "iso230": ("hybridcomp.fem.cli_iso230",
                "ISO 230-3 thermal tests, simulated: moving linear axis (feed drives) and ETVE"),
     "monitor": ("hybridcomp.monitor.cli", "the monitoring daemon: run, status, example-config, and the hybrid scenario"),
+}
+# subcommand -> action -> module with add_parser(actions) and run(args) -> int: actions of a package's subcommand
+# that compose every package, so they live at the top, not in the package (which imports nothing above itself)
+COMPOSED_ACTIONS = {
+    "monitor": {"scenario": "hybridcomp.cli_monitor_scenario"},
 }
 
 
@@ -41,8 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_text) in SUBCOMMANDS.items():
         sp = sub.add_parser(name, help=help_text, description=help_text)
-        import_module(module).add_arguments(sp)
+        actions = import_module(module).add_arguments(sp)
         sp.set_defaults(_module=module)
+        for action, composed in COMPOSED_ACTIONS.get(name, {}).items():
+            import_module(composed).add_parser(actions).set_defaults(_module=composed)
+            assert action in actions.choices, (name, action)
     return p
 
 

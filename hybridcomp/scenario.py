@@ -34,9 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
+from hybridcomp.histogram.trace import position_column
 from hybridcomp.metrics import DIRS, drift_metrics, largest_step_um, metrics_table
 from hybridcomp.models import jsonio
-from hybridcomp.models.layout import PROBE_COLUMNS
+from hybridcomp.models.layout import PROBE_COLUMNS, in_model_order, temperature_column
 from hybridcomp.models.toml import open_text
 
 log = logging.getLogger(__name__)
@@ -261,16 +262,6 @@ class ScenarioResult:
     summary: dict
 
 
-def _resample_loads(loads, machine, dt_s: float):
-    from hybridcomp.fem.loads import Loads, in_model_order
-
-    L = in_model_order(loads, machine)
-    t = np.arange(L.time_s[0], L.time_s[-1] + 0.5 * dt_s, dt_s)
-    t = t[t <= L.time_s[-1] + 1e-9]
-    V = np.column_stack([np.interp(t, L.time_s, L.values[:, j]) for j in range(L.values.shape[1])])
-    return Loads(t, V, L.names)
-
-
 def planted_air(machine, loads, d: Disturbance):
     """The loads with the disturbance's air: workspace zones warmer (ramped in over 2 h), every zone swinging."""
     from hybridcomp.fem.loads import Loads
@@ -280,7 +271,7 @@ def planted_air(machine, loads, d: Disturbance):
     ramp = d.workspace_air_K * np.clip(t / 7200.0, 0.0, 1.0)
     swing = d.ambient_swing_K * np.sin(2 * np.pi * t / (d.swing_period_h * 3600.0))
     for z in machine.zones:
-        j = loads.names.index(f"{z.name}_degC")
+        j = loads.names.index(temperature_column(z.name))
         V[:, j] += swing + (ramp if z.air == "workspace" else 0.0)
     return Loads(loads.time_s, V, loads.names)
 
@@ -359,11 +350,12 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     t_end = (day_hours or JOBSHOP_HOURS) * 3600.0
     controller = out / "jobshop_controller_trace.csv"
     _write_trace(files["jobshop_trace.csv"], controller, trace_rate_hz, t_end=t_end)
-    loads = _resample_loads(boundary_conditions(machine, increments_from_trace(controller, machine, dt_s)), machine, dt_s)
+    loads = in_model_order(boundary_conditions(machine, increments_from_trace(controller, machine, dt_s)),
+                           machine).resample(dt_s)
     real_model = model if real_machine.sha256 == machine.sha256 else build_model(real_machine, pose, element_size_mm)
-    real_loads = _resample_loads(boundary_conditions(real_machine, increments_from_trace(controller, real_machine,
-                                                                                         real_dt_s)),
-                                 real_machine, real_dt_s)
+    real_loads = in_model_order(boundary_conditions(real_machine, increments_from_trace(controller, real_machine,
+                                                                                        real_dt_s)),
+                                real_machine).resample(real_dt_s)
     real_loads = planted_air(real_machine, real_loads, disturbance)
     res = real_model.simulate(real_loads, "steady", scheme="theta", theta=0.5)
     t = loads.time_s
@@ -397,11 +389,11 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
 
     # 6. the other strategies (the CDs and the regression read the sensors through the daemon's low-pass)
     T_cd = at_times(measured["time_s"], measured["filtered_degC"], t)
-    cols = {f"{n}_degC": T_cd[:, j] for j, n in enumerate(sensor_names)}
-    cols |= {f"{a.name.lower()}_mm": np.full(t.size, float(pose[a.name])) for a in machine.axes}
+    cols = {temperature_column(n): T_cd[:, j] for j, n in enumerate(sensor_names)}
+    cols |= {position_column(a.name): np.full(t.size, float(pose[a.name])) for a in machine.axes}
     static = np.column_stack([models.default[d].evaluate_table(cols)[0] for d in ("X", "Y", "Z")])
     rom_drift = rom.simulate(loads).drift_um  # what the models know: no disturbance, no sensor
-    T_train = np.column_stack([models.train.columns[f"{s}_degC"] for s in sensor_names])
+    T_train = np.column_stack([models.train.columns[temperature_column(s)] for s in sensor_names])
     D_train = np.column_stack([models.train.columns[d] for d in DIRS])
     mlr = predict_mlr(fit_mlr(T_train, D_train), T_cd)
     # a yardstick, not a strategy: the linear map of the day's own sensors that fits the day's true drift best (in
@@ -608,7 +600,7 @@ def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, 
         D = np.column_stack([np.interp(times, t_fe, D_fe[:, j]) for j in range(3)])
         for k in np.unique(np.searchsorted(times, np.arange(times[0], times[-1], probe_every_h * 3600.0))):
             P[k] = D[k] + rng.normal(0.0, probe_noise_um, 3)
-    names = [f"{n}_degC" for n in sensor_names] + (list(PROBE_COLUMNS) if probe_every_h else [])
+    names = [temperature_column(n) for n in sensor_names] + (list(PROBE_COLUMNS) if probe_every_h else [])
     with dst.open("w") as fo:
         fo.write(",".join(header + names) + "\n")
         for (_, f), m, p in zip(rows, M, P):

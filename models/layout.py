@@ -60,6 +60,8 @@ TEMPERATURE_RANGE_DEGC = (-50.0, 200.0)
 MAX_HEAT_POWER_W = 1e6
 #: a negative power down to this is round-off of a written number and is read as 0 [W]
 POWER_ROUND_OFF_W = 1e-6
+#: a resampled grid time this close to the end time (relative, at least as many seconds) is the end time
+END_TIME_TOLERANCE = 1e-9
 #: the largest magnitude of a time in a loads CSV [s] (Unix times in seconds fit) ...
 MAX_TIME_S = 1e10
 #: ... and of the time a loads CSV spans [s] (about 3.2 years)
@@ -208,12 +210,19 @@ class InputLayout:
                 U[:, j] = values[:, index[alias]] if alias in index else self.reference_temperature_degC
         return U
 
-    def inputs(self, names: Sequence[str], values: np.ndarray, source: str = "loads",
+    def inputs(self, names: Sequence[str] | Loads, values: np.ndarray | None = None, source: str = "loads",
                air: Mapping[str, str] | None = None) -> np.ndarray:
         """Model inputs (nt × nu) from named columns: powers [W], air temperature rises [K].
 
-        As :meth:`complete`, with the reference temperature taken off the zone columns.
+        As :meth:`complete`, with the reference temperature taken off the zone columns.  ``names`` may be
+        a :class:`Loads` (then without ``values``): its columns in this layout's order, whatever theirs.
         """
+        if isinstance(names, Loads):
+            if values is not None:
+                raise TypeError("inputs(loads) takes no values: they are the loads' own")
+            names, values = names.names, names.values
+        elif values is None:
+            raise TypeError("inputs(names, values): values missing")
         U = self.complete(names, values, source, air)
         U[:, len(self.heat_inputs):] -= self.reference_temperature_degC
         return U
@@ -240,13 +249,30 @@ class Loads:
     values: np.ndarray
     names: tuple[str, ...]
 
-    def as_inputs(self, reference_temperature_degC: float) -> np.ndarray:
-        """Model inputs: powers [W] and air temperature rises over the reference [K]."""
-        U = self.values.copy()
-        for j, n in enumerate(self.names):
-            if n.endswith(TEMPERATURE_SUFFIX):
-                U[:, j] -= reference_temperature_degC
-        return U
+    def resample(self, dt_s: float) -> Loads:
+        """The loads at a uniform step ``dt_s`` [s], every column interpolated linearly.
+
+        The times are ``t0 + k·dt_s`` (``k = 0, 1, …``, as :func:`numpy.arange` makes them) before the end
+        time, then the end time itself: the first and the last time are kept exactly and every step is
+        ``dt_s`` but the last, which is at most ``dt_s`` (plus the tolerance).  A grid time within :data:`END_TIME_TOLERANCE`
+        (relative, at least that many seconds) of the end time is the end time: it is dropped, so no step
+        is a sliver of round-off and no time lies beyond the end.
+
+        Parameters
+        ----------
+        dt_s : the step [s], positive and finite
+        """
+        if not (np.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s must be positive and finite, got {dt_s}")
+        time_s = np.asarray(self.time_s, float)
+        t0, t1 = time_s[0], time_s[-1]
+        t = np.arange(t0, t1, dt_s)
+        t = np.append(t[t < t1 - END_TIME_TOLERANCE * max(1.0, abs(t1))], t1)
+        V = np.asarray(self.values, float)
+        values = np.empty((t.size, V.shape[1]))
+        for j in range(V.shape[1]):
+            values[:, j] = np.interp(t, time_s, V[:, j])
+        return Loads(t, values, self.names)
 
 
 def control_character(text: str) -> str | None:
@@ -294,7 +320,7 @@ def check_loads(loads: Loads, source: str = "loads") -> Loads:
 
     Times must be finite, within ±:data:`MAX_TIME_S`, strictly increasing and span at most
     :data:`MAX_SPAN_S`; a power negative only by round-off is set to 0.  For loads made in memory
-    (rows counted from 1); :func:`hybridcomp.fem.loads.read_loads` makes the same checks naming
+    (rows counted from 1); :func:`hybridcomp.models.loads.read_loads` makes the same checks naming
     the file's lines.
 
     Raises

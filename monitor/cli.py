@@ -1,4 +1,8 @@
-"""``hybridcomp monitor``: run the daemon, show its status, write an example configuration, run the scenario."""
+"""``hybridcomp monitor``: run the daemon, show its status, write an example configuration.
+
+The ``monitor scenario`` action composes every package and lives at the top level
+(:mod:`hybridcomp.cli_monitor_scenario`); the dispatcher adds it to these actions.
+"""
 
 from __future__ import annotations
 
@@ -16,8 +20,12 @@ from hybridcomp.models import jsonio
 log = logging.getLogger(__name__)
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The ``hybridcomp monitor`` actions and their options."""
+def add_arguments(p: argparse.ArgumentParser) -> argparse._SubParsersAction:
+    """The ``hybridcomp monitor`` actions and their options.
+
+    Returns the actions, for the dispatcher to add ``scenario``, which composes every package
+    (:mod:`hybridcomp.cli_monitor_scenario`).
+    """
     p.description = (
         "The monitoring daemon: compensation offsets every few seconds from the active characteristic diagrams "
         "(strategy hybrid) or the structure model kept on the machine by a Kalman filter on the sensors (strategy "
@@ -42,31 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     e = sub.add_parser("example-config", help="write an annotated example configuration")
     e.add_argument("--out", type=Path, default=None, help="file to write (default: print)")
     e.add_argument("--force", action="store_true", help="overwrite existing output files")
-    c = sub.add_parser("scenario", help="the hybrid scenario: job-shop day on an FE 'real machine', every strategy compared",
-                       description="Replay the bundled 16 h job-shop day with the FE model plus a disturbance the models "
-                       "do not know as the real machine, starting from default CDs of the basic load cases; compare no "
-                       "compensation, static default CDs, the hybrid monitor, the observer, the ROM used directly and a "
-                       "multiple linear regression on the sensors (RMS, peak-to-peak, 95th-percentile range over "
-                       "sliding windows, activations, largest offset step).")
-    c.add_argument("--out", required=True, type=Path, help="output directory (table, plot, databases, traces)")
-    c.add_argument("--disturbance", default="workspace air", metavar="NAME",
-                   help="what the real machine does that the models do not know: " + ", ".join(
-                       f"'{n}'" for n in _disturbance_names()) + " (default %(default)r)")
-    c.add_argument("--element-size-mm", type=float, default=80.0, help="FE element size of the 'real machine' and "
-                   "the models [mm] (default 80)")
-    c.add_argument("--day-hours", type=float, default=None, help="replay only the first hours of the day (default 16)")
-    c.add_argument("--rom-order", type=int, default=None, help="order of the structure model (default: to tolerance)")
-    c.add_argument("--basic-hours", type=float, default=8.0, help="heating hours of each basic load case (default 8)")
-    c.add_argument("--along-path", action="store_true",
-                   help="also judge every strategy at the trace's commanded position at each time, where the drift "
-                   "depends on the pose and the feed drives' errors on the axis positions (builds the pose-aware "
-                   "structure model; writes table_along_path.md, summary 'along_path')")
-
-
-def _disturbance_names() -> list[str]:
-    from hybridcomp.scenario import DISTURBANCES
-
-    return list(DISTURBANCES)
+    return sub
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,20 +73,6 @@ def run(args: argparse.Namespace) -> int:
                 print(example_config(), end="")
             else:
                 write_text_atomic(check_output_path(args.out, force=args.force), example_config())
-            return 0
-        if args.monitor_command == "scenario":
-            from hybridcomp.scenario import DISTURBANCES, run_scenario
-
-            if args.disturbance not in DISTURBANCES:
-                raise ValueError(f"--disturbance: unknown disturbance {args.disturbance!r} (known: "
-                                 f"{', '.join(DISTURBANCES)})")
-            res = run_scenario(args.out, disturbance=DISTURBANCES[args.disturbance],
-                               element_size_mm=args.element_size_mm, rom_order=args.rom_order,
-                               basic_hours=args.basic_hours, day_hours=args.day_hours, along_path=args.along_path)
-            print(res.table)
-            if args.along_path:
-                print("\nalong the path:\n" + (Path(res.files["table"]).parent / "table_along_path.md").read_text())
-            print(jsonio.dumps(res.summary))
             return 0
     except (ConfigError, ValueError, OSError, HybridcompError) as exc:
         print(f"hybridcomp monitor: {exc}", file=sys.stderr)

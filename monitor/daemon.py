@@ -49,9 +49,9 @@ from hybridcomp.chardiag.cd import CDSet
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.increments import increments_from_samples
 from hybridcomp.histogram.signature import SignatureLayout, signatures
-from hybridcomp.histogram.trace import Samples, TraceFileError
+from hybridcomp.histogram.trace import Samples, TraceFileError, position_column
 from hybridcomp.models import jsonio
-from hybridcomp.models.layout import DIRECTIONS, DRIFT_COLUMNS
+from hybridcomp.models.layout import DIRECTIONS, DRIFT_COLUMNS, temperature_column
 from hybridcomp.monitor import decisions
 from hybridcomp.monitor.config import MonitorConfig
 from hybridcomp.monitor.decisions import Candidate, Decision, SensorState, SetError
@@ -132,8 +132,8 @@ class Counters:
 
 def set_predictions(cds, T_rows: np.ndarray, sensor_names, pose_mm: Mapping[str, float]) -> np.ndarray:
     """A CD set's offsets (n × 3: dx, dy, dz) [µm] on sensor rows [°C] at the pose's axis positions."""
-    cols = {f"{s}_degC": T_rows[:, j] for j, s in enumerate(sensor_names)}
-    cols |= {f"{a.lower()}_mm": np.full(len(T_rows), float(v)) for a, v in pose_mm.items()}
+    cols = {temperature_column(s): T_rows[:, j] for j, s in enumerate(sensor_names)}
+    cols |= {position_column(a): np.full(len(T_rows), float(v)) for a, v in pose_mm.items()}
     return np.column_stack([cds[d].evaluate_table(cols)[0] for d in DIRECTIONS])
 
 

@@ -23,6 +23,8 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
+from hybridcomp.models.layout import temperature_column
+
 log = logging.getLogger(__name__)
 
 # a CD of the default job: up to six sensors chosen by BIC, one 1-D table of four support points each (an
@@ -161,7 +163,7 @@ def forecast_scenarios(machine, loads_names, loads_inputs, horizon_h: float) -> 
             continue
         u = drives.setdefault(driver, np.zeros(nh))
         cols = list(layout.source_columns(src.name))
-        u[cols] = src.power_W * BASIC_FACTOR ** src.exponent / len(cols)
+        u[cols] = machine.source_power_W(src, BASIC_FACTOR) / len(cols)
     out |= {f"{d} alone": held(u) for d, u in drives.items()}
     return out
 
@@ -188,7 +190,7 @@ def training_table(observer, x, req: RegenerationRequest, machine) -> tuple[dict
         parts[name] = len(Tf)
     T, D = np.vstack(T), np.vstack(D)
     keep = np.all(np.isfinite(T), axis=1) & np.all(np.isfinite(D), axis=1)
-    table = {f"{s}_degC": T[keep, j] for j, s in enumerate(observer.sensor_names)}
+    table = {temperature_column(s): T[keep, j] for j, s in enumerate(observer.sensor_names)}
     table |= {c: D[keep, j] for j, c in enumerate(DRIFT_COLUMNS)}
     return table, np.concatenate(w)[keep], parts
 
@@ -227,7 +229,7 @@ def default_job(request: dict) -> dict:
     sig = None if req.signature is None else np.asarray(req.signature, float)
     kw = dict(machine=machine.name, machine_sha256=machine.sha256, pose_mm=pose, load_case=name, signature=sig,
               t_reference_degC=req.t_reference_degC, source=name, options=FitOptions(**FIT), weights=weights)
-    anchor_T = {f"{k}_degC": float(v) for k, v in req.anchor_degC.items()}
+    anchor_T = {temperature_column(k): float(v) for k, v in req.anchor_degC.items()}
     cds, notes, at_anchor = {}, {}, {}
     constant = dataclasses.replace(FitOptions(**FIT), min_target_range_um=1e12)  # any range: constant
     for d in DIRECTIONS:
@@ -290,7 +292,7 @@ def fe_job(request: dict) -> dict:
     for zones, dK in AIR_VARIANTS_K:
         V = loads.values.copy()
         for z in machine.zones:
-            col = f"{z.name}_degC"
+            col = temperature_column(z.name)
             if dK and (zones == "all" or z.air == zones):
                 if col in loads.names:
                     V[:, loads.names.index(col)] += dK

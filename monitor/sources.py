@@ -32,7 +32,7 @@ from hybridcomp.histogram.trace import (
     position_column,
     velocity_column,
 )
-from hybridcomp.models.layout import PROBE_COLUMNS
+from hybridcomp.models.layout import PROBE_COLUMNS, temperature_column
 from hybridcomp.models.machine import Machine
 from hybridcomp.models.toml import open_regular_file
 
@@ -105,15 +105,15 @@ def trace_columns(header: Sequence[str], machine: Machine, source: str = "<trace
         if c not in idx:
             raise SourceFileError(f"{source}: line 1: column {c!r} (axis {a.name}) is missing")
         pos.append(idx[c])
-    sensors = tuple((s.name, idx[f"{s.name}_degC"]) for s in machine.sensors if f"{s.name}_degC" in idx)
+    sensors = tuple((s.name, idx[temperature_column(s.name)]) for s in machine.sensors if temperature_column(s.name) in idx)
     airs = tuple((c, idx[c]) for c in air_columns(machine) if c in idx)
     known = {TIME, SPINDLE_RPM, *DRIFT, *(position_column(a.name) for a in machine.axes),
-             *(velocity_column(a.name) for a in machine.axes), *(f"{s.name}_degC" for s in machine.sensors),
+             *(velocity_column(a.name) for a in machine.axes), *(temperature_column(s.name) for s in machine.sensors),
              *air_columns(machine), *PROBE_COLUMNS}
     for h in header:
         if h not in known:
             raise SourceFileError(f"{source}: line 1: unknown column {h!r} (machine {machine.name} sensors: "
-                                  f"{', '.join(s.name + '_degC' for s in machine.sensors)})")
+                                  f"{', '.join(temperature_column(s.name) for s in machine.sensors)})")
     probe = None
     if any(c in idx for c in PROBE_COLUMNS):
         if not all(c in idx for c in PROBE_COLUMNS):
@@ -320,7 +320,7 @@ class OpcUaSource:
         self.bad_values: dict[str, int] = {}  # node → values that were not numbers (read as NaN: a sensor fault)
         self._check_node_ids()
         self._axes = [position_column(a.name) for a in machine.axes]
-        self._sensors = [s.name for s in machine.sensors if f"{s.name}_degC" in nodes]
+        self._sensors = [s.name for s in machine.sensors if temperature_column(s.name) in nodes]
         self._air = [c for c in air_columns(machine) if c in nodes]
 
     def _reading(self, v: Mapping[str, object]) -> Reading:
@@ -329,7 +329,7 @@ class OpcUaSource:
 
         return Reading(
             g(TIME), tuple(g(c) for c in self._axes), g(SPINDLE_RPM) if SPINDLE_RPM in self.nodes else 0.0,
-            {s: g(f"{s}_degC") for s in self._sensors}, {c: g(c) for c in self._air},
+            {s: g(temperature_column(s)) for s in self._sensors}, {c: g(c) for c in self._air},
         )
 
     def _check_node_ids(self) -> None:

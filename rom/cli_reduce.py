@@ -81,8 +81,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``hybridcomp reduce``; returns the exit code (2: bad input, named on stderr)."""
-    from hybridcomp.fem.cli_simulate import parse_pose
     from hybridcomp.fem.loads import LoadsFileError, read_loads
+    from hybridcomp.models.pose import parse_pose
     from hybridcomp.rom.external import MatrixFileError
     from hybridcomp.rom.reduced import save_rom
 
@@ -169,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
             from hybridcomp.rom.poses import DEFAULT_ENRICH, reduce_at_poses
 
             print(f"reducing at the {args.poses} support poses ...", file=sys.stderr)
-            scale = None if check is None else np.abs(check.as_inputs(machine.reference_temperature_degC)).max(axis=0)
+            scale = None if check is None else np.abs(machine.layout().inputs(check)).max(axis=0)
             rom = reduce_at_poses(model, rom, args.poses, DEFAULT_ENRICH if args.pose_enrich is None else args.pose_enrich,
                                   input_scale=scale, workers=args.workers or 1, scheduler=args.scheduler or "process",
                                   progress=True)

@@ -1,4 +1,8 @@
-"""``hybridcomp simulate --rom ROM.npz``: the FE path's outputs.csv contract, computed by a reduced model."""
+"""``hybridcomp simulate``: the FE model, or with ``--rom ROM.npz`` a reduced model under the same outputs.csv contract.
+
+The subcommand's options and the FE path are :mod:`hybridcomp.fem.cli_simulate`'s; this module, one level up
+the data flow, adds the reduced-model path (fem imports nothing of rom).
+"""
 
 from __future__ import annotations
 
@@ -6,18 +10,34 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from hybridcomp.fem.loads import Loads, write_outputs
-from hybridcomp.fem.stepping import DEFAULT_TOLERANCE
-from hybridcomp.models import jsonio
-from hybridcomp.models.machine import Machine
-from hybridcomp.rom.machine import inputs_from_columns, split_outputs
-from hybridcomp.rom.reduced import RomFileError, RomInputError, load_rom
-from hybridcomp.safeio import atomic_path, write_text_atomic
+from hybridcomp.fem import cli_simulate as fe_cli
+
+if TYPE_CHECKING:
+    from hybridcomp.models.layout import Loads
+    from hybridcomp.models.machine import Machine
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``hybridcomp simulate`` options (the FE path's, ``--rom`` among them)."""
+    fe_cli.add_arguments(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``hybridcomp simulate``: the FE path, or :func:`run_rom` with ``--rom``; returns the exit code."""
+    return fe_cli.run(args, reduced=run_rom)
 
 
 def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], loads: Loads) -> int:
     """Check the ROM against the machine file and the options, then simulate and write ``outputs.csv`` and ``run.json``."""
+    from hybridcomp.fem.loads import write_outputs
+    from hybridcomp.fem.stepping import DEFAULT_TOLERANCE
+    from hybridcomp.models import jsonio
+    from hybridcomp.rom.machine import inputs_from_columns, split_outputs
+    from hybridcomp.rom.reduced import RomFileError, RomInputError, load_rom
+    from hybridcomp.safeio import atomic_path, write_text_atomic
+
     t0 = time.perf_counter()
     try:
         unsupported = [(flag, bad) for flag, bad in (

@@ -297,7 +297,7 @@ def reduce_model(
     machine = model.machine
     system = system_from_model(model)
     loads = check_loads if check_loads is not None else example_loads(machine, 16.0, 60.0)
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     scale = np.abs(U).max(axis=0)
     scale = np.where(scale > 0, scale, 1.0)
     s_count = len(model.sensor_names)

@@ -81,7 +81,7 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     if input_scale is None:
         from hybridcomp.fem.loads import example_loads
 
-        U = example_loads(machine, 16.0, 60.0).as_inputs(machine.reference_temperature_degC)
+        U = machine.layout().inputs(example_loads(machine, 16.0, 60.0))
         input_scale = np.abs(U).max(axis=0)
     scale = np.where(np.asarray(input_scale) > 0, input_scale, 1.0)
     ns = len(model.sensor_names)

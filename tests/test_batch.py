@@ -374,7 +374,7 @@ def test_run_batch_rejects_bad_input(machine, cases):
 class BrokenLoads(Loads):
     """Loads that pass the up-front checks but fail inside the worker."""
 
-    def as_inputs(self, reference_temperature_degC):
+    def resample(self, dt_s):
         raise ValueError("planted failure")
 
 
@@ -385,7 +385,7 @@ def test_a_failing_case_names_itself(machine, cases, executor):
     bad = BrokenLoads(c.time_s, c.values, c.names)
     with pytest.raises(BatchError, match="load case 'b' failed: planted failure"):
         run_batch(machine, {"a": cases["case01"], "b": bad}, element_size_mm=ELEMENT_SIZE_MM, executor=executor,
-                  workers=1)
+                  workers=1, dt_s=600.0)
 
 
 @pytest.mark.slow

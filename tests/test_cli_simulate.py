@@ -26,7 +26,7 @@ def test_missing_columns_mean_zero_power_and_reference_temperature(machine, tmp_
     assert not loads.values[:, others].any()
     np.testing.assert_array_equal(loads.values[:, loads.names.index("ambient_degC")], [21, 22])
     np.testing.assert_array_equal(loads.values[:, loads.names.index("floor_degC")], [20, 20])
-    U = loads.as_inputs(20.0)
+    U = machine.layout().inputs(loads)
     np.testing.assert_array_equal(U[:, loads.names.index("ambient_degC")], [1, 2])
 
 

@@ -65,7 +65,7 @@ def column(loads, name):
 def plant(kind, machine, fe, loads, rng):
     """FE outputs with one effect planted; returns (dataset kwargs, expected (kind, target), truth, nominal)."""
     t = loads.time_s
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     t_ref = machine.reference_temperature_degC
     extra = {}
     drop = ()
@@ -178,7 +178,7 @@ def test_ambient_air_reaching_the_surfaces_at_once_is_accepted_at_tau_0(machine,
     """The workshop air swings and the ambient zones follow it at once (tau = 0, a physically meaningful bound of the
     lag, not the edge of its search range): the ambient lag is named with gain 1 and tau near 0, not rejected."""
     t_ref = machine.reference_temperature_degC
-    t, U = loads.time_s, loads.as_inputs(t_ref)
+    t, U = loads.time_s, machine.layout().inputs(loads)
     tamb = loads.values[:, column(loads, "ambient_degC")]
     for z in machine.zones:
         if z.air == "ambient":
@@ -199,8 +199,7 @@ def test_workspace_air_ramped_in_is_named_as_a_rising_offset(machine, fe, rom, l
     machine at the reference: named as the workspace offset rising from the record's start, with its size within 20 %
     and a time constant near the ramp's (its centroid is at 1 h). The constant offset, which starts the model warm,
     leaves a structured residual in the first hours."""
-    t_ref = machine.reference_temperature_degC
-    t, U = loads.time_s, loads.as_inputs(t_ref)
+    t, U = loads.time_s, machine.layout().inputs(loads)
     ramp = 1.5 * np.clip((t - t[0]) / 7200.0, 0.0, 1.0)
     for z in machine.zones:
         if z.air == "workspace":
@@ -216,7 +215,7 @@ def test_workspace_air_ramped_in_is_named_as_a_rising_offset(machine, fe, rom, l
 
 def test_two_effects_at_once(machine, fe, rom, loads):
     t = loads.time_s
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     U[:, column(loads, "spindle_motor_W")] *= 1.4
     s, d = fe_run(fe.with_htc(ws_table=15.0), t, U)
     ds = dataset(machine, loads, s, d, seed=99)
@@ -230,7 +229,7 @@ def test_two_effects_at_once(machine, fe, rom, loads):
 
 def test_three_effects_with_a_sensor_offset(machine, fe, rom, loads):
     """A channel-local effect (T6 reads high) next to two structural ones."""
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     U[:, column(loads, "spindle_motor_W")] *= 1.4
     s, d = fe_run(fe.with_htc(ws_table=15.0), loads.time_s, U)
     s[:, 5] += 0.4
@@ -244,7 +243,7 @@ def test_three_effects_with_a_sensor_offset(machine, fe, rom, loads):
 
 def test_two_effects_workspace_and_expansion(machine, rom, loads):
     """A load-side and a structure-side effect together (drift channels only see the second)."""
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     for z in machine.zones:
         if z.air == "workspace":
             U[:, column(loads, f"{z.name}_degC")] += 1.5
@@ -262,7 +261,7 @@ def test_two_effects_workspace_and_expansion(machine, rom, loads):
 
 
 def test_clean_data_no_discrepancy(machine, fe, rom, loads, tmp_path):
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     s, d = fe_run(fe, loads.time_s, U)
     dg = diagnose(machine, dataset(machine, loads, s, d, seed=5), "0:60%", rom=rom)
     assert dg.verdict == "no significant discrepancy"
@@ -275,7 +274,7 @@ def test_clean_data_no_discrepancy(machine, fe, rom, loads, tmp_path):
 def test_effect_outside_library_is_not_named(machine, fe, rom, loads):
     """A heat source on the table (no candidate location there) cycling with a signal the data does not carry."""
     t = loads.time_s
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     src = HeatSource("pump", "fixed", "bed", None, None, (700.0, 900.0, -400.0), (150.0, 150.0, 150.0), 1.0, 1.0, None)
     model = fe.with_heat_input(src)
     cycle = 150.0 * (np.floor(t / 2700.0) % 2 == 0)
@@ -296,7 +295,7 @@ def test_report_and_extended_machine(machine, fe, rom, loads, tmp_path):
     from hybridcomp.models import load_machine
     from hybridcomp.rom.machine import reduce_model
 
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     s, d = fe_run(fe.with_htc(ws_table=15.0), loads.time_s, U)
     dg = diagnose(machine, dataset(machine, loads, s, d, seed=3), "0:60%", rom=rom, kinds=["htc", "power_scale"])
     summary = write_report(dg, tmp_path)
@@ -322,7 +321,7 @@ def test_extended_machine_with_new_source_and_material(machine, rom, loads, tmp_
     from hybridcomp.diagnose.selection import Fitted
     from hybridcomp.models import load_machine
 
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     Y = rom.integrate(loads.time_s, U)[0]
     ds = dataset(machine, loads, Y[:, :8] + 20.0, Y[:, 8:11] * 1e6, seed=1)
     pb = build_problem(machine, rom, ds, parse_split("0:60%", ds.time_s), ("bed", "column", "saddle", "table", "headstock",
@@ -353,7 +352,7 @@ def test_cli_model_mode(machine, fe, rom, loads, tmp_path, write_csv):
     from hybridcomp.cli import main
     from hybridcomp.rom import save_rom
 
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     for z in machine.zones:
         if z.air == "workspace":
             U[:, column(loads, f"{z.name}_degC")] += 1.2
@@ -397,7 +396,7 @@ def test_surface_site_response_matches_fe(machine, fe, rom, loads):
     from hybridcomp.diagnose.problem import build_problem
 
     t = loads.time_s
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     s0, d0 = fe_run(fe, t, U)
     pb = build_problem(machine, rom, dataset(machine, loads, s0, d0, seed=2), parse_split("0:60%", t))
     on = (pb.activity["spindle"] > locate.ON_THRESHOLD).astype(float)
@@ -420,7 +419,7 @@ def test_missing_source_anywhere_is_located(machine, fe, rom, loads, tmp_path):
     from hybridcomp.models import load_machine
 
     t = loads.time_s
-    U = loads.as_inputs(machine.reference_temperature_degC)
+    U = machine.layout().inputs(loads)
     where = np.array([-450.0, 720.0, 1310.0])
     model = _with_patch(fe, "column", where, (100.0, 100.0, 100.0))
     on = (U[:, column(loads, "spindle_motor_W")] > 0).astype(float)

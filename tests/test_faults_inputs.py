@@ -502,7 +502,7 @@ def test_the_xml_writer_spells_non_finite_statistics_as_the_schema_does():
 
 
 def test_every_error_of_a_subcommand_is_one_line(monkeypatch, capsys):
-    import hybridcomp.models.cli as machine_cli
+    import hybridcomp.fem.cli_machine as machine_cli
 
     def raising(exc):
         def run(args):

@@ -49,7 +49,7 @@ def loads(vmc):
 @pytest.fixture(scope="module")
 def pose_rom(model, loads):
     rom = reduce_model(model, check_loads=loads)
-    return rom, reduce_at_poses(model, rom, "star", input_scale=np.abs(loads.as_inputs(20.0)).max(axis=0))
+    return rom, reduce_at_poses(model, rom, "star", input_scale=np.abs(model.layout().inputs(loads)).max(axis=0))
 
 
 # --------------------------------------------------------------------------- interpolation
@@ -209,7 +209,7 @@ def test_reduce_cli_refuses_pose_options_that_would_be_ignored(capsys, tmp_path)
 
 def test_support_poses_run_as_a_batch_on_a_process_pool(model, pose_rom, loads):
     rom, serial = pose_rom
-    pooled = reduce_at_poses(model, rom, "star", input_scale=np.abs(loads.as_inputs(20.0)).max(axis=0), workers=2)
+    pooled = reduce_at_poses(model, rom, "star", input_scale=np.abs(model.layout().inputs(loads)).max(axis=0), workers=2)
     # the same arithmetic in worker processes with one BLAS thread each: round-off apart
     assert pooled.meta["poses"]["orders"] == serial.meta["poses"]["orders"]
     for name in ("M", "K", "B", "C"):

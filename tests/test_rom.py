@@ -166,7 +166,7 @@ def test_changed_h_within_range_stays_within_tolerance(model, rom, loads):
     h = {z: f * rom.h_W_m2K[rom.zone_names.index(z)] for z, f in h.items() if z in rom.zone_names}
     assert len(h) == 4, rom.zone_names
     changed = rom.with_htc(**h)
-    U = loads.as_inputs(20.0)
+    U = rom.layout().inputs(loads)
     fe = fe_reference(model.with_htc(**h), loads.time_s, U, theta=0.5)
     for theta in (0.5, None):  # same scheme (reduction error alone), then the exact ROM
         c = compare(changed, loads.time_s, U, fe, theta)
@@ -209,7 +209,7 @@ def test_short_runs_stepped_over_all_modes_equal_the_per_mode_filter(rom, loads,
     per mode (long runs), agree to round-off, from a steady and from a given state."""
     import hybridcomp.rom.reduced as reduced
 
-    U = loads.as_inputs(20.0)
+    U = rom.layout().inputs(loads)
     t = loads.time_s
     x0 = rom.steady_state(U[5])
     out = {}
@@ -225,7 +225,7 @@ def test_short_runs_stepped_over_all_modes_equal_the_per_mode_filter(rom, loads,
 @pytest.mark.slow
 def test_step_size_does_not_change_the_rom_solution(rom, loads):
     """Exact discretisation: 60 s and 20 s steps of the same piecewise-linear inputs agree at common times."""
-    U = loads.as_inputs(20.0)
+    U = rom.layout().inputs(loads)
     t_fine = np.arange(0, loads.time_s[-1] + 1, 20.0)
     U_fine = np.column_stack([np.interp(t_fine, loads.time_s, U[:, j]) for j in range(U.shape[1])])
     Y60, x60 = rom.integrate(loads.time_s, U)
@@ -236,7 +236,7 @@ def test_step_size_does_not_change_the_rom_solution(rom, loads):
 
 @pytest.mark.slow
 def test_state_save_and_restore_continues_exactly(rom, loads, tmp_path):
-    U = loads.as_inputs(20.0)
+    U = rom.layout().inputs(loads)
     t = loads.time_s
     Y_all, _ = rom.integrate(t, U)
     k = 50
@@ -256,7 +256,7 @@ def test_save_load_round_trip(rom, machine, loads, tmp_path):
     path = save_rom(tmp_path / "rom.npz", rom)
     back = load_rom(path, machine)
     assert back.order == rom.order and back.input_names == rom.input_names and back.rom_id == rom.rom_id
-    U = loads.as_inputs(20.0)
+    U = rom.layout().inputs(loads)
     np.testing.assert_array_equal(back.integrate(loads.time_s, U)[0], rom.integrate(loads.time_s, U)[0])
     np.testing.assert_array_equal(back.V, rom.V)
     assert back.meta["machine"]["sha256"] == machine.sha256

@@ -156,8 +156,7 @@ def short_day(machine):
 
 def fine_reference(model, loads: Loads, substeps: int = 64):
     """Crank–Nicolson at 1/substeps of the loads step (a different scheme than the one checked), at the loads times."""
-    from hybridcomp.fem.cli_simulate import resample
-    fine = resample(loads, float(np.diff(loads.time_s)[0]) / substeps)
+    fine = loads.resample(float(np.diff(loads.time_s)[0]) / substeps)
     res = model.simulate(fine, scheme="theta", theta=0.5)
     idx = np.searchsorted(fine.time_s, loads.time_s)
     np.testing.assert_allclose(fine.time_s[idx], loads.time_s)
@@ -172,7 +171,7 @@ def reference(coarse_model, short_day):
 @pytest.mark.slow
 @pytest.mark.parametrize("tolerance", [DEFAULT_TOLERANCE, TimeTolerance(sensor_K=2e-4, drift_um=1e-3)])
 def test_estimate_bounds_the_true_error_on_the_fe_model(coarse_model, short_day, reference, tolerance):
-    res, est = integrate_controlled(coarse_model, short_day.time_s, short_day.as_inputs(20.0), tolerance)
+    res, est = integrate_controlled(coarse_model, short_day.time_s, coarse_model.layout().inputs(short_day), tolerance)
     true_K = np.abs(res.sensors_degC - reference[0]).max()
     true_um = np.abs(res.drift_um - reference[1]).max()
     assert est.met and est.sensor_K <= tolerance.sensor_K and est.drift_um <= tolerance.drift_um
@@ -186,7 +185,7 @@ def test_estimate_bounds_the_true_error_on_the_fe_model(coarse_model, short_day,
 
 @pytest.mark.slow
 def test_a_tolerance_out_of_reach_is_reported_not_met(coarse_model, short_day, caplog):
-    _, est = integrate_controlled(coarse_model, short_day.time_s, short_day.as_inputs(20.0),
+    _, est = integrate_controlled(coarse_model, short_day.time_s, coarse_model.layout().inputs(short_day),
                                  TimeTolerance(sensor_K=1e-12, drift_um=1e-12), max_substeps=4)
     assert not est.met and est.substeps == 4 and est.runs == 3
     assert "did not meet the time tolerance" in caplog.text
