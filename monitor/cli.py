@@ -91,11 +91,18 @@ def run(args: argparse.Namespace) -> int:
                 write_text_atomic(check_output_path(args.out, force=args.force), example_config())
             return 0
         if args.monitor_command == "scenario":
-            from hybridcomp.scenario import DISTURBANCES, run_scenario
+            from hybridcomp.scenario import DISTURBANCES, check_day, run_scenario
 
+            # everything that can be checked before work starts is, so an error leaves no half-written folder
             if args.disturbance not in DISTURBANCES:
                 raise ValueError(f"--disturbance: unknown disturbance {args.disturbance!r} (known: "
                                  f"{', '.join(DISTURBANCES)})")
+            check_day(DISTURBANCES[args.disturbance], args.day_hours, "--day-hours")
+            for option, value, ok in (("--element-size-mm", args.element_size_mm, args.element_size_mm > 0),
+                                      ("--basic-hours", args.basic_hours, args.basic_hours > 0),
+                                      ("--rom-order", args.rom_order, args.rom_order is None or args.rom_order >= 1)):
+                if not ok:
+                    raise ValueError(f"{option} must be positive, got {value:g}")
             res = run_scenario(args.out, disturbance=DISTURBANCES[args.disturbance],
                                element_size_mm=args.element_size_mm, rom_order=args.rom_order,
                                basic_hours=args.basic_hours, day_hours=args.day_hours, along_path=args.along_path)
@@ -105,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
             print(jsonio.dumps(res.summary))
             return 0
     except (ConfigError, ValueError, OSError, HybridcompError) as exc:
-        print(f"hybridcomp monitor: {exc}", file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     return 2
 
