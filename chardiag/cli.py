@@ -54,8 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--element-size-mm", type=float, help="FE element size [mm] (default: the machine file's)")
     t.add_argument("--dt", type=float, default=60.0, help="FE time step [s] (default %(default)s)")
     t.add_argument("--theta", type=float, default=0.5, help="θ-method: 0.5 Crank-Nicolson (default), 1 backward Euler")
-    t.add_argument("--heat-h", type=float, default=8.0, help="heating time of the basic/simultaneous cases [h]")
-    t.add_argument("--cool-h", type=float, default=8.0, help="cooling time after them [h]")
+    t.add_argument("--heat-hours", type=float, default=8.0, help="heating time of the basic/simultaneous cases [h]")
+    t.add_argument("--cool-hours", type=float, default=8.0, help="cooling time after them [h]")
     t.add_argument("--scheduler", help="run the load cases as a batch: 'process' (local process pool), 'local' "
                    "(Dask LocalCluster) or a Dask scheduler address tcp://HOST:8786 (default: one after another here)")
     t.add_argument("--workers", type=int, help="worker processes for --scheduler process/local (default: cores)")
@@ -208,7 +208,7 @@ def _train_data(args) -> int:
     cases = {}
     for item in items:
         if item in STANDARD_CASES:
-            cases.update(standard_load_cases(machine, [item], args.heat_h, args.cool_h))
+            cases.update(standard_load_cases(machine, [item], args.heat_hours, args.cool_hours))
         else:
             lc = load_case_from_file(machine, item)
             cases[lc.name] = lc
