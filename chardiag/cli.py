@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.fem.cli_batch import WORKERS_RULE, add_scheduler_arguments, check_scheduler
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, check_output_path, write_text_atomic
@@ -56,9 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--theta", type=float, default=0.5, help="θ-method: 0.5 Crank-Nicolson (default), 1 backward Euler")
     t.add_argument("--heat-hours", type=float, default=8.0, help="heating time of the basic/simultaneous cases [h]")
     t.add_argument("--cool-hours", type=float, default=8.0, help="cooling time after them [h]")
-    t.add_argument("--scheduler", help="run the load cases as a batch: 'process' (local process pool), 'local' "
-                   "(Dask LocalCluster) or a Dask scheduler address tcp://HOST:8786 (default: one after another here)")
-    t.add_argument("--workers", type=int, help="worker processes for --scheduler process/local (default: cores)")
+    add_scheduler_arguments(t)
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.add_argument("--force", action="store_true", help=FORCE_HELP)
 
@@ -173,9 +172,7 @@ def _unused_rules(args) -> list:
     """(option, has no effect, why) of each subcommand's options that work only together with another."""
     c = args.cd_command
     if c == "train-data":
-        local = args.scheduler in ("process", "local")
-        return [("workers", not local, "applies with --scheduler process or local only (one after another here "
-                 "without --scheduler; a running Dask scheduler has its own workers)")]
+        return [("workers", args.scheduler not in ("process", "local"), WORKERS_RULE)]
     if c == "fit":
         return [("activate", args.db is None, "needs --db (the database to activate the CDs in)")]
     if c == "eval":
@@ -202,6 +199,7 @@ def _train_data(args) -> int:
         raise ValueError(f"--dt must be positive, got {args.dt}")
     if not 0.5 <= args.theta <= 1.0:
         raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
+    check_scheduler(args.scheduler, args.workers)
     items = [c.strip() for c in args.cases.split(",") if c.strip()]
     check_output_path(args.out, inputs=[machine.source, *(i for i in items if i not in STANDARD_CASES)],
                       force=args.force)
@@ -214,7 +212,8 @@ def _train_data(args) -> int:
             cases[lc.name] = lc
     print(f"simulating {len(cases)} load case(s) on {machine.name} at {pose}: {', '.join(cases)}", file=sys.stderr)
     data = simulate_load_cases(machine, cases, pose, args.element_size_mm, args.dt, args.theta,
-                               progress=not args.no_progress, executor=args.scheduler, workers=args.workers)
+                               progress=not args.no_progress,
+                               executor=None if args.scheduler == "serial" else args.scheduler, workers=args.workers)
     with atomic_path(args.out) as tmp:
         write_training_csv(tmp, data)
     print(f"wrote {args.out} ({len(data)} rows)", file=sys.stderr)

@@ -43,7 +43,7 @@ CASES = {
     "reduce --h2-maxiter without h2": (["reduce", "--h2-maxiter", "5", "--out", "{out}"], "--h2-maxiter"),
     "simulate --field-format without --fields": (["simulate", "--loads", "{d}/l.csv", "--field-format", "xdmf",
                                                   "--out", "{out}"], "--field-format"),
-    "batch --serial --workers": (["batch", "run", "{d}", "--serial", "--workers", "2", "--out", "{out}"], "--workers"),
+    "batch serial --workers": (["batch", "run", "{d}", "--scheduler", "serial", "--workers", "2", "--out", "{out}"], "--workers"),
     "batch on a Dask scheduler --workers": (["batch", "run", "{d}", "--scheduler", "tcp://127.0.0.1:1", "--workers",
                                              "2", "--out", "{out}"], "--workers"),
     "machine --element-size-mm without --mesh": (["machine", "vmc800", "--element-size-mm", "200"],
