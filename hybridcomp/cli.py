@@ -8,6 +8,7 @@ import sys
 import traceback
 from importlib import import_module
 
+from hybridcomp import __version__
 from hybridcomp.errors import HybridcompError
 
 # subcommand -> module with add_arguments(parser) and run(args) -> int
@@ -38,6 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
         "characteristic diagrams, monitoring and diagnosis.",
     )
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}",
+                   help="print the version of hybridcomp and exit")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_text) in SUBCOMMANDS.items():
         sp = sub.add_parser(name, help=help_text, description=help_text)
