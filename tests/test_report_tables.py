@@ -43,3 +43,24 @@ def test_metrics_table_prints_a_dash_where_there_is_no_value():
     assert "–" in table
     rows = [r for r in table.splitlines()[2:]]
     assert len(rows) == 4 and all(r.count("|") == table.splitlines()[0].count("|") for r in rows)
+
+
+def test_xcorr_plot_draws_proportional_signals_as_one_curve_with_one_legend_entry():
+    from hybridcomp.diagnose.metrics import cross_correlation
+    from hybridcomp.diagnose.report import xcorr_curves
+
+    t = np.linspace(0.0, 8.0, 200)
+    residual = np.sin(t) + 0.1 * t
+    spindle = np.clip(np.sin(3 * t), 0, None)
+    signals = {f"{s}_W": f * spindle for s, f in (("bearing_front", 40.0), ("bearing_rear", 25.0), ("motor", 300.0),
+                                                   ("nut", 2.0), ("housing", 7.0))}
+    signals["ambient_degC"] = 20.0 + np.cos(t / 2)
+    curves = []
+    for name, v in signals.items():
+        lags, rho = cross_correlation(residual, v, 20)
+        curves.append(("dz_um", name, lags / 60.0, rho))
+    drawn = xcorr_curves(curves)
+    assert len(drawn) == 2  # six correlations, five of them the same curve
+    label = drawn[0][0].replace("\n", " ")
+    assert all(s in label for s in list(signals)[:5]) and "ambient" not in label
+    assert drawn[1][0] == "dz_um vs ambient_degC"
