@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -31,6 +32,10 @@ WORKERS_RULE = ("applies with --scheduler process or local only (serial runs her
                 "its own workers)")
 
 
+#: a Dask scheduler address: one of Dask's comm protocols, then the host (and port)
+DASK_ADDRESS = r"(tcp|tls|ucx|inproc|ws|wss)://\S+"
+
+
 def add_scheduler_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
     """``--scheduler`` and ``--workers``, with one meaning in every command that runs FE load cases.
 
@@ -45,8 +50,8 @@ def add_scheduler_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
 
 def check_scheduler(scheduler: str, workers: int | None) -> None:
     """Refuse a ``--scheduler`` value outside its one meaning and a ``--workers`` below one (ValueError)."""
-    if scheduler not in ("serial", "process", "local") and "://" not in scheduler:
-        raise ValueError(f"--scheduler {scheduler!r}: use serial, process, local or an address such as "
+    if scheduler not in ("serial", "process", "local") and not re.fullmatch(DASK_ADDRESS, scheduler):
+        raise ValueError(f"--scheduler {scheduler!r}: use serial, process, local or a Dask scheduler address such as "
                          "tcp://HOST:8786")
     if workers is not None and workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")

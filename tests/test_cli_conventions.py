@@ -85,3 +85,17 @@ def test_an_error_of_a_subcommand_is_one_line_starting_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith("error: --disturbance") and err.count("\n") == 1, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["batch", "run", "{d}"],
+    ["cd", "train-data", "--cases", "basic"],
+    ["reduce", "--poses", "star"],
+], ids=["batch run", "cd train-data", "reduce --poses"])
+def test_a_scheduler_outside_its_meaning_is_refused_the_same_way_everywhere(tmp_path, capsys, argv):
+    out = tmp_path / "out"
+    rc = main([a.format(d=tmp_path) for a in argv] + ["--scheduler", "udp://x", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("error: --scheduler 'udp://x': use serial, process, local") and \
+        err.count("\n") == 1, err
+    assert not out.exists()
