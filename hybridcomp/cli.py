@@ -31,9 +31,18 @@ SUBCOMMANDS = {
 }
 
 
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors carry the one prefix of every hybridcomp error, ``error:``."""
+
+    def error(self, message: str):
+        """Print the usage and ``error: <command>: <message>`` to stderr and exit with code 2."""
+        self.print_usage(sys.stderr)
+        self.exit(2, f"error: {self.prog}: {one_line(message)}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The ``hybridcomp`` parser with every subcommand's options."""
-    p = argparse.ArgumentParser(
+    """The ``hybridcomp`` parser with every subcommand's options (sub-subcommands inherit its :class:`Parser`)."""
+    p = Parser(
         prog="hybridcomp",
         description="Hybrid thermal error compensation for machine tools: FE model, reduced structure model, "
         "characteristic diagrams, monitoring and diagnosis.",

@@ -99,3 +99,13 @@ def test_a_scheduler_outside_its_meaning_is_refused_the_same_way_everywhere(tmp_
     assert rc == 2 and err.startswith("error: --scheduler 'udp://x': use serial, process, local") and \
         err.count("\n") == 1, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("argv", [["histogram", "t.csv", "--plot"], ["cd", "db", "show"], ["no-such-command"],
+                                  ["monitor", "scenario", "--day-hours", "six"]])
+def test_a_usage_error_ends_in_one_line_starting_error(capsys, argv):
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    last = capsys.readouterr().err.rstrip("\n").splitlines()[-1]
+    assert last.startswith("error: hybridcomp"), last
