@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.metrics import cell_um
 from hybridcomp.models import jsonio
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -58,8 +59,8 @@ STRATEGY_ROWS = ("no compensation", "static default CDs", "hybrid monitor", "obs
 
 def row(case: str, name: str, m: dict) -> dict:
     d = m["3d"]
-    r = {"case": case, "strategy": name, "RMS": f"{d['rms_um']:.2f}", "P2P": f"{d['p2p_um']:.2f}"}
-    r |= {k: f"{d['p95_range_um'][w]:.2f}" for k, w in WINDOWS.items()}
+    r = {"case": case, "strategy": name, "RMS": cell_um(d["rms_um"]), "P2P": cell_um(d["p2p_um"])}
+    r |= {k: cell_um(d["p95_range_um"][w]) for k, w in WINDOWS.items()}  # –: a window longer than the day
     r["act/16h"] = f"{m['activations_per_16h']:.1f}" if "activations_per_16h" in m else ""
     r["max step"] = f"{m['largest_step_um']:.3f}" if "largest_step_um" in m else ""
     return r
