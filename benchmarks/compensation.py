@@ -108,7 +108,7 @@ def targets(case: str, metrics: dict, load_cases: float = 0.0) -> list[dict]:
 
 
 def main(argv=None) -> dict:
-    from hybridcomp.scenario import DISTURBANCES, build_models, run_scenario
+    from hybridcomp.scenario import DISTURBANCES, build_models, check_day, run_scenario
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--element-size-mm", type=float, default=150.0, help="FE element size of every model [mm]")
@@ -130,6 +130,11 @@ def main(argv=None) -> dict:
         for n in given:
             if n not in DISTURBANCES:
                 p.error(f"{opt}: unknown disturbance {n!r} (known: {', '.join(DISTURBANCES)})")
+    for n in names:  # before any model is built: a sensor fault after the replayed day cannot be run
+        try:
+            check_day(DISTURBANCES[n], args.day_hours, "--day-hours")
+        except ValueError as exc:
+            p.error(f"--cases {n!r}: {exc}")
     if not (math.isfinite(args.campaign_noise_um) and args.campaign_noise_um >= 0):
         p.error(f"--campaign-noise-um must be a finite number >= 0, got {args.campaign_noise_um}")
     tmp = None
