@@ -275,38 +275,34 @@ def _fixed(v, digits: int) -> str:
     return f"{v:.{digits}f}" if v is not None and math.isfinite(v) else "–"
 
 
+def _split_unit(key: str, unit: str = "") -> tuple[str, str]:
+    """(name, unit) of an event field: ``error_um`` → (``error``, ``µm``); no suffix keeps ``unit``."""
+    for suffix, u in _UNITS.items():
+        if key.endswith(suffix):
+            return key.removesuffix(suffix), u
+    return key, unit
+
+
+def _item(key, v, unit: str = "", top: bool = False) -> str:
+    """``name value unit`` of one field; a nested table as ``name: a 1 µm, b 2 µm`` (top) or ``name (...)``."""
+    name, unit = _split_unit(str(key), unit)
+    name = name.replace("_", " ")
+    if isinstance(v, dict):
+        inner = ", ".join(_item(k, x, unit) for k, x in v.items() if x is not None)
+        return f"{name}: {inner}" if top else f"{name} ({inner})"
+    text = _value(v)
+    return f"{name}{':' if top else ''} {text}{' ' + unit if unit and text != '–' else ''}"
+
+
 def event_details(event: dict) -> str:
-    """The details cell of a monitoring event in the report: ``name value unit`` items, empty fields left out.
+    """The details cell of a monitoring event in the report: ``name: value unit`` items, empty fields left out.
 
     A field named with a unit suffix (``error_um``, ``delta_T_K``) shows the unit after its value; a nested table
     (``error_um = {interval_um: 5.47, forecast_um: 3.1}``) shows its entries the same way, so no raw Python
     (dicts, ``None``) reaches the report.
     """
-    items = []
-    for key, v in event.items():
-        if key in ("kind", "machine_time_s", "strategy") or v is None or v == {} or v == []:
-            continue
-        name, unit = key, ""
-        for suffix, u in _UNITS.items():
-            if key.endswith(suffix):
-                name, unit = key.removesuffix(suffix), u
-                break
-        if isinstance(v, dict) and all(not isinstance(x, (dict, list)) for x in v.values()):
-            inner = []
-            for k, x in v.items():
-                if x is None:
-                    continue
-                k_unit = unit
-                for suffix, u in _UNITS.items():
-                    if str(k).endswith(suffix):
-                        k, k_unit = str(k).removesuffix(suffix), u
-                        break
-                inner.append(f"{k} {_value(x)}{' ' + k_unit if k_unit and _value(x) != '–' else ''}")
-            text = ", ".join(inner)
-        else:
-            text = _value(v) + (f" {unit}" if unit and _value(v) != "–" else "")
-        items.append(f"{name.replace('_', ' ')}: {text}")
-    return "; ".join(items)
+    return "; ".join(_item(k, v, top=True) for k, v in event.items()
+                     if k not in ("kind", "machine_time_s", "strategy") and v is not None and v != {} and v != [])
 
 
 def _report(out: Path, options, summary, nominal, after, pictures, day_plots) -> Path:

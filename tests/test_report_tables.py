@@ -17,7 +17,8 @@ EVENTS = [
                   "error_um": {"interval_um": 5.47036379782565, "forecast_um": math.nan}, "delta_T_K": 0.6234}),
     ("decision", {"action": "generate", "reason": "no stored set fits", "error_um": None, "delta_T_K": None}),
     ("generation", {"status": "started", "request": {"load_case": "day"}}),
-    ("generation", {"status": "finished", "ids": {"X": 4, "Y": 5, "Z": 6}, "load_case": "day", "wall_s": 312.4}),
+    ("generation", {"status": "finished", "ids": {"X": 4, "Y": 5, "Z": 6}, "load_case": "day", "wall_s": 312.4,
+                    "notes": {"X": {"inputs": ["T1"], "rms_residual_um": 0.52, "bumpless": True}}}),
     ("activation", {"ids": {"X": 4, "Y": 5, "Z": 6}, "reason": "generated"}),
     ("sensor", {"status": "stuck", "sensor": "T1", "onset_s": 28800.0, "T_degC": [20.13, math.nan]}),
     ("observer", {"status": "flagged", "reason": None}),
@@ -33,6 +34,9 @@ def test_decision_table_cells_hold_no_raw_python():
     assert cell == "action: switch; reason: interval error above 5 µm; error: interval 5.47 µm, forecast –; delta T: " \
                    "0.623 K"
     assert event_details({"kind": "generation", "status": "started", "ids": None, "error": None}) == "status: started"
+    cell = event_details({"kind": "generation", **_event_brief(SimpleNamespace(kind="generation", payload=EVENTS[3][1]))})
+    assert cell == "status: finished; ids: X 4, Y 5, Z 6; wall: 312 s; notes: X (inputs T1, rms residual 0.52 µm, " \
+                   "bumpless yes)"
 
 
 def test_metrics_table_prints_a_dash_where_there_is_no_value():
