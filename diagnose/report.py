@@ -43,12 +43,17 @@ def ep95_table(d: Diagnosis) -> dict:
     return out
 
 
+#: cross-correlation curves closer than this at every lag are drawn as one [-] (invisible at the plot's scale)
+XCORR_SAME = 1e-3
+
+
 def xcorr_curves(curves: list[tuple[str, str, np.ndarray, np.ndarray]]) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """One legend entry per distinct cross-correlation curve: (label, lag [h], ρ [-]) in the order given.
 
-    Signals proportional to one another (the spindle's heat sources all follow its speed) give the same normalised
-    curve against a channel; they share one line, its label naming every signal, instead of lines drawn on top of
-    each other with a legend entry each.
+    Signals proportional to one another (the spindle's heat sources all follow its speed; air zones that follow the
+    workshop air) give the same normalised curve against a channel, to the rounding of the record: curves within
+    ``XCORR_SAME`` of each other at every lag share one line, its label naming every signal, instead of lines drawn
+    on top of each other with a legend entry each.
 
     Parameters
     ----------
@@ -57,12 +62,12 @@ def xcorr_curves(curves: list[tuple[str, str, np.ndarray, np.ndarray]]) -> list[
     groups: list[list] = []  # [channel, [signals], lag_h, rho]
     for channel, signal, lag_h, rho in curves:
         for g in groups:
-            if g[0] == channel and g[2].shape == lag_h.shape and np.allclose(g[3], rho, rtol=0.0, atol=1e-6):
+            if g[0] == channel and g[2].shape == lag_h.shape and np.allclose(g[3], rho, rtol=0.0, atol=XCORR_SAME):
                 g[1].append(signal)
                 break
         else:
             groups.append([channel, [signal], lag_h, rho])
-    return [(textwrap.fill(f"{ch} vs {', '.join(sig)}" + (" (proportional signals, one curve)" if len(sig) > 1 else ""),
+    return [(textwrap.fill(f"{ch} vs {', '.join(sig)}" + (" (one curve: the same within 0.001)" if len(sig) > 1 else ""),
                            70), lag_h, rho) for ch, sig, lag_h, rho in groups]
 
 
