@@ -8,7 +8,7 @@ Speed (medians of ``--repeats`` runs):
 * fit of 20,000 samples with 4 active inputs (target ≤ 2 s).
 
 Accuracy (FE at ``--element-size-mm``, one run): CDs trained on the basic load cases (each axis
-alone at max feed, the spindle alone, ``--heat-h`` h then ``--cool-h`` h cooling) predict the unseen
+alone at max feed, the spindle alone, ``--heat-hours`` h then ``--cool-hours`` h cooling) predict the unseen
 simultaneous-motion case (target: RMS residual ≤ 15 % of the uncompensated RMS drift); CDs trained on
 the job-shop day's own BCs (target ≤ 5 %). Ratios per direction and for the 3D drift vector.
 
@@ -126,8 +126,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--element-size-mm", type=float, default=80.0)
-    ap.add_argument("--heat-h", type=float, default=8.0)
-    ap.add_argument("--cool-h", type=float, default=8.0)
+    ap.add_argument("--heat-hours", type=float, default=8.0)
+    ap.add_argument("--cool-hours", type=float, default=8.0)
     ap.add_argument("--no-accuracy", action="store_true", help="speed only (no FE runs)")
     args = ap.parse_args()
     sp = speed(args.repeats)
@@ -141,7 +141,7 @@ def main() -> None:
     ], ["measure", "value", "target"]))
     result = {"machine": platform.node(), "cpus": os.cpu_count(), "repeats": args.repeats, **sp}
     if not args.no_accuracy:
-        acc, rows = accuracy(args.element_size_mm, args.heat_h, args.cool_h)
+        acc, rows = accuracy(args.element_size_mm, args.heat_hours, args.cool_hours)
         print()
         print(f"accuracy on vmc800 at {args.element_size_mm:g} mm ({acc['nodes']} nodes), "
               f"FE training data in {acc['fe_training_s']:.1f} s")

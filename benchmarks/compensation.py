@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.metrics import cell_um
 from hybridcomp.models import jsonio
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -58,8 +59,8 @@ STRATEGY_ROWS = ("no compensation", "static default CDs", "hybrid monitor", "obs
 
 def row(case: str, name: str, m: dict) -> dict:
     d = m["3d"]
-    r = {"case": case, "strategy": name, "RMS": f"{d['rms_um']:.2f}", "P2P": f"{d['p2p_um']:.2f}"}
-    r |= {k: f"{d['p95_range_um'][w]:.2f}" for k, w in WINDOWS.items()}
+    r = {"case": case, "strategy": name, "RMS": cell_um(d["rms_um"]), "P2P": cell_um(d["p2p_um"])}
+    r |= {k: cell_um(d["p95_range_um"][w]) for k, w in WINDOWS.items()}  # –: a window longer than the day
     r["act/16h"] = f"{m['activations_per_16h']:.1f}" if "activations_per_16h" in m else ""
     r["max step"] = f"{m['largest_step_um']:.3f}" if "largest_step_um" in m else ""
     return r
@@ -107,7 +108,7 @@ def targets(case: str, metrics: dict, load_cases: float = 0.0) -> list[dict]:
 
 
 def main(argv=None) -> dict:
-    from hybridcomp.scenario import DISTURBANCES, build_models, run_scenario
+    from hybridcomp.scenario import DISTURBANCES, build_models, check_day, run_scenario
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--element-size-mm", type=float, default=150.0, help="FE element size of every model [mm]")
@@ -129,6 +130,11 @@ def main(argv=None) -> dict:
         for n in given:
             if n not in DISTURBANCES:
                 p.error(f"{opt}: unknown disturbance {n!r} (known: {', '.join(DISTURBANCES)})")
+    for n in names:  # before any model is built: a sensor fault after the replayed day cannot be run
+        try:
+            check_day(DISTURBANCES[n], args.day_hours, "--day-hours")
+        except ValueError as exc:
+            p.error(f"--cases {n!r}: {exc}")
     if not (math.isfinite(args.campaign_noise_um) and args.campaign_noise_um >= 0):
         p.error(f"--campaign-noise-um must be a finite number >= 0, got {args.campaign_noise_um}")
     tmp = None

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.fem.cli_batch import WORKERS_RULE, add_scheduler_arguments, check_scheduler
 from hybridcomp.fem.cli_simulate import SCHEME_HELP, add_scheme_arguments, chosen_scheme
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
@@ -54,11 +55,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     t.add_argument("--element-size-mm", type=float, help="FE element size [mm] (default: the machine file's)")
     add_scheme_arguments(t, "loads interpolated onto it, outputs at the loads rows; TR-BDF2 steps the loads rows")
-    t.add_argument("--heat-h", type=float, default=8.0, help="heating time of the basic/simultaneous cases [h]")
-    t.add_argument("--cool-h", type=float, default=8.0, help="cooling time after them [h]")
-    t.add_argument("--scheduler", help="run the load cases as a batch: 'process' (local process pool), 'local' "
-                   "(Dask LocalCluster) or a Dask scheduler address tcp://HOST:8786 (default: one after another here)")
-    t.add_argument("--workers", type=int, help="worker processes for --scheduler process/local (default: cores)")
+    t.add_argument("--heat-hours", type=float, default=8.0, help="heating time of the basic/simultaneous cases [h]")
+    t.add_argument("--cool-hours", type=float, default=8.0, help="cooling time after them [h]")
+    add_scheduler_arguments(t)
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.add_argument("--force", action="store_true", help=FORCE_HELP)
 
@@ -173,9 +172,7 @@ def _unused_rules(args) -> list:
     """(option, has no effect, why) of each subcommand's options that work only together with another."""
     c = args.cd_command
     if c == "train-data":
-        local = args.scheduler in ("process", "local")
-        return [("workers", not local, "applies with --scheduler process or local only (one after another here "
-                 "without --scheduler; a running Dask scheduler has its own workers)")]
+        return [("workers", args.scheduler not in ("process", "local"), WORKERS_RULE)]
     if c == "fit":
         return [("activate", args.db is None, "needs --db (the database to activate the CDs in)")]
     if c == "eval":
@@ -203,19 +200,21 @@ def _train_data(args) -> int:
     if args.theta is not None and not 0.5 <= args.theta <= 1.0:
         raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
     scheme, theta = chosen_scheme(args)
+    check_scheduler(args.scheduler, args.workers)
     items = [c.strip() for c in args.cases.split(",") if c.strip()]
     check_output_path(args.out, inputs=[machine.source, *(i for i in items if i not in STANDARD_CASES)],
                       force=args.force)
     cases = {}
     for item in items:
         if item in STANDARD_CASES:
-            cases.update(standard_load_cases(machine, [item], args.heat_h, args.cool_h))
+            cases.update(standard_load_cases(machine, [item], args.heat_hours, args.cool_hours))
         else:
             lc = load_case_from_file(machine, item)
             cases[lc.name] = lc
     print(f"simulating {len(cases)} load case(s) on {machine.name} at {pose}: {', '.join(cases)}", file=sys.stderr)
     data = simulate_load_cases(machine, cases, pose, args.element_size_mm, args.dt, theta, scheme=scheme,
-                               progress=not args.no_progress, executor=args.scheduler, workers=args.workers)
+                               progress=not args.no_progress,
+                               executor=None if args.scheduler == "serial" else args.scheduler, workers=args.workers)
     with atomic_path(args.out) as tmp:
         write_training_csv(tmp, data)
     print(f"wrote {args.out} ({len(data)} rows)", file=sys.stderr)

@@ -60,12 +60,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--data-only: the training information criterion that selects the sensor inputs and that every "
                    "search step must lower: 'bic' (Schwarz, default) or 'bicc' (BIC with McQuarrie's small-sample "
                    "correction, for short datasets with few rows per parameter)")
-    p.add_argument("--probe-every-h", type=float, default=None, metavar="H",
+    p.add_argument("--probe-every-hours", type=float, default=None, metavar="H",
                    help="--data-only: post-process gain updating. On the validation rows the drift is taken as "
                    "measured every H hours (a probe cycle in a pause) and the extended model's gain and offset are "
                    "updated from those measurements (a Kalman filter; how fast they may wander is chosen on the "
                    "training rows); the report gives the fit between probes beside the fit without them")
-    p.add_argument("--probe-sd-um", type=float, default=0.5, help="--data-only --probe-every-h: the probe's "
+    p.add_argument("--probe-sd-um", type=float, default=0.5, help="--data-only --probe-every-hours: the probe's "
                    "repeatability [µm] (default 0.5)")
     p.add_argument("--no-selection-check", action="store_true", help="--data-only --selection assisted: skip the check "
                    "that repeats the selection on half the validation part and scores it on the other half")
@@ -84,9 +84,9 @@ def run(args: argparse.Namespace) -> int:
         *((opt, args.data_only, model_only) for opt in ("machine", "increment", "rom", "element_size_mm", "effects",
                                                          "max_effects")),
         *((opt, not args.data_only, data_only) for opt in ("max_terms", "beam", "no_selection_check", "selection",
-                                                            "folds", "criterion", "probe_every_h",
+                                                            "folds", "criterion", "probe_every_hours",
                                                             "probe_sd_um")),
-        ("probe_sd_um", args.probe_every_h is None, "applies with --probe-every-h only"),
+        ("probe_sd_um", args.probe_every_hours is None, "applies with --probe-every-hours only"),
         ("no_selection_check", args.selection != "assisted", "applies with --selection assisted only (a held-out "
          "selection needs no check)"),
         ("folds", args.selection != "held-out", "applies with --selection held-out only"),
@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
             d = diagnose_data_only(ds, split, max_terms=args.max_terms, beam_width=args.beam,
                                    selection_check=not args.no_selection_check, selection=args.selection,
                                    folds=args.folds, criterion=args.criterion,
-                                   probe_every_h=args.probe_every_h, probe_sd_um=args.probe_sd_um)
+                                   probe_every_h=args.probe_every_hours, probe_sd_um=args.probe_sd_um)
             summary = write_data_only_report(d, args.out, dataset_name=", ".join(p.name for p in args.data),
                                              plots=not args.no_plots)
             fits = ", ".join(f"{c} {v['after']['fit_percent']:.1f} %" for c, v in summary["channels"].items())

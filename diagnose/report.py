@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +41,34 @@ def ep95_table(d: Diagnosis) -> dict:
         _, a = ep95_curve(p.time_s[va], p.Y[va, k] - d.Y_after[va, k])
         out[c] = {"window_s": w.tolist(), "before": b.tolist(), "after": a.tolist()}
     return out
+
+
+#: cross-correlation curves closer than this at every lag are drawn as one [-] (invisible at the plot's scale)
+XCORR_SAME = 1e-3
+
+
+def xcorr_curves(curves: list[tuple[str, str, np.ndarray, np.ndarray]]) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """One legend entry per distinct cross-correlation curve: (label, lag [h], ρ [-]) in the order given.
+
+    Signals proportional to one another (the spindle's heat sources all follow its speed; air zones that follow the
+    workshop air) give the same normalised curve against a channel, to the rounding of the record: curves within
+    ``XCORR_SAME`` of each other at every lag share one line, its label naming every signal, instead of lines drawn
+    on top of each other with a legend entry each.
+
+    Parameters
+    ----------
+    curves : (channel, signal, lag [h], ρ [-]) per correlation
+    """
+    groups: list[list] = []  # [channel, [signals], lag_h, rho]
+    for channel, signal, lag_h, rho in curves:
+        for g in groups:
+            if g[0] == channel and g[2].shape == lag_h.shape and np.allclose(g[3], rho, rtol=0.0, atol=XCORR_SAME):
+                g[1].append(signal)
+                break
+        else:
+            groups.append([channel, [signal], lag_h, rho])
+    return [(textwrap.fill(f"{ch} vs {', '.join(sig)}" + (" (one curve: the same within 0.001)" if len(sig) > 1 else ""),
+                           70), lag_h, rho) for ch, sig, lag_h, rho in groups]
 
 
 def _plots(d: Diagnosis, out: Path, ep: dict, corr: list) -> list[str]:
@@ -96,11 +125,14 @@ def _plots(d: Diagnosis, out: Path, ep: dict, corr: list) -> list[str]:
     files.append("ep95.png")
     if corr:
         dt, max_lag = lag_grid(p.time_s[va])  # the lags strongest_correlations looked at
-        fig, ax = plt.subplots(figsize=(8, 4))
+        curves = []
         for c in corr[:6]:
             k = p.channels.index(c.channel)
             lags, rho = cross_correlation(p.Y[va, k] - d.Y_before[va, k], p.signals[c.signal][va], max_lag)
-            ax.plot(lags * dt / 3600, rho, lw=1, label=f"{c.channel} vs {c.signal}")
+            curves.append((c.channel, c.signal, lags * dt / 3600, rho))
+        fig, ax = plt.subplots(figsize=(8, 4))
+        for label, lag_h, rho in xcorr_curves(curves):
+            ax.plot(lag_h, rho, lw=1, label=label)
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xlabel("lag [h] (> 0: the residual follows the signal)")
         ax.set_ylabel("normalised cross-correlation")

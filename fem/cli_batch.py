@@ -1,16 +1,20 @@
 """``hybridcomp batch run LOADS_DIR``: many load cases on the FE model → ``OUT/<case>.csv``.
 
 Every ``*.csv`` in LOADS_DIR is a load case named by its file stem.  The
-cases run on a local process pool by default, or on Dask: ``--scheduler
-local`` starts a LocalCluster on this machine, ``--scheduler tcp://HOST:8786``
-uses a running ``dask scheduler`` with its ``dask worker`` processes.  All
-inputs are checked before anything runs.
+cases run where ``--scheduler`` says, with the one meaning it has in every
+command that runs FE load cases (``batch run``, ``cd train-data``,
+``reduce --poses``): ``serial`` (default) here, one after another;
+``process`` a local process pool of ``--workers``; ``local`` a Dask
+LocalCluster of ``--workers``; ``tcp://HOST:8786`` a running ``dask
+scheduler`` with its ``dask worker`` processes.  All inputs are checked
+before anything runs.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -19,6 +23,39 @@ from hybridcomp.fem.loads import LoadsFileError
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
 from hybridcomp.models.pose import parse_pose
+
+#: what ``--scheduler`` means in every command that runs FE load cases
+SCHEDULER_HELP = ("where the FE load cases run: 'serial' (default) here, one after another; 'process' a local process "
+                  "pool of --workers processes; 'local' a Dask LocalCluster of --workers processes; or the address "
+                  "tcp://HOST:PORT of a running Dask scheduler (the dask extra for 'local' and addresses)")
+WORKERS_HELP = "worker processes of --scheduler process or local (default: the number of cores)"
+WORKERS_RULE = ("applies with --scheduler process or local only (serial runs here; a running Dask scheduler has "
+                "its own workers)")
+
+
+#: a Dask scheduler address: one of Dask's comm protocols, then the host (and port)
+DASK_ADDRESS = r"(tcp|tls|ucx|inproc|ws|wss)://\S+"
+
+
+def add_scheduler_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
+    """``--scheduler`` and ``--workers``, with one meaning in every command that runs FE load cases.
+
+    Parameters
+    ----------
+    p : the subcommand's parser
+    what : a prefix of the help text naming when the options apply (``"with --poses: "``)
+    """
+    p.add_argument("--scheduler", metavar="WHERE", default="serial", help=what + SCHEDULER_HELP)
+    p.add_argument("--workers", type=int, metavar="N", help=what + WORKERS_HELP)
+
+
+def check_scheduler(scheduler: str, workers: int | None) -> None:
+    """Refuse a ``--scheduler`` value outside its one meaning and a ``--workers`` below one (ValueError)."""
+    if scheduler not in ("serial", "process", "local") and not re.fullmatch(DASK_ADDRESS, scheduler):
+        raise ValueError(f"--scheduler {scheduler!r}: use serial, process, local or a Dask scheduler address such as "
+                         "tcp://HOST:8786")
+    if workers is not None and workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {workers}")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -35,12 +72,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("loads_dir", type=Path, metavar="LOADS_DIR", help="directory of loads CSVs (see 'hybridcomp simulate --help')")
     add_machine_argument(r)
     r.add_argument("--out", required=True, type=Path, help="output directory: one <case>.csv per load case and batch.json")
-    r.add_argument("--scheduler", metavar="ADDR",
-                   help="run on Dask: 'local' for a LocalCluster on this machine, or a scheduler address such as "
-                   "tcp://HOST:8786 (default: a local process pool, no Dask needed)")
-    r.add_argument("--workers", type=int,
-                   help="worker processes of the local pool or the LocalCluster (default: the number of cores)")
-    r.add_argument("--serial", action="store_true", help="run in this process, one case after another")
+    add_scheduler_arguments(r)
     r.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     r.add_argument("--element-size-mm", type=float, help="largest element edge [mm] (default: from the machine file)")
     add_scheme_arguments(r, "every case resampled linearly; TR-BDF2 keeps each CSV's own times")
@@ -56,21 +88,13 @@ def run(args: argparse.Namespace) -> int:
     """Run a ``hybridcomp batch`` action; returns the exit code (1: a failed batch, 2: bad input)."""
     from hybridcomp.fem.batch import BatchError, read_loads_dir, run_batch
 
-    if args.serial and args.scheduler:
-        print("error: --serial and --scheduler exclude each other", file=sys.stderr)
-        return 2
-    executor = "serial" if args.serial else args.scheduler or "process"
-    bad = refuse_unused(args, [("workers", executor not in ("process", "local"),
-                                "applies to the local process pool or --scheduler local only (a running Dask "
-                                "scheduler has its own workers; --serial runs here)")])
+    executor = args.scheduler
+    bad = refuse_unused(args, [("workers", executor not in ("process", "local"), WORKERS_RULE)])
     if bad:
         print(f"error: {bad}", file=sys.stderr)
         return 2
     try:
-        if executor not in ("serial", "process", "local") and "://" not in executor:
-            raise ValueError(f"--scheduler {executor!r}: use 'local' or an address such as tcp://HOST:8786")
-        if args.workers is not None and args.workers < 1:
-            raise ValueError(f"--workers must be at least 1, got {args.workers}")
+        check_scheduler(executor, args.workers)
         machine = load_machine(args.machine)
         pose = machine.check_pose(parse_pose(args.pose))
         cases = read_loads_dir(args.loads_dir, machine)

@@ -56,7 +56,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     _common(e)
     e.add_argument("--hours", type=float, default=48.0, help="duration [h] (default 48)")
     e.add_argument("--amplitude-K", type=float, default=2.0, help="air amplitude [K] (default 2)")
-    e.add_argument("--period-h", type=float, default=24.0, help="period of the air swing [h] (default 24)")
+    e.add_argument("--period-hours", type=float, default=24.0, help="period of the air swing [h] (default 24)")
     e.add_argument("--step-s", type=float, default=600.0, help="recording interval [s] (default 600)")
 
 
@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         cols["structure_um"] = res.structure_um
         picture = lambda tmp: plot_moving_axis(res, machine.name, tmp)  # noqa: E731
     else:
-        res = etve_test(model, args.hours, args.amplitude_K, args.period_h, args.step_s, progress=progress)
+        res = etve_test(model, args.hours, args.amplitude_K, args.period_hours, args.step_s, progress=progress)
         summary = res.summary()
         cols = {"time_h": res.time_s / 3600, "air_rise_K": res.air_rise_K}
         cols |= {c: res.drift_um[:, j] for j, c in enumerate(DRIFT_COLUMNS)}

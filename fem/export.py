@@ -135,7 +135,9 @@ def render_png(model: ThermoElasticModel, state_K: np.ndarray, path: str | Path,
     pl.set_background("white")
     pl.add_mesh(grid.extract_feature_edges(), color="grey", opacity=0.25)
     pl.add_mesh(warped, scalars="temperature_degC", cmap="inferno", show_edges=False,
-                scalar_bar_args={"title": "temperature [°C]", "color": "black"})
+                scalar_bar_args={"title": "temperature [°C]\n", "color": "black", "vertical": True,
+                                 "position_x": 0.86, "position_y": 0.2, "width": 0.05, "height": 0.6,
+                                 "n_labels": 5, "fmt": "%.1f", "title_font_size": 16, "label_font_size": 14})
     pl.add_text(f"{title}\ndeformation x{scale:.0f}, largest displacement {umax_mm * 1e3:.1f} µm", font_size=11, color="black")
     pl.camera_position = "iso"
     pl.camera.azimuth = 200

@@ -47,13 +47,16 @@ def plot_increment(inc: Increments, k: int, path: str | Path) -> Path:
         seg = inc.segment_edges_mm(name)
         frac = inc.segment_fraction(name)[k]
         ax.bar(seg[:-1], frac, width=np.diff(seg), align="edge", color="#9ecae1", edgecolor="#3182bd",
-               label="time in rail segment")
+               label="time fraction in the rail segment")
         e = inc.bin_edges_mm[j]
-        fine = inc.histogram(name)[k] * inc.bins_per_segment  # on the scale of a segment bar
-        ax.stairs(fine, e, color="#08519c", label=f"positions ({inc.bins_per_segment} bins per segment, same scale)")
+        # a density, so that bars and bins share one scale: time fraction per rail-segment length (a bin is
+        # 1/bins_per_segment of a segment, so a bin's value is its time fraction × bins_per_segment and can exceed 1)
+        fine = inc.histogram(name)[k] * inc.bins_per_segment
+        ax.stairs(fine, e, color="#08519c",
+                  label=f"positions: time fraction in the bin × {inc.bins_per_segment} bins per segment")
         ax.set_xlim(e[0], e[-1])
         ax.set_ylim(0, max(1.0, float(fine.max()) * 1.05))
-        ax.set_ylabel("time fraction [-]")
+        ax.set_ylabel("time fraction\nper segment length [-]", fontsize=9)
         f = inc.axis_factor[k, j]
         ax.set_title(f"axis {name}", fontsize=10, loc="left")
         if j == 0:

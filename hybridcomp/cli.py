@@ -8,6 +8,7 @@ import sys
 import traceback
 from importlib import import_module
 
+from hybridcomp import __version__
 from hybridcomp.errors import HybridcompError
 
 # subcommand -> module with add_arguments(parser) and run(args) -> int
@@ -35,14 +36,25 @@ COMPOSED_ACTIONS = {
 }
 
 
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors carry the one prefix of every hybridcomp error, ``error:``."""
+
+    def error(self, message: str):
+        """Print the usage and ``error: <command>: <message>`` to stderr and exit with code 2."""
+        self.print_usage(sys.stderr)
+        self.exit(2, f"error: {self.prog}: {one_line(message)}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The ``hybridcomp`` parser with every subcommand's options."""
-    p = argparse.ArgumentParser(
+    """The ``hybridcomp`` parser with every subcommand's options (sub-subcommands inherit its :class:`Parser`)."""
+    p = Parser(
         prog="hybridcomp",
         description="Hybrid thermal error compensation for machine tools: FE model, reduced structure model, "
         "characteristic diagrams, monitoring and diagnosis.",
     )
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}",
+                   help="print the version of hybridcomp and exit")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_text) in SUBCOMMANDS.items():
         sp = sub.add_parser(name, help=help_text, description=help_text)

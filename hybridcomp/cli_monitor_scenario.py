@@ -47,12 +47,19 @@ def _disturbance_names() -> list[str]:
 def run(args: argparse.Namespace) -> int:
     """Run ``hybridcomp monitor scenario``; returns the exit code (2: bad input, named)."""
     from hybridcomp.errors import HybridcompError
-    from hybridcomp.scenario import DISTURBANCES, run_scenario
+    from hybridcomp.scenario import DISTURBANCES, check_day, run_scenario
 
     try:
+        # everything that can be checked before work starts is, so an error leaves no half-written folder
         if args.disturbance not in DISTURBANCES:
             raise ValueError(f"--disturbance: unknown disturbance {args.disturbance!r} (known: "
                              f"{', '.join(DISTURBANCES)})")
+        check_day(DISTURBANCES[args.disturbance], args.day_hours, "--day-hours")
+        for option, value, ok in (("--element-size-mm", args.element_size_mm, args.element_size_mm > 0),
+                                  ("--basic-hours", args.basic_hours, args.basic_hours > 0),
+                                  ("--rom-order", args.rom_order, args.rom_order is None or args.rom_order >= 1)):
+            if not ok:
+                raise ValueError(f"{option} must be positive, got {value:g}")
         res = run_scenario(args.out, disturbance=DISTURBANCES[args.disturbance],
                            element_size_mm=args.element_size_mm, rom_order=args.rom_order,
                            basic_hours=args.basic_hours, day_hours=args.day_hours, along_path=args.along_path)
@@ -62,5 +69,5 @@ def run(args: argparse.Namespace) -> int:
         print(jsonio.dumps(res.summary))
         return 0
     except (ValueError, OSError, HybridcompError) as exc:
-        print(f"hybridcomp monitor: {exc}", file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         return 2

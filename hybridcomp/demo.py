@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from hybridcomp.metrics import cell_um
 from hybridcomp.models import jsonio
 
 log = logging.getLogger(__name__)
@@ -242,13 +244,65 @@ def _cd_table(db_path: Path) -> list[str]:
         st = cd.fit_stats()
         tref = cd.t_reference()
         lines.append(f"| {cd.target} | {cd.load_case} | {', '.join(i.name for i in cd.active_inputs)} | {cd.n_values} | "
-                     f"{st.get('rms_residual_um', float('nan')):.3f} | " + " | ".join(f"{tref[s]:.2f}" for s in sensors) + " |")
+                     f"{_fixed(st.get('rms_residual_um'), 3)} | " + " | ".join(f"{tref[s]:.2f}" for s in sensors) + " |")
     return lines
 
 
 def _fmt_row(name: str, m: dict) -> str:
-    cells = [f"{m['rms_um']:.2f}", f"{m['p2p_um']:.2f}"] + ["–" if v != v else f"{v:.2f}" for v in m["p95_range_um"].values()]
+    cells = [cell_um(m["rms_um"]), cell_um(m["p2p_um"])] + [cell_um(v) for v in m["p95_range_um"].values()]
     return f"| {name} | " + " | ".join(cells) + " |"
+
+
+#: unit suffixes of event fields and how a reader sees them
+_UNITS = {"_um": "µm", "_K": "K", "_degC": "°C", "_s": "s", "_W": "W"}
+
+
+def _value(v) -> str:
+    """One value of an event as a reader sees it: 3 significant digits (whole from 1000), ``–`` for NaN, lists joined."""
+    if isinstance(v, bool) or v is None:
+        return {True: "yes", False: "no", None: "–"}[v]
+    if isinstance(v, float):
+        return "–" if not math.isfinite(v) else f"{v:.0f}" if abs(v) >= 1000 else f"{v:.3g}"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_value(x) for x in v)
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_value(x)}" for k, x in v.items() if x is not None)
+    return str(v).replace("|", "/").replace("\n", " ")
+
+
+def _fixed(v, digits: int) -> str:
+    """``v`` with ``digits`` decimals; ``–`` for a missing or non-finite value."""
+    return f"{v:.{digits}f}" if v is not None and math.isfinite(v) else "–"
+
+
+def _split_unit(key: str, unit: str = "") -> tuple[str, str]:
+    """(name, unit) of an event field: ``error_um`` → (``error``, ``µm``); no suffix keeps ``unit``."""
+    for suffix, u in _UNITS.items():
+        if key.endswith(suffix):
+            return key.removesuffix(suffix), u
+    return key, unit
+
+
+def _item(key, v, unit: str = "", top: bool = False) -> str:
+    """``name value unit`` of one field; a nested table as ``name: a 1 µm, b 2 µm`` (top) or ``name (...)``."""
+    name, unit = _split_unit(str(key), unit)
+    name = name.replace("_", " ")
+    if isinstance(v, dict):
+        inner = ", ".join(_item(k, x, unit) for k, x in v.items() if x is not None)
+        return f"{name}: {inner}" if top else f"{name} ({inner})"
+    text = _value(v)
+    return f"{name}{':' if top else ''} {text}{' ' + unit if unit and text != '–' else ''}"
+
+
+def event_details(event: dict) -> str:
+    """The details cell of a monitoring event in the report: ``name: value unit`` items, empty fields left out.
+
+    A field named with a unit suffix (``error_um``, ``delta_T_K``) shows the unit after its value; a nested table
+    (``error_um = {interval_um: 5.47, forecast_um: 3.1}``) shows its entries the same way, so no raw Python
+    (dicts, ``None``) reaches the report.
+    """
+    return "; ".join(_item(k, v, top=True) for k, v in event.items()
+                     if k not in ("kind", "machine_time_s", "strategy") and v is not None and v != {} and v != [])
 
 
 def _report(out: Path, options, summary, nominal, after, pictures, day_plots) -> Path:
@@ -311,14 +365,15 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
     lines += ["## Monitoring decisions (nominal models)", "", "| machine time [h] | event | details |", "|---|---|---|"]
     for e in summary["events"]:
         t = e.get("machine_time_s")
-        details = ", ".join(f"{k} {v}" for k, v in e.items() if k not in ("kind", "machine_time_s"))
+        details = event_details(e)
         lines.append(f"| {'' if t is None else f'{t / 3600:.2f}'} | {e['kind']} | {details} |")
     d = summary["diagnosis"]
     lines += ["", "## Diagnosis of the recorded day", "",
               f"Verdict: **{d['verdict']}**. Planted: {d['planted']} × {options.factor:g}; named: "
               f"**{d['planted_cause_named']}**.", ""]
     for c in d["causes"]:
-        par = ", ".join(f"{k} = {v:.4g} ± {c.get('uncertainty', {}).get(k, float('nan')):.2g}"
+        par = ", ".join(f"{k} = {v:.4g}" + (f" ± {u:.2g}" if (u := c.get("uncertainty", {}).get(k)) is not None
+                                             and math.isfinite(u) else "")
                         for k, v in c.get("parameters", {}).items())
         gain = c.get("gain", {}).get("validation_rss_reduction")
         said = f"; validation gain {100 * gain:.1f} %" if gain is not None else ""

@@ -78,13 +78,18 @@ def _hms(w: float) -> str:
     return f"{w / 3600:g} h" if w >= 3600 else f"{w / 60:g} min"
 
 
+def cell_um(value: float) -> str:
+    """A table cell of a length [µm] to 0.01 µm; ``–`` where there is no value (NaN: e.g. a window longer than the day)."""
+    return f"{value:.2f}" if math.isfinite(value) else "–"
+
+
 def metrics_table(metrics: Mapping[str, dict], windows_s: Sequence[float] = WINDOWS_S) -> str:
-    """A Markdown table: one row per strategy and direction (and the 3-D residual)."""
+    """A Markdown table: one row per strategy and direction (and the 3-D residual); ``–`` where there is no value."""
     head = ["strategy", "direction", "RMS [µm]", "P2P [µm]", *(f"p95 range {_hms(w)} [µm]" for w in windows_s)]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, m in metrics.items():
         for d in (*DIRS, "3d"):
             r = m[d]
-            lines.append("| " + " | ".join([name, d.replace("_um", ""), f"{r['rms_um']:.2f}", f"{r['p2p_um']:.2f}",
-                                            *(f"{r['p95_range_um'][float(w)]:.2f}" for w in windows_s)]) + " |")
+            lines.append("| " + " | ".join([name, d.replace("_um", ""), cell_um(r["rms_um"]), cell_um(r["p2p_um"]),
+                                            *(cell_um(r["p95_range_um"][float(w)]) for w in windows_s)]) + " |")
     return "\n".join(lines)

@@ -276,6 +276,33 @@ def planted_air(machine, loads, d: Disturbance):
     return Loads(loads.time_s, V, loads.names)
 
 
+def check_day(disturbance: Disturbance, day_hours: float | None, option: str = "day_hours") -> None:
+    """Refuse a replayed day that the disturbance does not fit in, before any work or file.
+
+    Parameters
+    ----------
+    disturbance : the scenario's disturbance
+    day_hours : hours of the job-shop day replayed [h] (None: the whole day)
+    option : how the caller spells the hours in the message (``"--day-hours"`` on the command line)
+
+    Raises
+    ------
+    ValueError
+        ``day_hours`` outside (0, 16], or the day ends at or before the disturbance's sensor fault starts (a fault
+        planted after the last sample cannot be seen; the fault stays where the disturbance's description puts it).
+    """
+    from hybridcomp.histogram.scenarios import JOBSHOP_HOURS
+
+    hours = JOBSHOP_HOURS if day_hours is None else day_hours
+    if not 0 < hours <= JOBSHOP_HOURS:
+        raise ValueError(f"{option} must be in (0, {JOBSHOP_HOURS:g}], got {day_hours:g}")
+    fault = disturbance.sensor_fault
+    if fault is not None and hours <= fault[1]:
+        raise ValueError(f"{option} {hours:g}: the day ends before disturbance {disturbance.name!r} plants its fault "
+                         f"on sensor {fault[0]} ({fault[2]}) at {fault[1]:g} h; give {option} above {fault[1]:g} "
+                         f"(at most {JOBSHOP_HOURS:g})")
+
+
 def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=None, machine_name: str = "vmc800",
                  element_size_mm: float = 80.0, rom_order: int | None = None, basic_hours: float = 8.0,
                  day_hours: float | None = None, dt_s: float = 60.0, real_dt_s: float = 20.0,
@@ -326,8 +353,9 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     for s in strategies:
         if s not in STRATEGIES:
             raise ValueError(f"unknown strategy {s!r} (strategies: {', '.join(STRATEGIES)})")
-    if day_hours is not None and not 0 < day_hours <= JOBSHOP_HOURS:
-        raise ValueError(f"day_hours must be in (0, {JOBSHOP_HOURS:g}], got {day_hours}")
+    check_day(disturbance, day_hours)
+    if along_path and models is not None and models.pose_rom is None:
+        raise ValueError("along_path needs the models' pose-aware structure model: build_models(..., poses=True)")
     out = Path(out_dir).resolve()  # once, against the caller's working directory (paths cross into the worker)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()

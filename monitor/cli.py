@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
                 write_text_atomic(check_output_path(args.out, force=args.force), example_config())
             return 0
     except (ConfigError, ValueError, OSError, HybridcompError) as exc:
-        print(f"hybridcomp monitor: {exc}", file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     return 2
 

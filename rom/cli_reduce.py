@@ -7,12 +7,14 @@ input fails at once and writes nothing.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.fem.cli_batch import WORKERS_RULE, add_scheduler_arguments, check_scheduler
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.machine import MachineFileError, load_machine
@@ -69,12 +71,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pose-enrich", type=int, metavar="N",
                    help="with --poses: Krylov directions of each support pose's own system added to the carried basis "
                    "(default 20)")
-    p.add_argument("--workers", type=int, metavar="N",
-                   help="with --poses: build and reduce the support poses as an FE batch on N local worker processes "
-                   "(default 1: here, one after another)")
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="with --poses: run the support poses on a Dask cluster instead: 'local' (a LocalCluster of "
-                   "--workers processes) or a scheduler address tcp://HOST:PORT (needs the dask extra)")
+    add_scheduler_arguments(p, "with --poses, the support poses as an FE batch: ")
     p.add_argument("--no-basis", action="store_true",
                    help="do not store the basis V (smaller file, no full-field reconstruction)")
 
@@ -111,16 +108,14 @@ def run(args: argparse.Namespace) -> int:
         ("pose_enrich", args.poses is None, "applies with --poses only"),
         ("workers", args.poses is None, "applies with --poses only (the support poses run as an FE batch)"),
         ("scheduler", args.poses is None, "applies with --poses only (the support poses run as an FE batch)"),
+        ("workers", args.scheduler not in ("process", "local"), WORKERS_RULE),
         ("no_basis", args.poses is not None, "has no effect with --poses (a pose-aware model keeps no basis)"),
     ])
     if bad:
         print(f"error: {bad}", file=sys.stderr)
         return 2
     try:
-        if args.workers is not None and args.workers < 1:
-            raise ValueError(f"--workers must be at least 1, got {args.workers}")
-        if args.scheduler is not None and args.scheduler != "local" and not args.scheduler.startswith("tcp://"):
-            raise ValueError(f"--scheduler must be 'local' or tcp://HOST:PORT, got {args.scheduler!r}")
+        check_scheduler(args.scheduler, args.workers)
         if args.pose_enrich is not None and args.pose_enrich < 0:
             raise ValueError(f"--pose-enrich must be a non-negative integer, got {args.pose_enrich}")
         if args.order is not None and args.order < 1:
@@ -171,7 +166,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"reducing at the {args.poses} support poses ...", file=sys.stderr)
             scale = None if check is None else np.abs(machine.layout().inputs(check)).max(axis=0)
             rom = reduce_at_poses(model, rom, args.poses, DEFAULT_ENRICH if args.pose_enrich is None else args.pose_enrich,
-                                  input_scale=scale, workers=args.workers or 1, scheduler=args.scheduler or "process",
+                                  input_scale=scale, workers=_workers(args),
+                                  scheduler="process" if args.scheduler == "serial" else args.scheduler,
                                   progress=True)
     save_rom(args.out, rom)
     summary = {"out": str(args.out), "order": rom.order, "seconds": round(time.perf_counter() - t0, 2)}
@@ -196,3 +192,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"relative H2 error of the reduced model: {err:.3g} ({how})", file=sys.stderr)
     print(jsonio.dumps(summary))
     return 0
+
+
+def _workers(args) -> int:
+    """Worker processes of ``--scheduler``: one for serial (here, one after another), else --workers or the cores."""
+    if args.scheduler == "serial":
+        return 1
+    return args.workers or os.cpu_count() or 1

@@ -126,7 +126,7 @@ def test_cd_command_line_fit_eval_cnc_and_database(training, tmp_path, capsys):
 
 def test_train_data_command(tmp_path, capsys):
     out = tmp_path / "data.csv"
-    assert main(["cd", "train-data", "--cases", "basic", "--heat-h", "0.5", "--cool-h", "0.5", "--element-size-mm", "200",
+    assert main(["cd", "train-data", "--cases", "basic", "--heat-hours", "0.5", "--cool-hours", "0.5", "--element-size-mm", "200",
                  "--dt", "300", "--no-progress", "--out", str(out)]) == 0
     data = read_training_csv(out)
     assert data.cases == ("basic_X", "basic_Y", "basic_Z", "basic_spindle")

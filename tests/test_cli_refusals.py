@@ -43,7 +43,7 @@ CASES = {
     "reduce --h2-maxiter without h2": (["reduce", "--h2-maxiter", "5", "--out", "{out}"], "--h2-maxiter"),
     "simulate --field-format without --fields": (["simulate", "--loads", "{d}/l.csv", "--field-format", "xdmf",
                                                   "--out", "{out}"], "--field-format"),
-    "batch --serial --workers": (["batch", "run", "{d}", "--serial", "--workers", "2", "--out", "{out}"], "--workers"),
+    "batch serial --workers": (["batch", "run", "{d}", "--scheduler", "serial", "--workers", "2", "--out", "{out}"], "--workers"),
     "batch on a Dask scheduler --workers": (["batch", "run", "{d}", "--scheduler", "tcp://127.0.0.1:1", "--workers",
                                              "2", "--out", "{out}"], "--workers"),
     "machine --element-size-mm without --mesh": (["machine", "vmc800", "--element-size-mm", "200"],
@@ -104,3 +104,28 @@ def test_demo_refuses_a_planted_effect_it_cannot_plant_before_any_work(tmp_path,
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err and option in err, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("argv,option", [
+    (["--disturbance", "sensor fault", "--day-hours", "6"], "--day-hours 6"),
+    (["--disturbance", "sensor fault", "--day-hours", "8"], "--day-hours 8"),
+    (["--day-hours", "17"], "--day-hours"),
+    (["--basic-hours", "0"], "--basic-hours"),
+    (["--element-size-mm", "-1"], "--element-size-mm"),
+], ids=["sensor fault after a 6 h day", "sensor fault at the end of the day", "longer than the day",
+        "no basic load cases", "negative element size"])
+def test_monitor_scenario_refuses_what_it_cannot_run_before_any_work(tmp_path, capsys, argv, option):
+    # the sensor fault is planted at 8 h: a 6 h day used to crash with an IndexError in a half-written folder
+    out = tmp_path / "scenario"
+    rc = main(["monitor", "scenario", "--out", str(out), "--element-size-mm", "150", "--basic-hours", "3", *argv])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and err.startswith("error: ") and option in err, err
+    assert not out.exists()
+
+
+def test_run_scenario_refuses_a_sensor_fault_after_the_day_before_writing(tmp_path):
+    from hybridcomp.scenario import DISTURBANCES, run_scenario
+
+    with pytest.raises(ValueError, match="day_hours 6: .*sensor T1"):
+        run_scenario(tmp_path / "s", disturbance=DISTURBANCES["sensor fault"], day_hours=6.0)
+    assert not (tmp_path / "s").exists()

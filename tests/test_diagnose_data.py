@@ -591,7 +591,7 @@ def test_post_process_updating_in_the_cli_report_and_summary(tmp_path):
     path = _dataset_csv(ds, tmp_path / "m.csv")
     out = tmp_path / "out"
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(out), "--train", "0:50%",
-                 "--probe-every-h", "2", "--probe-sd-um", "0.3"]) == 0
+                 "--probe-every-hours", "2", "--probe-sd-um", "0.3"]) == 0
     s = json.loads((out / "summary.json").read_text())
     pu = s["post_process_updating"]
     assert pu["every_h"] == 2.0 and pu["probe_sd_um"] == 0.3
@@ -603,4 +603,4 @@ def test_post_process_updating_in_the_cli_report_and_summary(tmp_path):
     assert "* dz_um: probe every 2 h (repeatability 0.3 µm)" in report
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(tmp_path / "x"), "--probe-sd-um", "1"]) == 2
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(tmp_path / "x"),
-                 "--probe-every-h", "0"]) == 2
+                 "--probe-every-hours", "0"]) == 2

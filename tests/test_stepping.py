@@ -134,10 +134,10 @@ def test_batch_and_train_data_pass_the_one_default_scheme(options, scheme, theta
     monkeypatch.setattr(batch, "run_batch", fake_batch)
     monkeypatch.setattr(training, "simulate_load_cases", fake_training)
     write_loads(tmp_path / "loads" / "a.csv", example_loads(machine, duration_h=1.0, dt_s=600.0))
-    assert main(["batch", "run", str(tmp_path / "loads"), "--out", str(tmp_path / "b"), "--serial", "--no-progress",
+    assert main(["batch", "run", str(tmp_path / "loads"), "--out", str(tmp_path / "b"), "--no-progress",
                  *options]) == 0
     with pytest.raises(SystemExit):
-        main(["cd", "train-data", "--cases", "basic", "--heat-h", "0.1", "--cool-h", "0.1", "--out", str(tmp_path / "t.csv"),
+        main(["cd", "train-data", "--cases", "basic", "--heat-hours", "0.1", "--cool-hours", "0.1", "--out", str(tmp_path / "t.csv"),
               "--no-progress", *options])
     dt = 600.0 if "--dt" in options else None
     assert seen == [(scheme, theta, dt), (scheme, theta, dt)]
