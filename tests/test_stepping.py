@@ -137,7 +137,7 @@ def test_batch_and_train_data_pass_the_one_default_scheme(options, scheme, theta
     assert main(["batch", "run", str(tmp_path / "loads"), "--out", str(tmp_path / "b"), "--no-progress",
                  *options]) == 0
     with pytest.raises(SystemExit):
-        main(["cd", "train-data", "--cases", "basic", "--heat-hours", "0.1", "--cool-hours", "0.1", "--out", str(tmp_path / "t.csv"),
-              "--no-progress", *options])
+        main(["cd", "train-data", "--cases", "basic", "--heat-hours", "0.1", "--cool-hours", "0.1",
+              "--out", str(tmp_path / "t.csv"), "--no-progress", *options])
     dt = 600.0 if "--dt" in options else None
     assert seen == [(scheme, theta, dt), (scheme, theta, dt)]
