@@ -34,7 +34,8 @@ def test_example_config_parses_with_the_documented_defaults(tmp_path):
     p.write_text(example_config())
     c = load_config(p)
     assert (c.compensation_interval_s, c.monitoring_interval_s, c.threshold_K) == (5.0, 900.0, 0.5)
-    assert c.database == str(tmp_path / "cd.db") and c.source.path == tmp_path / "jobshop_trace.csv"
+    assert c.database == str(tmp_path / "cds.sqlite") and c.source.path == tmp_path / "jobshop_trace.csv"
+    assert c.source.speed == 0.0  # the walk-through replays as fast as it can; speed = 1 is real time
     assert c.regeneration.job == "hybridcomp.monitor.regeneration:default_job"
 
 
