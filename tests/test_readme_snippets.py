@@ -217,7 +217,7 @@ def test_the_placeholder_rule(command, bad):
 
 
 def fresh_copy(dest: Path) -> Path:
-    """The files git tracks, copied from the working tree into ``dest`` (a repository of its own, all staged)."""
+    """The files git tracks, copied from the working tree into ``dest`` (a repository of its own, committed)."""
     files = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, check=True, capture_output=True).stdout
     for name in filter(None, files.decode().split("\0")):
         src, dst = ROOT / name, dest / name
@@ -228,9 +228,10 @@ def fresh_copy(dest: Path) -> Path:
             os.symlink(os.readlink(src), dst)
         else:
             shutil.copy2(src, dst)
-    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    git = ["git", "-c", "user.name=readme test", "-c", "user.email=readme@test", "-c", "commit.gpgsign=false"]
     subprocess.run([*git, "init", "-q"], cwd=dest, check=True)
     subprocess.run([*git, "add", "-A"], cwd=dest, check=True)
+    subprocess.run([*git, "commit", "-q", "--no-verify", "-m", "the working tree"], cwd=dest, check=True)
     return dest
 
 
@@ -254,6 +255,17 @@ def test_the_shell_runs_the_copy(tmp_path):
                           'command -v hybridcomp'], cwd=clone, env=env, capture_output=True, text=True, check=True)
     module, script = out.stdout.split()
     assert Path(module).resolve().is_relative_to(clone.resolve()) and Path(script).parent == tmp_path / "bin"
+    assert not left_over(clone)
+    (clone / "demo").mkdir()
+    (clone / "demo" / "report.md").write_text("ignored")
+    (clone / "stray.csv").write_text("not ignored")
+    assert left_over(clone) == ["?? stray.csv"]
+
+
+def left_over(clone: Path) -> list[str]:
+    """``git status`` of the copy: files no ``.gitignore`` rule covers, and changed tracked files."""
+    return subprocess.run(["git", "status", "--porcelain", "--untracked-files=all"], cwd=clone, check=True,
+                          capture_output=True, text=True).stdout.splitlines()
 
 
 @pytest.mark.parametrize("snippet", list(params("bash")))
@@ -271,7 +283,6 @@ def test_readme_shell_block_runs(snippet: Snippet, tmp_path):
         pytest.fail(f"the shell block at {snippet.where} failed with exit code {res.returncode} at\n"
                     f"  {ran[-1] if ran else '(before the first command)'}\n\nstdout (end):\n{res.stdout[-3000:]}\n"
                     f"stderr (end):\n{res.stderr[-3000:]}", pytrace=False)
-    status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=all"], cwd=clone, check=True,
-                            capture_output=True, text=True).stdout.splitlines()
+    status = left_over(clone)
     assert not status, (f"the shell block at {snippet.where} leaves files that .gitignore does not cover, or changes "
                         "tracked files:\n" + "\n".join(status[:20]))
