@@ -24,6 +24,7 @@ SUBCOMMANDS = {
     "reduce": ("hybridcomp.rom.cli_reduce", "reduce a machine's FE model (or exported matrices) to a real-time ROM.npz"),
     "diagnose": ("hybridcomp.diagnose.cli",
                  "diagnose measured data: residuals, named physical causes, extended machine file, gain"),
+    "data": ("hybridcomp.diagnose.cli_data", "fetch a public measured data set (the README's real spindle test)"),
     "batch": ("hybridcomp.fem.cli_batch", "run a directory of load cases on the FE model: local process pool or Dask cluster"),
     "iso230": ("hybridcomp.fem.cli_iso230",
                "ISO 230-3 thermal tests, simulated: moving linear axis (feed drives) and ETVE"),

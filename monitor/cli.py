@@ -47,9 +47,29 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse._SubParsersAction:
     s.add_argument("--config", required=True, type=Path, help="monitor TOML file")
     s.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     s.add_argument("--events", type=int, default=5, help="show the last N decisions/switches/generations/warnings")
-    e = sub.add_parser("example-config", help="write an annotated example configuration")
+    e = sub.add_parser("example-config", help="write an annotated example configuration",
+                       description="Write an annotated example configuration. It replays jobshop_trace.csv beside "
+                       "it (write it with 'hybridcomp monitor example-trace') as fast as the daemon can ([source] "
+                       "speed = 0; speed = 1 is real time), with the structure model vmc800.rom.npz and the CD "
+                       "database cds.sqlite beside it.")
     e.add_argument("--out", type=Path, default=None, help="file to write (default: print)")
     e.add_argument("--force", action="store_true", help="overwrite existing output files")
+    t = sub.add_parser("example-trace", help="write the example replay trace: the job-shop day with sensor columns",
+                       description="Write a trace CSV for a replay source: the bundled 16 h job-shop day sampled at "
+                       "--rate-hz (time_s, axis positions, spindle_rpm, the workshop air Tamb_degC) plus, for every "
+                       "sensor, the temperature the structure model --rom computes for the day's own loads: the "
+                       "sensors of a machine exactly like its model. The example configuration replays it "
+                       "(path = \"jobshop_trace.csv\"). A real machine's data comes from its control (source kind "
+                       "opcua); 'monitor scenario' replays a simulated machine that differs from the model.")
+    t.add_argument("--rom", type=Path, required=True, metavar="ROM.npz",
+                   help="structure model that computes the sensors ('hybridcomp reduce')")
+    t.add_argument("--machine", default="vmc800",
+                   help="bundled machine name or machine TOML the model was reduced from (default vmc800)")
+    t.add_argument("--hours", type=float, default=16.0, help="length of the trace from the start of the day, "
+                   "at most 16 [h] (default 16)")
+    t.add_argument("--rate-hz", type=float, default=1.0, help="sampling rate of the trace [Hz] (default 1)")
+    t.add_argument("--out", type=Path, required=True, help="trace CSV to write")
+    t.add_argument("--force", action="store_true", help="overwrite existing output files")
     return sub
 
 
@@ -74,10 +94,30 @@ def run(args: argparse.Namespace) -> int:
             else:
                 write_text_atomic(check_output_path(args.out, force=args.force), example_config())
             return 0
+        if args.monitor_command == "example-trace":
+            return _example_trace(args)
     except (ConfigError, ValueError, OSError, HybridcompError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     return 2
+
+
+def _example_trace(args) -> int:
+    from hybridcomp.models import load_machine
+    from hybridcomp.monitor.example import write_example_trace
+    from hybridcomp.rom import load_rom
+    from hybridcomp.safeio import check_output_path
+
+    out = check_output_path(args.out, inputs=[args.rom], force=args.force)
+    machine = load_machine(args.machine)
+    rom = load_rom(args.rom, machine)
+    if rom.meta.get("poses"):
+        raise ValueError(f"--rom {args.rom} is a pose-aware reduced model (reduce --poses): give the model pose's "
+                         "reduced model (reduce without --poses)")
+    write_example_trace(out, machine, rom, hours=args.hours, rate_hz=args.rate_hz)
+    print(f"wrote {out}: {args.hours:g} h of the job-shop day at {args.rate_hz:g} Hz, sensors "
+          f"{', '.join(rom.layout().sensors)} from {args.rom}")
+    return 0
 
 
 def open_everything(cfg):

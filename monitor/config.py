@@ -368,7 +368,7 @@ EXAMPLE = """\
 # hybridcomp monitor configuration (hybridcomp monitor run --config monitor.toml)
 [monitor]
 machine = "vmc800"                 # bundled machine name or a machine file
-database = "cd.db"                 # SQLite file or any SQLAlchemy URL (postgresql+psycopg://...)
+database = "cds.sqlite"            # SQLite file or any SQLAlchemy URL (postgresql+psycopg://user:pw@host/db)
 rom = "vmc800.rom.npz"             # hybridcomp reduce --machine vmc800 --out vmc800.rom.npz
 compensation_interval_s = 5        # machine time between compensation cycles [s]
 monitoring_interval_s = 900        # machine time between monitoring cycles [s]
@@ -422,8 +422,10 @@ confirm_samples = 5                # ... until this many samples continue from i
 
 [source]
 kind = "replay"                    # or "opcua"
-path = "jobshop_trace.csv"         # trace CSV (time_s, x_mm, y_mm, z_mm, spindle_rpm, T1_degC..., Tamb_degC)
-speed = 60                         # machine seconds per wall second (0: as fast as possible)
+path = "jobshop_trace.csv"         # trace CSV (time_s, x_mm, y_mm, z_mm, spindle_rpm, T1_degC ..., Tamb_degC);
+                                   # hybridcomp monitor example-trace --rom vmc800.rom.npz --out jobshop_trace.csv
+speed = 0                          # machine seconds per wall second: 0 as fast as possible, 1 real time
+                                   # (as a control sends it; 'monitor run --speed 1' overrides this)
 # kind = "opcua"
 # url = "opc.tcp://127.0.0.1:4840"
 # nodes = { time_s = "ns=2;s=time_s", x_mm = "ns=2;s=x_mm", y_mm = "ns=2;s=y_mm", z_mm = "ns=2;s=z_mm",

@@ -34,7 +34,8 @@ def test_example_config_parses_with_the_documented_defaults(tmp_path):
     p.write_text(example_config())
     c = load_config(p)
     assert (c.compensation_interval_s, c.monitoring_interval_s, c.threshold_K) == (5.0, 900.0, 0.5)
-    assert c.database == str(tmp_path / "cd.db") and c.source.path == tmp_path / "jobshop_trace.csv"
+    assert c.database == str(tmp_path / "cds.sqlite") and c.source.path == tmp_path / "jobshop_trace.csv"
+    assert c.source.speed == 0.0  # the walk-through replays as fast as it can; speed = 1 is real time
     assert c.regeneration.job == "hybridcomp.monitor.regeneration:default_job"
 
 
@@ -208,3 +209,14 @@ def test_metrics_endpoint_serves_the_status_on_localhost():
     text = asyncio.run(main())
     assert text.startswith("HTTP/1.1 200 OK") and "hybridcomp_monitor_switches_total 2\n" in text
     assert "hybridcomp_monitor_machine_time_seconds 1800\n" in text
+
+
+def test_example_trace_needs_a_readable_structure_model(capsys, tmp_path):
+    from hybridcomp.cli import main
+
+    out = tmp_path / "jobshop_trace.csv"
+    assert main(["monitor", "example-trace", "--rom", str(tmp_path / "none.rom.npz"), "--out", str(out)]) == 2
+    assert "none.rom.npz" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(SystemExit):
+        main(["monitor", "example-trace", "--help"])
+    assert "jobshop_trace.csv" in capsys.readouterr().out

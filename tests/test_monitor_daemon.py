@@ -670,3 +670,33 @@ def test_opcua_source_and_sink_survive_a_dropped_server(machine, rom, rom_file, 
     assert sink.written > 20, (sink.written, sink.failed, mon.counters)
     # (no switch is asserted: at 180 s of machine time between OPC UA samples the axis path is under-read, so the
     # structure model warms less than in the 10 s replay)
+
+
+# --------------------------------------------------------------------------- the walk-through's example trace
+
+
+def test_example_trace_is_the_jobshop_day_with_the_models_sensors(machine, rom, rom_file, tmp_path, capsys):
+    """``monitor example-trace``: the job-shop day's samples with the structure model's sensors on their loads, read
+    back by the replay source; an existing file is kept without --force, and the day is 16 h long."""
+    from hybridcomp.cli import main
+    from hybridcomp.monitor.example import jobshop_samples
+
+    out = tmp_path / "jobshop_trace.csv"
+    argv = ["monitor", "example-trace", "--rom", str(rom_file), "--hours", "1", "--rate-hz", "0.2", "--out", str(out)]
+    assert main(argv) == 0
+    header = out.read_text().splitlines()[0].split(",")
+    assert header == ["time_s", "x_mm", "y_mm", "z_mm", "spindle_rpm", "Tamb_degC",
+                      *(f"{n.name}_degC" for n in machine.sensors)]
+    data = np.loadtxt(out, delimiter=",", skiprows=1)
+    s = jobshop_samples(machine, 1.0, 0.2)
+    assert data.shape == (721, 6 + len(machine.sensors)) and data[-1, 0] == 3600.0
+    np.testing.assert_allclose(data[:, 1:4], s.position_mm, atol=1e-4)
+    T, _ = rom_outputs(machine, rom, s, 300.0)  # the scenario's own reading of a trace through the structure model
+    np.testing.assert_allclose(data[:, 6:], T, atol=6e-5)  # written to 4 decimals
+    assert np.ptp(data[:, 6:], axis=0).max() > 0.05  # the machine warms in the first hour
+    replay = list(read_replay(out, machine))
+    assert len(replay) == 721 and np.allclose([replay[-1].sensors_degC[n.name] for n in machine.sensors], data[-1, 6:])
+    capsys.readouterr()
+    assert main(argv) == 2 and "--force" in capsys.readouterr().err
+    assert main(["monitor", "example-trace", "--rom", str(rom_file), "--hours", "17", "--out", str(tmp_path / "d.csv")]) == 2
+    assert "the job-shop day is 16 h long, got 17.0" in capsys.readouterr().err
