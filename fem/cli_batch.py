@@ -17,7 +17,8 @@ from pathlib import Path
 from hybridcomp.fem.cli_simulate import parse_pose
 from hybridcomp.fem.loads import LoadsFileError
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
-from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.loader import load_machine
+from hybridcomp.models.machine import MachineFileError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

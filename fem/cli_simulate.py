@@ -18,7 +18,8 @@ from hybridcomp.fem.loads import Loads, LoadsFileError, read_loads, write_output
 from hybridcomp.fem.timestep import DEFAULT_TOLERANCE, TimeTolerance
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
-from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.loader import load_machine
+from hybridcomp.models.machine import MachineFileError
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, write_text_atomic
 
 log = logging.getLogger(__name__)

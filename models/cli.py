@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from hybridcomp.models.machine import MachineFileError, bundled_machines, load_machine
+from hybridcomp.models.loader import bundled_machines, load_machine
+from hybridcomp.models.machine import MachineFileError
 
 
 def add_machine_argument(p: argparse.ArgumentParser) -> None:

@@ -27,7 +27,7 @@ from hybridcomp.fem.loads import (
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.transient import steady_state
 from hybridcomp.models import load_machine
-from hybridcomp.models.machine import resolve_machine_path
+from hybridcomp.models.loader import resolve_machine_path
 from hybridcomp.rom import (
     ReducedModel,
     RomFileError,
