@@ -91,14 +91,15 @@ def run(args: argparse.Namespace) -> int:
                 write_text_atomic(check_output_path(args.out, force=args.force), example_config())
             return 0
         if args.monitor_command == "scenario":
-            from hybridcomp.scenario import DISTURBANCES, run_scenario
+            from hybridcomp.scenario import DISTURBANCES, Scenario, run_scenario
 
             if args.disturbance not in DISTURBANCES:
                 raise ValueError(f"--disturbance: unknown disturbance {args.disturbance!r} (known: "
                                  f"{', '.join(DISTURBANCES)})")
-            res = run_scenario(args.out, disturbance=DISTURBANCES[args.disturbance],
-                               element_size_mm=args.element_size_mm, rom_order=args.rom_order,
-                               basic_hours=args.basic_hours, day_hours=args.day_hours, along_path=args.along_path)
+            res = run_scenario(Scenario(disturbance=DISTURBANCES[args.disturbance],
+                                        element_size_mm=args.element_size_mm, rom_order=args.rom_order,
+                                        basic_hours=args.basic_hours, day_hours=args.day_hours,
+                                        along_path=args.along_path), args.out)
             print(res.table)
             if args.along_path:
                 print("\nalong the path:\n" + (Path(res.files["table"]).parent / "table_along_path.md").read_text())
