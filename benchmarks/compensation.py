@@ -40,6 +40,7 @@ import platform
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -108,7 +109,7 @@ def targets(case: str, metrics: dict, load_cases: float = 0.0) -> list[dict]:
 
 
 def main(argv=None) -> dict:
-    from hybridcomp.scenario import DISTURBANCES, build_models, check_day, run_scenario
+    from hybridcomp.scenario import DISTURBANCES, Scenario, build_models, check_day, run_scenario
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--element-size-mm", type=float, default=150.0, help="FE element size of every model [mm]")
@@ -144,19 +145,20 @@ def main(argv=None) -> dict:
     else:
         out = args.out.resolve()
     t_all = time.perf_counter()
-    common = dict(element_size_mm=args.element_size_mm, day_hours=args.day_hours)
+    base = Scenario(element_size_mm=args.element_size_mm, day_hours=args.day_hours)
     models = build_models(out / "models", element_size_mm=args.element_size_mm, keep_basis=True)
     rows, checks, cases = [], [], {}
     for n in names:
         t0 = time.perf_counter()
-        res = run_scenario(out / n.replace(" ", "_"), disturbance=DISTURBANCES[n], models=models, **common)
+        scenario = replace(base, disturbance=DISTURBANCES[n])
+        res = run_scenario(scenario, out / n.replace(" ", "_"), models)
         cases[n] = {"metrics": res.metrics, "wall_s": time.perf_counter() - t0, "summary": res.summary}
         rows += [row(n, s, res.metrics[s]) for s in STRATEGY_ROWS]
         checks += targets(n, res.metrics, load_cases_per_16h(args.day_hours))
         print(f"{n}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
         if n in diagnosed and not args.no_diagnosis:
             t0 = time.perf_counter()
-            diag, after = _after_diagnosis(out, n, res, models, common, args.campaign_noise_um, seed=names.index(n))
+            diag, after = _after_diagnosis(out, n, res, models, scenario, args.campaign_noise_um, seed=names.index(n))
             checks.append({"case": n, "target": "diagnosis names the planted cause", "value": diag["named"],
                            "limit": diag["planted"], "met": diag["correct"]})
             cases[n]["diagnosis"] = diag
@@ -239,33 +241,32 @@ def _campaign_record(recorded: Path, noise_um: float, seed: int) -> Path:
     return out
 
 
-def _after_diagnosis(out: Path, case: str, res, models, common, noise_um: float, seed: int):
-    """Diagnose a case's recorded day; after a correct diagnosis of a cause the machine file holds, the scenario
-    again with models from the extended machine file. Returns (what the diagnosis named, the rerun's result or
-    None)."""
+def _after_diagnosis(out: Path, case: str, res, models, scenario, noise_um: float, seed: int):
+    """Diagnose a case's recorded day (run as ``scenario``); after a correct diagnosis of a cause the machine file
+    holds, the scenario again with models from the extended machine file. Returns (what the diagnosis named, the
+    rerun's result or None)."""
     from hybridcomp.diagnose import diagnose, prepare_model, read_measured, write_report
     from hybridcomp.models import load_machine
     from hybridcomp.scenario import DISTURBANCES, build_models, run_scenario
 
     machine = models.machine
     folder = out / case.replace(" ", "_")
-    rom = prepare_model(machine, rom=models.rom, element_size_mm=common["element_size_mm"])
+    rom = prepare_model(machine, rom=models.rom, element_size_mm=scenario.element_size_mm)
     # heat inputs at the real machine's own load step: a coarser histogram leaves its short-term response in the
     # residual, where it is no model error
     data = read_measured(_campaign_record(Path(res.files["recorded"]), noise_um, seed), machine,
                          increment_s=res.summary["real_dt_s"])
     d = diagnose(machine, data, rom=rom)
     write_report(d, folder / "diagnosis")
-    planted, correct, in_file = planted_cause(DISTURBANCES[case], d.causes, common["element_size_mm"])
+    planted, correct, in_file = planted_cause(DISTURBANCES[case], d.causes, scenario.element_size_mm)
     named = "; ".join(f"{c.candidate.label} ({', '.join(f'{v:.3g}' for v in c.params)})" for c in d.causes)
     diag = {"verdict": d.verdict, "named": named, "planted": planted, "correct": bool(correct)}
     if not (correct and in_file):
         return diag, None
     extended = folder / "diagnosis" / "machine_extended.toml"
     real = load_machine(res.summary["real_machine"])
-    after_models = build_models(folder / "models_after", str(extended), common["element_size_mm"])
-    return diag, run_scenario(folder / "after_diagnosis", disturbance=DISTURBANCES[case], real_machine=real,
-                              models=after_models, **common)
+    after_models = build_models(folder / "models_after", str(extended), scenario.element_size_mm)
+    return diag, run_scenario(replace(scenario, real_machine=real), folder / "after_diagnosis", after_models)
 
 
 if __name__ == "__main__":

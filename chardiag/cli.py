@@ -191,7 +191,7 @@ def _train_data(args) -> int:
         standard_load_cases,
         write_training_csv,
     )
-    from hybridcomp.models.machine import load_machine
+    from hybridcomp.models.loader import load_machine
 
     machine = load_machine(args.machine)
     pose = machine.check_pose(_pose(args.pose))
@@ -226,7 +226,7 @@ def _fit(args) -> int:
     from hybridcomp.chardiag.fit import FitOptions, candidate_inputs, fit_cd
     from hybridcomp.chardiag.training import read_training_csv
     from hybridcomp.chardiag.xmlio import check_machine, write_cd
-    from hybridcomp.models.machine import load_machine
+    from hybridcomp.models.loader import load_machine
 
     machine = load_machine(args.machine)
     pose = machine.check_pose(_pose(args.pose))
@@ -328,7 +328,7 @@ def _eval(args) -> int:
     from hybridcomp.chardiag.cd import CDSet
     from hybridcomp.chardiag.export import axis_offsets, generic_table, siemens_840d
     from hybridcomp.chardiag.training import read_training_csv
-    from hybridcomp.models.machine import load_machine
+    from hybridcomp.models.loader import load_machine
 
     machine = load_machine(args.machine)
     cds = _load_cds(args.cds, machine)
@@ -407,7 +407,7 @@ def _db(args) -> int:
     if c == "import":  # every file is read and checked before the database is opened: a bad one stores nothing
         machine = None
         if args.machine:
-            from hybridcomp.models.machine import load_machine
+            from hybridcomp.models.loader import load_machine
 
             machine = load_machine(args.machine)
         to_store = [read_cd(f, machine) for f in args.files]

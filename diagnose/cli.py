@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
             ds = read_campaign(args.data, args.map)
         else:
             from hybridcomp.diagnose.core import read_measured
-            from hybridcomp.models.machine import load_machine
+            from hybridcomp.models.loader import load_machine
 
             if not args.increment > 0:
                 raise DatasetError(f"--increment must be positive, got {args.increment}")

@@ -21,7 +21,8 @@ from pathlib import Path
 from hybridcomp.fem.cli_simulate import SCHEME_HELP, add_scheme_arguments, chosen_scheme
 from hybridcomp.fem.loads import LoadsFileError
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
-from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.loader import load_machine
+from hybridcomp.models.machine import MachineFileError
 from hybridcomp.models.pose import parse_pose
 
 #: what ``--scheduler`` means in every command that runs FE load cases

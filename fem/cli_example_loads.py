@@ -8,7 +8,8 @@ from pathlib import Path
 
 from hybridcomp.fem.loads import example_loads, write_loads
 from hybridcomp.models.cli import add_machine_argument
-from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.loader import load_machine
+from hybridcomp.models.machine import MachineFileError
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_path
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument
 from hybridcomp.models.layout import DRIFT_COLUMNS
-from hybridcomp.models.machine import load_machine
+from hybridcomp.models.loader import load_machine
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, write_text_atomic
 
 

@@ -7,7 +7,8 @@ import sys
 
 from hybridcomp.models.cli import refuse_unused
 from hybridcomp.models.layout import temperature_column
-from hybridcomp.models.machine import MachineFileError, bundled_machines, load_machine
+from hybridcomp.models.loader import bundled_machines, load_machine
+from hybridcomp.models.machine import MachineFileError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -18,7 +18,8 @@ from hybridcomp.fem.loads import LoadsFileError, read_loads, write_outputs
 from hybridcomp.fem.stepping import DEFAULT_THETA, DEFAULT_TOLERANCE, TimeTolerance
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
-from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.loader import load_machine
+from hybridcomp.models.machine import MachineFileError
 from hybridcomp.models.pose import parse_pose
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, write_text_atomic
 

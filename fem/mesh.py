@@ -18,15 +18,8 @@ from pathlib import Path
 import numpy as np
 import skfem
 
-from hybridcomp.models.machine import (
-    FACES,
-    Machine,
-    MachineFileError,
-    box_at_pose,
-    check_element_budget,
-    check_pose_geometry,
-    max_elements,
-)
+from hybridcomp.models.geometry import box_at_pose, check_element_budget, check_pose_geometry, max_elements
+from hybridcomp.models.machine import FACES, Machine, MachineFileError
 from hybridcomp.models.toml import open_regular_file
 
 log = logging.getLogger(__name__)
@@ -223,7 +216,7 @@ def mesh_machine(machine: Machine, pose_mm: dict[str, float] | None = None, elem
     ------
     MachineFileError
         for a bad pose or geometry, and before any meshing when the element count (estimated from the
-        box faces and the element size) is over the limit (:func:`hybridcomp.models.machine.max_elements`).
+        box faces and the element size) is over the limit (:func:`hybridcomp.models.geometry.max_elements`).
     """
     pose = machine.check_pose(pose_mm or {})
     if machine.mesh.file is not None:

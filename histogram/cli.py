@@ -29,7 +29,8 @@ from hybridcomp.histogram.increments import (
 from hybridcomp.histogram.signature import SignatureLayout, write_signatures
 from hybridcomp.histogram.trace import TraceFileError, TraceWarning
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
-from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.loader import load_machine
+from hybridcomp.models.machine import MachineFileError
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_distinct, check_output_dir, check_output_path
 
 log = logging.getLogger(__name__)

@@ -10,7 +10,8 @@ from hybridcomp.histogram.increments import DEFAULT_INCREMENT_S
 from hybridcomp.histogram.scenarios import SCENARIOS, scenario_files, write_scenario
 from hybridcomp.histogram.trace import TraceFileError
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
-from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.loader import load_machine
+from hybridcomp.models.machine import MachineFileError
 from hybridcomp.safeio import FORCE_HELP, check_output_dir
 
 

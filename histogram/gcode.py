@@ -34,6 +34,7 @@ naming the file, the line and the word.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass
@@ -93,6 +94,51 @@ def _fmt(v: float) -> str:
     return f"{v:g}"
 
 
+@dataclass(frozen=True)
+class _Programme:
+    """What every block of a programme is read against: the machine's axes and the file's name."""
+
+    source: str
+    machine_name: str
+    axes: tuple
+    letters: dict[str, int]
+    allowed: frozenset[str]
+    lo: np.ndarray
+    hi: np.ndarray
+    vmax: np.ndarray
+    nmax: float
+
+    def err(self, ln: int, msg: str) -> GcodeError:
+        return GcodeError(f"{self.source}: line {ln}: {msg}")
+
+
+@dataclass(frozen=True)
+class _Block:
+    """One block (line) of a programme: its number, text, value words and G and M words in the order written."""
+
+    ln: int
+    raw: str
+    words: dict[str, float]
+    gs: tuple[int, ...]
+    ms: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class _State:
+    """The interpreter's modal state after a block: position [mm], time [s], units, feed, plane and spindle."""
+
+    pos: np.ndarray
+    t: float = 0.0
+    feed: float | None = None  # mm/min
+    scale: float = 1.0  # mm per input unit
+    absolute: bool = True
+    plane: int = 17
+    motion_mode: int | None = None
+    s_word: float = 0.0
+    spindle_on: bool = False
+    rpm: float = 0.0
+
+
 def parse_gcode(text: str, machine: Machine, source: str = "<gcode>", start_mm: dict[str, float] | None = None) -> Motion:
     """Run a G-code programme on ``machine`` and return its motion.
 
@@ -108,177 +154,215 @@ def parse_gcode(text: str, machine: Machine, source: str = "<gcode>", start_mm: 
     GcodeError
         naming the line and the word (see the module docstring).
     """
+    prog = _programme(machine, source)
+    state = _State(pos=_start_position(machine, prog, start_mm))
+    T: list[float] = [0.0]
+    Pts: list[list[float]] = [state.pos.tolist()]
+    R: list[float] = []
+    Ln: list[int] = []
+    for ln, raw in enumerate(text.splitlines(), start=1):
+        block = _read_block(prog, ln, raw)
+        if block is None:
+            continue
+        state = _modal(prog, state, block)
+        state, times, points = _execute(prog, state, block)
+        T.extend(times.tolist())
+        Pts.extend(points.tolist())
+        R.extend([state.rpm] * times.size)
+        Ln.extend([ln] * times.size)
+        if 2 in block.ms or 30 in block.ms:
+            break
+    if len(T) < 2:
+        raise GcodeError(f"{source}: the programme never moves nor dwells (no time passes)")
+    return Motion(np.asarray(T), np.asarray(Pts), np.asarray(R), np.asarray(Ln, np.int64),
+                  tuple(a.name for a in machine.axes))
+
+
+def _programme(machine: Machine, source: str) -> _Programme:
+    """The machine's axes as the interpreter reads them: letters, travel [mm], max feed [mm/min], max speed [rpm]."""
     axes = machine.axes
-    names = [a.name for a in axes]
     letters = {a.name.upper(): i for i, a in enumerate(axes) if len(a.name) == 1}
-    na = len(axes)
-    lo = np.array([a.travel_mm[0] for a in axes])
-    hi = np.array([a.travel_mm[1] for a in axes])
-    vmax = np.array([a.max_feed_mm_min for a in axes])
-    nmax = machine.spindle_max_speed_rpm
-    pos = np.zeros(na)
+    return _Programme(
+        source=source,
+        machine_name=machine.name,
+        axes=axes,
+        letters=letters,
+        allowed=frozenset("GMFSPNTIJKR") | frozenset(letters),
+        lo=np.array([a.travel_mm[0] for a in axes]),
+        hi=np.array([a.travel_mm[1] for a in axes]),
+        vmax=np.array([a.max_feed_mm_min for a in axes]),
+        nmax=machine.spindle_max_speed_rpm,
+    )
+
+
+def _start_position(machine: Machine, prog: _Programme, start_mm: dict[str, float] | None) -> np.ndarray:
+    """The axis positions at the start [mm]: ``start_mm``, 0 mm for every axis it does not name."""
+    names = [a.name for a in machine.axes]
+    pos = np.zeros(len(names))
     for k, v in (start_mm or {}).items():
         if k not in names:
             raise ValueError(f"start_mm names axis {k!r}, which machine {machine.name!r} has not")
         pos[names.index(k)] = float(v)
-    if np.any(pos < lo) or np.any(pos > hi):
+    if np.any(pos < prog.lo) or np.any(pos > prog.hi):
         raise ValueError(f"start_mm {dict(zip(names, pos.tolist()))} is outside the travel")
-    allowed = set("GMFSPNTIJKR") | set(letters)
+    return pos
 
-    T: list[float] = [0.0]
-    Pts: list[list[float]] = [pos.tolist()]
-    R: list[float] = []
-    Ln: list[int] = []
-    t = 0.0
-    feed = None  # mm/min
-    scale = 1.0  # mm per input unit
-    absolute = True
-    plane = 17
-    motion_mode = None
-    s_word = 0.0
-    spindle_on = False
-    rpm = 0.0
 
-    def err(ln: int, msg: str) -> GcodeError:
-        return GcodeError(f"{source}: line {ln}: {msg}")
-
-    def check_target(ln: int, target: np.ndarray) -> None:
-        bad = np.flatnonzero((target < lo - 1e-6) | (target > hi + 1e-6))
-        if bad.size:
-            a = axes[bad[0]]
-            raise err(ln, f"{a.name} = {_fmt(target[bad[0]])} mm is outside the travel {list(a.travel_mm)} mm of axis {a.name}")
-
-    def add_points(ln: int, times: np.ndarray, points: np.ndarray) -> None:
-        T.extend(times.tolist())
-        Pts.extend(points.tolist())
-        R.extend([rpm] * times.size)
-        Ln.extend([ln] * times.size)
-
-    for ln, raw in enumerate(text.splitlines(), start=1):
-        s = raw.upper()
-        if "(" in s or ")" in s:
-            if s.count("(") != s.count(")") or re.search(r"\([^)]*\(", s):
-                raise err(ln, f"unbalanced comment parentheses in {raw.strip()!r}")
-            s = re.sub(r"\([^)]*\)", " ", s)
-        s = s.split(";", 1)[0].strip()
-        if not s or s == "%":
-            continue
-        words: dict[str, float] = {}
-        gs: list[int] = []
-        ms: list[int] = []
-        end = 0
-        for mt in _WORD.finditer(s):
-            gap = s[end : mt.start()].strip()
-            if gap:
-                raise err(ln, f"cannot read {gap!r} in {raw.strip()!r}")
-            end = mt.end()
-            letter, val = mt.group(1), float(mt.group(2))
-            word = f"{letter}{mt.group(2)}"
-            if letter not in allowed:
-                what = "an axis the machine has not" if letter in "XYZABCUVW" else "an unknown word"
-                raise err(ln, f"{word!r} is {what} (machine {machine.name!r}, supported: G M F S P N T I J K R "
-                          f"{' '.join(sorted(letters))})")
-            if letter == "G":
-                if val != int(val) or int(val) not in _G_SUPPORTED:
-                    raise err(ln, f"{word!r} is an unknown G-code word (supported: {sorted(_G_SUPPORTED)})")
-                gs.append(int(val))
-            elif letter == "M":
-                if val != int(val) or int(val) not in _M_SUPPORTED:
-                    raise err(ln, f"{word!r} is an unknown M-code word (supported: {sorted(_M_SUPPORTED)})")
-                ms.append(int(val))
-            else:
-                if letter in words:
-                    raise err(ln, f"word {letter} appears twice")
-                words[letter] = val
-        rest = s[end:].strip()
-        if rest:
-            raise err(ln, f"cannot read {rest!r} in {raw.strip()!r}")
-        # modal settings first
-        for g in gs:
-            if g in (20, 21):
-                scale = 25.4 if g == 20 else 1.0
-            elif g in (90, 91):
-                absolute = g == 90
-            elif g in (17, 18, 19):
-                plane = g
-        if "F" in words:
-            if not words["F"] > 0:
-                raise err(ln, f"feed F{_fmt(words['F'])} must be positive")
-            feed = words["F"] * scale
-        if "S" in words:
-            if words["S"] < 0:
-                raise err(ln, f"spindle speed S{_fmt(words['S'])} must not be negative")
-            if nmax > 0 and words["S"] > nmax * (1 + 1e-9):
-                raise err(ln, f"spindle speed S{_fmt(words['S'])} is above [spindle] max_speed_rpm {_fmt(nmax)}")
-            s_word = words["S"]
-            if spindle_on:
-                rpm = s_word
-        for mc in ms:
-            if mc in (3, 4):
-                spindle_on, rpm = True, s_word
-            elif mc == 5:
-                spindle_on, rpm = False, 0.0
-        if nmax <= 0:
-            rpm = 0.0
-        motions = [g for g in gs if g in (0, 1, 2, 3)]
-        if len(motions) > 1 or (motions and 4 in gs):
-            raise err(ln, f"more than one motion word (G{', G'.join(map(str, motions + ([4] if 4 in gs else [])))})")
-        axis_words = {k: v for k, v in words.items() if k in letters}
-        if 4 in gs:
-            if axis_words:
-                raise err(ln, "G4 (dwell) cannot move axes on the same line")
-            if "P" not in words or words["P"] < 0:
-                raise err(ln, "G4 needs a dwell time P >= 0 [s]")
-            if words["P"] > 0:
-                t += words["P"]
-                add_points(ln, np.array([t]), pos[None, :])
+def _read_block(prog: _Programme, ln: int, raw: str) -> _Block | None:
+    """The words of one line, comments removed; None for a line without words."""
+    s = raw.upper()
+    if "(" in s or ")" in s:
+        if s.count("(") != s.count(")") or re.search(r"\([^)]*\(", s):
+            raise prog.err(ln, f"unbalanced comment parentheses in {raw.strip()!r}")
+        s = re.sub(r"\([^)]*\)", " ", s)
+    s = s.split(";", 1)[0].strip()
+    if not s or s == "%":
+        return None
+    words: dict[str, float] = {}
+    gs: list[int] = []
+    ms: list[int] = []
+    end = 0
+    for mt in _WORD.finditer(s):
+        gap = s[end : mt.start()].strip()
+        if gap:
+            raise prog.err(ln, f"cannot read {gap!r} in {raw.strip()!r}")
+        end = mt.end()
+        letter, val = mt.group(1), float(mt.group(2))
+        word = f"{letter}{mt.group(2)}"
+        if letter not in prog.allowed:
+            what = "an axis the machine has not" if letter in "XYZABCUVW" else "an unknown word"
+            raise prog.err(ln, f"{word!r} is {what} (machine {prog.machine_name!r}, supported: G M F S P N T I J K R "
+                           f"{' '.join(sorted(prog.letters))})")
+        if letter == "G":
+            if val != int(val) or int(val) not in _G_SUPPORTED:
+                raise prog.err(ln, f"{word!r} is an unknown G-code word (supported: {sorted(_G_SUPPORTED)})")
+            gs.append(int(val))
+        elif letter == "M":
+            if val != int(val) or int(val) not in _M_SUPPORTED:
+                raise prog.err(ln, f"{word!r} is an unknown M-code word (supported: {sorted(_M_SUPPORTED)})")
+            ms.append(int(val))
         else:
-            if "P" in words:
-                raise err(ln, f"word P{_fmt(words['P'])} is only used with G4")
-            if motions:
-                motion_mode = motions[0]
-            arc_words = {k for k in "IJKR" if k in words}
-            if arc_words and motion_mode not in (2, 3):
-                raise err(ln, f"words {sorted(arc_words)} need G2 or G3")
-            if axis_words or (motion_mode in (2, 3) and arc_words):
-                if motion_mode is None:
-                    raise err(ln, "axis words without a motion mode (G0, G1, G2, G3)")
-                target = pos.copy()
-                for k, v in axis_words.items():
-                    i = letters[k]
-                    target[i] = v * scale if absolute else pos[i] + v * scale
-                check_target(ln, target)
-                if motion_mode == 0:
-                    d = np.abs(target - pos)
-                    if d.max() > 0:
-                        t += float(np.max(d / vmax)) * 60.0
-                        add_points(ln, np.array([t]), target[None, :])
-                elif motion_mode == 1:
-                    if feed is None:
-                        raise err(ln, "G1 without a feed F")
-                    d = target - pos
-                    L = float(np.sqrt(np.sum(d * d)))
-                    if L > 0:
-                        dt = L / feed * 60.0
-                        v = np.abs(d) / dt * 60.0
-                        _check_speed(err, ln, axes, v, vmax, feed)
-                        t += dt
-                        add_points(ln, np.array([t]), target[None, :])
-                else:
-                    if feed is None:
-                        raise err(ln, f"G{motion_mode} without a feed F")
-                    times, pts = _arc(err, ln, motion_mode, plane, letters, pos, target, words, scale, feed, axes, vmax)
-                    times += t
-                    for p in pts:
-                        check_target(ln, p)
-                    t = float(times[-1])
-                    add_points(ln, times, pts)
-                pos = target
-        if 2 in ms or 30 in ms:
-            break
-    if len(T) < 2:
-        raise GcodeError(f"{source}: the programme never moves nor dwells (no time passes)")
-    return Motion(np.asarray(T), np.asarray(Pts), np.asarray(R), np.asarray(Ln, np.int64), tuple(names))
+            if letter in words:
+                raise prog.err(ln, f"word {letter} appears twice")
+            words[letter] = val
+    rest = s[end:].strip()
+    if rest:
+        raise prog.err(ln, f"cannot read {rest!r} in {raw.strip()!r}")
+    return _Block(ln, raw, words, tuple(gs), tuple(ms))
+
+
+def _modal(prog: _Programme, state: _State, block: _Block) -> _State:
+    """The modal settings of a block, before its motion: units, positioning, plane, feed, spindle speed and M words."""
+    ln, words = block.ln, block.words
+    scale, absolute, plane = state.scale, state.absolute, state.plane
+    feed, s_word, spindle_on, rpm = state.feed, state.s_word, state.spindle_on, state.rpm
+    for g in block.gs:
+        if g in (20, 21):
+            scale = 25.4 if g == 20 else 1.0
+        elif g in (90, 91):
+            absolute = g == 90
+        elif g in (17, 18, 19):
+            plane = g
+    if "F" in words:
+        if not words["F"] > 0:
+            raise prog.err(ln, f"feed F{_fmt(words['F'])} must be positive")
+        feed = words["F"] * scale
+    if "S" in words:
+        if words["S"] < 0:
+            raise prog.err(ln, f"spindle speed S{_fmt(words['S'])} must not be negative")
+        if prog.nmax > 0 and words["S"] > prog.nmax * (1 + 1e-9):
+            raise prog.err(ln, f"spindle speed S{_fmt(words['S'])} is above [spindle] max_speed_rpm {_fmt(prog.nmax)}")
+        s_word = words["S"]
+        if spindle_on:
+            rpm = s_word
+    for mc in block.ms:
+        if mc in (3, 4):
+            spindle_on, rpm = True, s_word
+        elif mc == 5:
+            spindle_on, rpm = False, 0.0
+    if prog.nmax <= 0:
+        rpm = 0.0
+    return dataclasses.replace(state, scale=scale, absolute=absolute, plane=plane, feed=feed, s_word=s_word,
+                               spindle_on=spindle_on, rpm=rpm)
+
+
+_NONE = (np.zeros(0), np.zeros((0, 0)))
+
+
+def _execute(prog: _Programme, state: _State, block: _Block) -> tuple[_State, np.ndarray, np.ndarray]:
+    """A block's dwell or motion: the new state and the breakpoints it adds (times [s], positions [mm])."""
+    ln, words, gs = block.ln, block.words, block.gs
+    motions = [g for g in gs if g in (0, 1, 2, 3)]
+    if len(motions) > 1 or (motions and 4 in gs):
+        raise prog.err(ln, f"more than one motion word (G{', G'.join(map(str, motions + ([4] if 4 in gs else [])))})")
+    axis_words = {k: v for k, v in words.items() if k in prog.letters}
+    if 4 in gs:
+        if axis_words:
+            raise prog.err(ln, "G4 (dwell) cannot move axes on the same line")
+        if "P" not in words or words["P"] < 0:
+            raise prog.err(ln, "G4 needs a dwell time P >= 0 [s]")
+        if words["P"] > 0:
+            t = state.t + words["P"]
+            return dataclasses.replace(state, t=t), np.array([t]), state.pos[None, :]
+        return state, *_NONE
+    if "P" in words:
+        raise prog.err(ln, f"word P{_fmt(words['P'])} is only used with G4")
+    if motions:
+        state = dataclasses.replace(state, motion_mode=motions[0])
+    motion_mode = state.motion_mode
+    arc_words = {k for k in "IJKR" if k in words}
+    if arc_words and motion_mode not in (2, 3):
+        raise prog.err(ln, f"words {sorted(arc_words)} need G2 or G3")
+    if not (axis_words or (motion_mode in (2, 3) and arc_words)):
+        return state, *_NONE
+    if motion_mode is None:
+        raise prog.err(ln, "axis words without a motion mode (G0, G1, G2, G3)")
+    return _move(prog, state, block, axis_words)
+
+
+def _move(prog: _Programme, state: _State, block: _Block, axis_words: dict[str, float]):
+    """A G0, G1, G2 or G3 move to the block's target: the new state and its breakpoints (see :func:`_execute`)."""
+    ln, pos, t, feed, scale = block.ln, state.pos, state.t, state.feed, state.scale
+    target = pos.copy()
+    for k, v in axis_words.items():
+        i = prog.letters[k]
+        target[i] = v * scale if state.absolute else pos[i] + v * scale
+    _check_target(prog, ln, target)
+    times, pts = _NONE
+    if state.motion_mode == 0:
+        d = np.abs(target - pos)
+        if d.max() > 0:
+            t += float(np.max(d / prog.vmax)) * 60.0
+            times, pts = np.array([t]), target[None, :]
+    elif state.motion_mode == 1:
+        if feed is None:
+            raise prog.err(ln, "G1 without a feed F")
+        d = target - pos
+        L = float(np.sqrt(np.sum(d * d)))
+        if L > 0:
+            dt = L / feed * 60.0
+            v = np.abs(d) / dt * 60.0
+            _check_speed(prog.err, ln, prog.axes, v, prog.vmax, feed)
+            t += dt
+            times, pts = np.array([t]), target[None, :]
+    else:
+        if feed is None:
+            raise prog.err(ln, f"G{state.motion_mode} without a feed F")
+        times, pts = _arc(prog.err, ln, state.motion_mode, state.plane, prog.letters, pos, target, block.words, scale,
+                          feed, prog.axes, prog.vmax)
+        times += t
+        for p in pts:
+            _check_target(prog, ln, p)
+        t = float(times[-1])
+    return dataclasses.replace(state, pos=target, t=t), times, pts
+
+
+def _check_target(prog: _Programme, ln: int, target: np.ndarray) -> None:
+    bad = np.flatnonzero((target < prog.lo - 1e-6) | (target > prog.hi + 1e-6))
+    if bad.size:
+        a = prog.axes[bad[0]]
+        raise prog.err(ln, f"{a.name} = {_fmt(target[bad[0]])} mm is outside the travel {list(a.travel_mm)} mm of axis "
+                       f"{a.name}")
 
 
 def _check_speed(err, ln, axes, v, vmax, feed):

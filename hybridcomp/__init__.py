@@ -35,7 +35,8 @@ if TYPE_CHECKING:
 # module -> the public names it defines (imported on first use)
 _names, __getattr__, __dir__ = lazy_exports(__name__, {
     # models: machine files and the input/output vocabulary
-    "models.machine": ("load_machine", "Machine", "MachineFileError"),
+    "models.machine": ("Machine", "MachineFileError"),
+    "models.loader": ("load_machine",),
     "models.layout": ("InputLayout", "Loads", "input_layout", "in_model_order", "DIRECTIONS", "DRIFT_COLUMNS"),
     "models.simulation": ("SimulationResult",),
     # histogram: traces and G-code to boundary conditions

@@ -47,7 +47,7 @@ def _disturbance_names() -> list[str]:
 def run(args: argparse.Namespace) -> int:
     """Run ``hybridcomp monitor scenario``; returns the exit code (2: bad input, named)."""
     from hybridcomp.errors import HybridcompError
-    from hybridcomp.scenario import DISTURBANCES, check_day, run_scenario
+    from hybridcomp.scenario import DISTURBANCES, Scenario, check_day, run_scenario
 
     try:
         # everything that can be checked before work starts is, so an error leaves no half-written folder
@@ -60,9 +60,10 @@ def run(args: argparse.Namespace) -> int:
                                   ("--rom-order", args.rom_order, args.rom_order is None or args.rom_order >= 1)):
             if not ok:
                 raise ValueError(f"{option} must be positive, got {value:g}")
-        res = run_scenario(args.out, disturbance=DISTURBANCES[args.disturbance],
-                           element_size_mm=args.element_size_mm, rom_order=args.rom_order,
-                           basic_hours=args.basic_hours, day_hours=args.day_hours, along_path=args.along_path)
+        res = run_scenario(Scenario(disturbance=DISTURBANCES[args.disturbance],
+                                    element_size_mm=args.element_size_mm, rom_order=args.rom_order,
+                                    basic_hours=args.basic_hours, day_hours=args.day_hours,
+                                    along_path=args.along_path), args.out)
         print(res.table)
         if args.along_path:
             print("\nalong the path:\n" + (Path(res.files["table"]).parent / "table_along_path.md").read_text())

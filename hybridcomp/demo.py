@@ -23,7 +23,7 @@ import logging
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from hybridcomp.metrics import cell_um
@@ -81,7 +81,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     """Run the demo (see the module docstring) into ``out_dir``; returns the summary written to summary.json."""
     from hybridcomp.diagnose import diagnose, prepare_model, read_measured, write_report
     from hybridcomp.models import load_machine
-    from hybridcomp.scenario import Disturbance, build_models, real_machine_file, run_scenario
+    from hybridcomp.scenario import Disturbance, Scenario, build_models, real_machine_file, run_scenario
 
     out = Path(out_dir).resolve()  # once, against the caller's working directory
     out.mkdir(parents=True, exist_ok=True)
@@ -102,10 +102,10 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     stages.next()
     build = dict(element_size_mm=options.element_size_mm, rom_order=options.rom_order, basic_hours=options.basic_hours,
                  keep_basis=True)
-    common = dict(disturbance=planted, real_machine=real, element_size_mm=options.element_size_mm,
-                  day_hours=options.day_hours)
+    scenario = Scenario(disturbance=planted, real_machine=real, element_size_mm=options.element_size_mm,
+                        day_hours=options.day_hours)
     models = build_models(out / "models_nominal", str(machine.source), poses=True, **build)
-    nominal = run_scenario(out / "hybrid_nominal", models=models, along_path=True, **common)
+    nominal = run_scenario(replace(scenario, along_path=True), out / "hybrid_nominal", models)
 
     stages.next()
     rom = prepare_model(machine, rom=models.rom, element_size_mm=options.element_size_mm)
@@ -117,8 +117,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     extended = out / "diagnosis" / "machine_extended.toml"
 
     stages.next()
-    after = run_scenario(out / "hybrid_extended", models=build_models(out / "models_extended", str(extended), **build),
-                         **common)
+    after = run_scenario(scenario, out / "hybrid_extended", build_models(out / "models_extended", str(extended), **build))
 
     stages.next()
     day_plots = _day_plots(machine, nominal.files["controller"], out / "day")

@@ -27,7 +27,6 @@ import logging
 import math
 import shutil
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -295,7 +294,7 @@ def check_day(disturbance: Disturbance, day_hours: float | None, option: str = "
 
     hours = JOBSHOP_HOURS if day_hours is None else day_hours
     if not 0 < hours <= JOBSHOP_HOURS:
-        raise ValueError(f"{option} must be in (0, {JOBSHOP_HOURS:g}], got {day_hours:g}")
+        raise ValueError(f"{option} must be in (0, {JOBSHOP_HOURS:g}], got {day_hours}")
     fault = disturbance.sensor_fault
     if fault is not None and hours <= fault[1]:
         raise ValueError(f"{option} {hours:g}: the day ends before disturbance {disturbance.name!r} plants its fault "
@@ -303,18 +302,12 @@ def check_day(disturbance: Disturbance, day_hours: float | None, option: str = "
                          f"(at most {JOBSHOP_HOURS:g})")
 
 
-def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=None, machine_name: str = "vmc800",
-                 element_size_mm: float = 80.0, rom_order: int | None = None, basic_hours: float = 8.0,
-                 day_hours: float | None = None, dt_s: float = 60.0, real_dt_s: float = 20.0,
-                 trace_rate_hz: float = 1.0, sensor_noise_K: float = 0.02, probe_every_h: float | None = 4.0,
-                 probe_noise_um: float = 0.3, strategies: Sequence[str] = STRATEGIES, plot: bool = True,
-                 keep_basis: bool = False, seed: int = 0, monitor_overrides: dict | None = None,
-                 models: Models | None = None, along_path: bool = False) -> ScenarioResult:
-    """Run the hybrid scenario end to end (see the module docstring) and write table, plot and events.
+@dataclass(frozen=True)
+class Scenario:
+    """One run of the hybrid scenario (:func:`run_scenario`): the day, the real machine, the models, the monitor.
 
-    Parameters
+    Attributes
     ----------
-    out_dir : output directory
     disturbance : what the real machine does that the models do not know
     real_machine : the real machine's ``models.Machine`` (default: the models' machine with the disturbance's
         source edits)
@@ -327,52 +320,152 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     real_dt_s : load step of the real machine's FE run [s] (finer than the models' ``dt_s`` loads)
     trace_rate_hz : sampling rate of the trace the monitor replays [Hz]
     sensor_noise_K : noise of the sensors the monitor reads [K]
-    probe_every_h : a probed drift (noise ``probe_noise_um``) at the start and every this many hours [h]; None:
-        no probing
+    probe_every_h : a probed drift (noise ``probe_noise_um`` [µm]) at the start and every this many hours [h];
+        None: no probing
+    probe_noise_um : noise of a probed drift [µm]
     strategies : daemon strategies to run (``"hybrid"``, ``"observer"``)
+    plot : draw ``scenario.png``
     keep_basis : keep the ROM's projection basis in ``structure.rom.npz`` (for a diagnosis on the same model)
     seed : seed of the sensor and probe noise
     monitor_overrides : extra sections for the daemon's configuration (``{"validity": {...}}``)
-    models : the models, built by :func:`build_models` (default: built here, into ``out_dir``); several
-        disturbances of one machine share them
     along_path : also judge every strategy at the commanded position of the trace at each time, where the drift
         depends on the pose and the feed drives' errors on the axis positions (needs the models' pose-aware
-        structure model: built here when ``models`` is not given, and given models must have it:
+        structure model: built by :func:`run_scenario` when it is given no models, and given models must have it:
         ``build_models(..., poses=True)``); adds ``table_along_path.md`` and the summary's ``along_path``
+    """
+
+    disturbance: Disturbance = NOMINAL
+    real_machine: object | None = None
+    machine_name: str = "vmc800"
+    element_size_mm: float = 80.0
+    rom_order: int | None = None
+    basic_hours: float = 8.0
+    day_hours: float | None = None
+    dt_s: float = 60.0
+    real_dt_s: float = 20.0
+    trace_rate_hz: float = 1.0
+    sensor_noise_K: float = 0.02
+    probe_every_h: float | None = 4.0
+    probe_noise_um: float = 0.3
+    strategies: tuple[str, ...] = STRATEGIES
+    plot: bool = True
+    keep_basis: bool = False
+    seed: int = 0
+    monitor_overrides: dict | None = None
+    along_path: bool = False
+
+    def __post_init__(self):
+
+        if isinstance(self.strategies, str):
+            raise ValueError(f"strategies must be a sequence of strategy names, got the string {self.strategies!r}")
+        object.__setattr__(self, "strategies", tuple(self.strategies))
+        for s in self.strategies:
+            if s not in STRATEGIES:
+                raise ValueError(f"unknown strategy {s!r} (strategies: {', '.join(STRATEGIES)})")
+        check_day(self.disturbance, self.day_hours)
+        for name in ("element_size_mm", "basic_hours", "dt_s", "real_dt_s", "trace_rate_hz"):
+            _check_number(name, getattr(self, name), positive=True)
+        for name in ("sensor_noise_K", "probe_noise_um"):
+            _check_number(name, getattr(self, name), positive=False)
+        if self.probe_every_h is not None:
+            _check_number("probe_every_h", self.probe_every_h, positive=True, none_is="no probing")
+        if self.rom_order is not None and not (isinstance(self.rom_order, int) and self.rom_order >= 1):
+            raise ValueError(f"rom_order must be a whole number >= 1 or None (the default tolerances), "
+                             f"got {self.rom_order!r}")
+
+
+def _check_number(name: str, value, positive: bool, none_is: str | None = None) -> None:
+    """Raise ``ValueError`` naming the field unless ``value`` is a finite number > 0 (``positive``) or >= 0."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or not (value > 0 if positive else value >= 0):
+        bound = "> 0" if positive else ">= 0"
+        alt = f" or None ({none_is})" if none_is else ""
+        raise ValueError(f"{name} must be a finite number {bound}{alt}, got {value!r}")
+
+
+def run_scenario(scenario: Scenario, out_dir, models: Models | None = None) -> ScenarioResult:
+    """Run the hybrid scenario end to end (see the module docstring) and write table, plot and events.
+
+    Parameters
+    ----------
+    scenario : the day, the disturbance, the models' settings and the monitor's (:class:`Scenario`)
+    out_dir : output directory
+    models : the models, built by :func:`build_models` (default: built here, into ``out_dir``, from the
+        scenario's settings); several disturbances of one machine share them
 
     Besides the table, plot and events, ``recorded.csv`` holds what a measuring campaign would have recorded
     on the real machine: the trace (positions, spindle speed, workshop air), the sensors and the drift.
     """
-    from hybridcomp.chardiag.cd import pose_key
-    from hybridcomp.fem.model import build_model
-    from hybridcomp.histogram.bcs import boundary_conditions
-    from hybridcomp.histogram.increments import increments_from_trace
-    from hybridcomp.histogram.scenarios import JOBSHOP_HOURS, write_scenario
-    from hybridcomp.models import load_machine
-
-    for s in strategies:
-        if s not in STRATEGIES:
-            raise ValueError(f"unknown strategy {s!r} (strategies: {', '.join(STRATEGIES)})")
-    check_day(disturbance, day_hours)
-    if along_path and models is not None and models.pose_rom is None:
+    if scenario.along_path and models is not None and models.pose_rom is None:  # before any file
         raise ValueError("along_path needs the models' pose-aware structure model: build_models(..., poses=True)")
     out = Path(out_dir).resolve()  # once, against the caller's working directory (paths cross into the worker)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    rng = np.random.default_rng(seed)
-    if models is None:
-        models = build_models(out, machine_name, element_size_mm, rom_order, basic_hours, dt_s, keep_basis, along_path)
-    if along_path and models.pose_rom is None:
-        raise ValueError("along_path needs the models' pose-aware structure model: build_models(..., poses=True)")
+    models, real_machine = _models_and_real_machine(scenario, out, models)
     timings = dict(models.timings_s)
-    machine, pose, model, rom = models.machine, models.pose_mm, models.model, models.rom
-    pkey = pose_key(pose)
+    day = _real_machine_day(scenario, out, models, real_machine, timings)
+    measured = _measure(scenario, out, models.machine, day)
+    runs = _replay_strategies(scenario, out, models, measured.trace, day.t, timings)
+    preds = _predictions(models, measured, day, runs)
+    metrics = _metrics(day, preds, runs)
+    table = metrics_table(metrics)
+    path_summary = None
+    if scenario.along_path:
+        t0 = time.perf_counter()
+        path_summary = _along_path(out, models, day.controller, day.t, day.loads, day.real_loads, day.truth, preds)
+        timings["along_path_s"] = time.perf_counter() - t0
+    files, all_events = _write_results(scenario, out, day, preds, runs, table)
+    summary = _summary(scenario, models, real_machine, day, metrics, runs, timings, t_all, path_summary)
+    (out / "summary.json").write_text(jsonio.dumps(summary, indent=1))
+    return ScenarioResult(metrics, table, all_events,
+                          {**files, "recorded": measured.recorded, "rom": models.rom_path,
+                           "controller": day.controller, "trace": measured.trace},
+                          summary)
+
+
+def _models_and_real_machine(scenario: Scenario, out: Path, models: Models | None) -> tuple[Models, object]:
+    """The models (given, or built into ``out``) and the real machine (given, or the disturbance's edits)."""
+    from hybridcomp.models import load_machine
+
+    s = scenario
+    if models is None:
+        models = build_models(out, s.machine_name, s.element_size_mm, s.rom_order, s.basic_hours, s.dt_s,
+                              s.keep_basis, s.along_path)
+    if s.along_path and models.pose_rom is None:
+        raise ValueError("along_path needs the models' pose-aware structure model: build_models(..., poses=True)")
+    real_machine, machine, disturbance = s.real_machine, models.machine, s.disturbance
     if real_machine is None:
         real_machine = (load_machine(real_machine_file(machine, disturbance, out / "real_machine.toml"))
                         if disturbance.machine_edits() else machine)
+    return models, real_machine
 
-    # 1. the day as the controller records it, the models' BCs of it, and the real machine driven by the BCs of
-    #    the same record at a finer step, with the disturbance's air
+
+@dataclass(frozen=True)
+class _Day:
+    """The day as the controller records it and as the real machine lives it (:func:`_real_machine_day`)."""
+
+    controller: Path
+    loads: object
+    real_loads: object
+    res: object
+    t: np.ndarray
+    truth: np.ndarray
+
+
+def _real_machine_day(scenario: Scenario, out: Path, models: Models, real_machine, timings: dict) -> _Day:
+    """The day as the controller records it, the models' BCs of it, and the real machine's response.
+
+    The real machine is driven by the BCs of the same record at a finer step, with the disturbance's air; adds
+    ``real_machine_s`` to ``timings``.
+    """
+    from hybridcomp.fem.model import build_model
+    from hybridcomp.histogram.bcs import boundary_conditions
+    from hybridcomp.histogram.increments import increments_from_trace
+    from hybridcomp.histogram.scenarios import JOBSHOP_HOURS, write_scenario
+
+    machine, pose, model = models.machine, models.pose_mm, models.model
+    dt_s, real_dt_s, element_size_mm = scenario.dt_s, scenario.real_dt_s, scenario.element_size_mm
+    disturbance, trace_rate_hz, day_hours = scenario.disturbance, scenario.trace_rate_hz, scenario.day_hours
     t0 = time.perf_counter()
     files = write_scenario("jobshop", machine, out / "scenario", rate_hz=trace_rate_hz)
     t_end = (day_hours or JOBSHOP_HOURS) * 3600.0
@@ -390,37 +483,72 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     truth = np.column_stack([np.interp(t, res.time_s, res.drift_um[:, j]) for j in range(3)])
     timings["real_machine_s"] = time.perf_counter() - t0
     log.info("real machine: %d nodes, %d steps, |drift| up to %.1f µm", real_model.n, res.time_s.size, np.abs(truth).max())
+    return _Day(controller, loads, real_loads, res, t, truth)
 
-    # 2. what the controller measures (sensors with noise and the fault, probes) and a measuring campaign records
-    sensor_names = [s.name for s in machine.sensors]
+
+@dataclass(frozen=True)
+class _Measured:
+    """What the controller measures and a measuring campaign records (:func:`_measure`)."""
+
+    trace: Path
+    recorded: Path
+    sensors: dict
+    sensor_names: list
+
+
+def _measure(scenario: Scenario, out: Path, machine, day: _Day) -> _Measured:
+    """What the controller measures (sensors with noise and the fault, probes) and a measuring campaign records."""
+    s = scenario
+    sensor_names = [x.name for x in machine.sensors]
     trace = out / "jobshop_monitor_trace.csv"
-    measured = _write_trace(controller, trace, trace_rate_hz, fe=(res.time_s, res.sensors_degC, res.drift_um),
-                            sensor_names=sensor_names, noise_K=sensor_noise_K, rng=rng, fault=disturbance.sensor_fault,
-                            probe_every_h=probe_every_h, probe_noise_um=probe_noise_um)
+    measured = _write_trace(day.controller, trace, s.trace_rate_hz, fe=(day.res.time_s, day.res.sensors_degC,
+                                                                         day.res.drift_um),
+                            sensor_names=sensor_names, noise_K=s.sensor_noise_K, rng=np.random.default_rng(s.seed),
+                            fault=s.disturbance.sensor_fault, probe_every_h=s.probe_every_h,
+                            probe_noise_um=s.probe_noise_um)
     recorded = out / "recorded.csv"
-    _write_recorded(trace, recorded, res, sensor_names)
+    _write_recorded(trace, recorded, day.res, sensor_names)
+    return _Measured(trace, recorded, measured, sensor_names)
 
-    # 5. the daemon on the replay, once per strategy, each with its own copy of the database
-    preds, runs, events = {}, {}, {}
-    for strategy in strategies:
+
+def _replay_strategies(scenario: Scenario, out: Path, models: Models, trace: Path, t: np.ndarray,
+                       timings: dict) -> dict:
+    """The daemon on the replay, once per strategy, each with its own copy of the database.
+
+    Returns each strategy's run (:func:`_replay`) with its offsets [µm] at the times ``t`` [s] (``"at_t"``);
+    adds ``<strategy>_s`` to ``timings``.
+    """
+    from hybridcomp.chardiag.cd import pose_key
+
+    machine, pose, rom = models.machine, models.pose_mm, models.rom
+    pkey = pose_key(pose)
+    runs = {}
+    for strategy in scenario.strategies:
         t0 = time.perf_counter()
         db_path = out / f"cd_{strategy}.db"
         _fresh_db(db_path)
         shutil.copyfile(models.database, db_path)
         runs[strategy] = _replay(strategy, str(machine.source), db_path, models.rom_path, trace, pose, pkey, machine,
-                                 rom, element_size_mm, monitor_overrides)
+                                 rom, scenario.element_size_mm, scenario.monitor_overrides)
         timings[f"{strategy}_s"] = time.perf_counter() - t0
         tt, off = runs[strategy]["time_s"], runs[strategy]["offsets_um"]
         k = np.clip(np.searchsorted(tt, t, side="right") - 1, 0, len(tt) - 1)
-        preds[NAMES[strategy]] = off[k]
-        events[strategy] = runs[strategy]["events"]
+        runs[strategy]["at_t"] = off[k]
+    return runs
 
-    # 6. the other strategies (the CDs and the regression read the sensors through the daemon's low-pass)
-    T_cd = at_times(measured["time_s"], measured["filtered_degC"], t)
+
+def _predictions(models: Models, measured: _Measured, day: _Day, runs: dict) -> dict:
+    """Every strategy's drift [µm] at the day's times, and the bound.
+
+    The daemon's runs and the others: the CDs and the regression read the sensors through the daemon's low-pass.
+    """
+    machine, pose, rom, t, truth = models.machine, models.pose_mm, models.rom, day.t, day.truth
+    sensor_names = measured.sensor_names
+    T_cd = at_times(measured.sensors["time_s"], measured.sensors["filtered_degC"], t)
     cols = {temperature_column(n): T_cd[:, j] for j, n in enumerate(sensor_names)}
     cols |= {position_column(a.name): np.full(t.size, float(pose[a.name])) for a in machine.axes}
     static = np.column_stack([models.default[d].evaluate_table(cols)[0] for d in ("X", "Y", "Z")])
-    rom_drift = rom.simulate(loads).drift_um  # what the models know: no disturbance, no sensor
+    rom_drift = rom.simulate(day.loads).drift_um  # what the models know: no disturbance, no sensor
     T_train = np.column_stack([models.train.columns[temperature_column(s)] for s in sensor_names])
     D_train = np.column_stack([models.train.columns[d] for d in DIRS])
     mlr = predict_mlr(fit_mlr(T_train, D_train), T_cd)
@@ -430,54 +558,64 @@ def run_scenario(out_dir, *, disturbance: Disturbance = NOMINAL, real_machine=No
     ok = np.all(np.isfinite(T_cd), axis=1)
     bound = np.full_like(truth, np.nan)
     bound[ok] = predict_mlr(fit_mlr(T_cd[ok], truth[ok]), T_cd[ok])
-    preds = {"no compensation": np.zeros_like(truth), "static default CDs": static, **preds, "ROM direct": rom_drift,
-             "MLR on sensors": mlr, BOUND: bound}
-    metrics = {k_: drift_metrics(t, truth - p) for k_, p in preds.items()}
-    day = 16.0 * 3600.0 / max(t[-1] - t[0], 1.0)
+    daemon = {NAMES[strategy]: r["at_t"] for strategy, r in runs.items()}
+    return {"no compensation": np.zeros_like(truth), "static default CDs": static, **daemon, "ROM direct": rom_drift,
+            "MLR on sensors": mlr, BOUND: bound}
+
+
+def _metrics(day: _Day, preds: dict, runs: dict) -> dict:
+    """The residual metrics of every strategy, the daemon's with its activations, generations and largest step."""
+    t = day.t
+    metrics = {k_: drift_metrics(t, day.truth - p) for k_, p in preds.items()}
+    per_day = 16.0 * 3600.0 / max(t[-1] - t[0], 1.0)
     for strategy, r in runs.items():
         m = metrics[NAMES[strategy]]
         m["activations"] = r["activations"]
-        m["activations_per_16h"] = r["activations"] * day
+        m["activations_per_16h"] = r["activations"] * per_day
         m["largest_step_um"] = r["largest_step_um"]
         m["generations"] = r["generations"]
-    table = metrics_table(metrics)
-    path_summary = None
-    if along_path:
-        t0 = time.perf_counter()
-        path_summary = _along_path(out, models, controller, t, loads, real_loads, truth, preds)
-        timings["along_path_s"] = time.perf_counter() - t0
+    return metrics
 
-    # 7. files: table, per-minute residuals, events, plot
+
+def _write_results(scenario: Scenario, out: Path, day: _Day, preds: dict, runs: dict, table: str) -> tuple[dict, list]:
+    """The files: table, per-minute residuals, events, plot. Returns the files and the events of every strategy."""
+    t, truth = day.t, day.truth
+    disturbance = scenario.disturbance
     (out / "table.md").write_text(table + "\n")
     with (out / "residuals.csv").open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["time_s", *DIRS, *(f"{s.replace(' ', '_')}_{d}" for s in preds for d in DIRS)])
         for i in range(t.size):
             w.writerow([f"{t[i]:g}", *(f"{v:.4f}" for v in truth[i]), *(f"{v:.4f}" for p in preds.values() for v in p[i])])
+    events = {strategy: r["events"] for strategy, r in runs.items()}
     all_events = [dict(e, strategy=s) for s, ev in events.items() for e in ev]
     (out / "events.json").write_text(jsonio.dumps(all_events, indent=1))
     plot_path = _plot(out / "scenario.png", t, truth, preds, events.get("hybrid", []),
-                      f"{disturbance.name}: {disturbance.description}") if plot else None
+                      f"{disturbance.name}: {disturbance.description}") if scenario.plot else None
+    return ({"table": out / "table.md", "plot": plot_path, "events": out / "events.json",
+             "residuals": out / "residuals.csv"}, all_events)
+
+
+def _summary(scenario: Scenario, models: Models, real_machine, day: _Day, metrics: dict, runs: dict, timings: dict,
+             t_all: float, path_summary: dict | None) -> dict:
+    """``summary.json``: the run's settings, the 3-D RMS of every strategy, the daemon's counts, the timings [s]."""
+    s, t = scenario, day.t
     m3 = {k_: v["3d"]["rms_um"] for k_, v in metrics.items()}
     summary = {
-        "disturbance": {"name": disturbance.name, "description": disturbance.description},
-        "element_size_mm": element_size_mm, "nodes": int(model.n), "rom_order": rom.order,
-        "models_machine": str(machine.source), "real_machine": str(real_machine.source), "day_hours": float(t[-1] / 3600),
-        "sensor_noise_K": sensor_noise_K, "probe_every_h": probe_every_h, "real_dt_s": real_dt_s,
+        "disturbance": {"name": s.disturbance.name, "description": s.disturbance.description},
+        "element_size_mm": s.element_size_mm, "nodes": int(models.model.n), "rom_order": models.rom.order,
+        "models_machine": str(models.machine.source), "real_machine": str(real_machine.source),
+        "day_hours": float(t[-1] / 3600),
+        "sensor_noise_K": s.sensor_noise_K, "probe_every_h": s.probe_every_h, "real_dt_s": s.real_dt_s,
         "rms_3d_um": m3,
-        "switches": {s: r["activations"] for s, r in runs.items()},
-        "generations": {s: r["generations"] for s, r in runs.items()},
-        "largest_step_um": {s: r["largest_step_um"] for s, r in runs.items()},
+        "switches": {k: r["activations"] for k, r in runs.items()},
+        "generations": {k: r["generations"] for k, r in runs.items()},
+        "largest_step_um": {k: r["largest_step_um"] for k, r in runs.items()},
         "timings_s": {**timings, "total": time.perf_counter() - t_all},
     }
     if path_summary is not None:
         summary["along_path"] = path_summary
-    (out / "summary.json").write_text(jsonio.dumps(summary, indent=1))
-    return ScenarioResult(metrics, table, all_events,
-                          {"table": out / "table.md", "plot": plot_path, "events": out / "events.json",
-                           "residuals": out / "residuals.csv", "recorded": recorded, "rom": models.rom_path,
-                           "controller": controller, "trace": trace},
-                          summary)
+    return summary
 
 
 PATH_STRATEGY = "ROM direct along the path"

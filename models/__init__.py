@@ -1,7 +1,8 @@
 """Machine definitions and the one vocabulary of a machine model's inputs, outputs and results.
 
-The TOML machine-file format and its validating loader, the inputs and outputs (:mod:`hybridcomp.models.layout`)
-and the results (:mod:`hybridcomp.models.simulation`).
+The typed machine definitions (:mod:`hybridcomp.models.machine`), the TOML machine-file loader
+(:mod:`hybridcomp.models.loader`) and its geometry checks (:mod:`hybridcomp.models.geometry`), the inputs and
+outputs (:mod:`hybridcomp.models.layout`) and the results (:mod:`hybridcomp.models.simulation`).
 """
 
 from hybridcomp._lazy import lazy_exports
@@ -12,9 +13,7 @@ __all__, __getattr__, __dir__ = lazy_exports(__name__, {
         "COORDINATES", "DIRECTIONS", "DRIFT_COLUMNS", "DRIFT_OUTPUTS", "InputLayout", "Loads", "LoadsColumnError",
         "heat_input_name", "in_model_order", "input_layout",
     ),
-    "machine": (
-        "Axis", "Body", "HeatSource", "Machine", "MachineFileError", "Material", "Point", "Support", "Zone",
-        "bundled_machines", "load_machine", "parse_machine",
-    ),
+    "machine": ("Axis", "Body", "HeatSource", "Machine", "MachineFileError", "Material", "Point", "Support", "Zone"),
+    "loader": ("bundled_machines", "load_machine", "parse_machine"),
     "simulation": ("SimulationResult", "initial_state"),
 })

@@ -17,7 +17,8 @@ import numpy as np
 from hybridcomp.fem.cli_batch import WORKERS_RULE, add_scheduler_arguments, check_scheduler
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
-from hybridcomp.models.machine import MachineFileError, load_machine
+from hybridcomp.models.loader import load_machine
+from hybridcomp.models.machine import MachineFileError
 
 #: L-BFGS iterations of the h2 basis of an exported system at a stated order by default: on the public rail
 #: benchmarks 1,500 leave rail_1357 at r = 40 at 2.5x balanced truncation, 20,000 bring it to 1.2x (38 s;

@@ -305,30 +305,11 @@ def reduce_model(
     samples = h_samples(model.h_W_m2K, h_range)
     reductor = Reductor(system, tol, scale, samples, fastest_time_s=fastest_time_s)
     check_h = samples[:3]
-    fe = []
-    for h in check_h:
-        variant = model.with_htc(**dict(zip(model.zone_names, map(float, h))))
-        fe.append(fe_reference(variant, loads.time_s, U, check_theta))
-    base_meta = {
-        "machine": {"name": machine.name, "file": Path(machine.source).name, "sha256": machine.sha256},
-        "pose_mm": dict(model.mesh.pose_mm),
-        "nodes": model.n,
-        "element_size_mm": machine.mesh.element_size_mm,
-        "reference_temperature_degC": machine.reference_temperature_degC,
-        "n_sensors": s_count,
-        "h_range": list(h_range),
-        "h_nominal_W_m2K": [float(v) for v in model.h_W_m2K],
-        "tol_K": tol_K,
-        "tol_um": tol_um,
-    }
-
-    def checks(V, theta=check_theta):
-        rom = to_reduced(system, Reduction(V, (), 0.0, ()), base_meta, keep_basis=False)
-        return [compare(rom.with_operators(h_W_m2K=h), loads.time_s, U, ref, theta)
-                for h, ref in zip(check_h, fe)]
+    case = _CheckCase(system, loads.time_s, U, check_h, _fe_references(model, check_h, loads.time_s, U, check_theta),
+                      _base_meta(model, h_range, tol_K, tol_um), check_theta)
 
     def accept(V):
-        res = checks(V)
+        res = _checks(case, V, case.theta)
         log.info("order %d: FE check %s", V.shape[1],
                  [(round(c.max_sensor_error_K, 4), round(c.max_drift_error_um, 4)) for c in res])
         return all(c.max_sensor_error_K <= safety * tol_K and c.max_drift_error_um <= safety * tol_um for c in res)
@@ -340,26 +321,88 @@ def reduce_model(
         red = reductor.reduce(target=0.5, order=order, max_order=max_order, accept=accept, chunk=chunk)
         method = "greedy Krylov"
     if basis == "krylov" and compress and order is None and red.points[0].complete:
-        # second stage: a larger Krylov basis compressed to its dominant Gramian directions, behind the
-        # (exact-steady-state) first block; kept only if the FE check passes at a lower order
-        big = reductor.reduce(order=min(max_order, max(2 * red.V.shape[1], 200)))
-        n_first = big.history[0][0] if big.points[0].complete else 0
-        first = big.V[:, :n_first]
-        D = gramian_directions(system, big.V, samples[:3], scale, tol)
-        for k in range(compress_step, min(D.shape[1], red.V.shape[1] - n_first), compress_step):
-            V = np.hstack([first, orthonormal_extension(first, D[:, :k], reductor.deflation_tol)])
-            if V.shape[1] >= red.V.shape[1]:
-                break
-            if accept(V):
-                # only the first block's point is still interpolated exactly
-                red = Reduction(V, big.points[:1], red.estimate, red.history)
-                method = (f"Krylov order {big.V.shape[1]} compressed to the first block + {V.shape[1] - n_first} "
-                          "Gramian directions")
-                break
-    res = checks(red.V)
-    exact = checks(red.V, None)
-    meta = {
-        **base_meta,
+        red, method = _compress(system, reductor, red, method, samples, scale, tol, max_order, compress_step, accept)
+    meta = _reduction_meta(case, red, method, tol_K, tol_um)
+    meta["reduction_time_s"] = time.perf_counter() - t0
+    return to_reduced(system, red, meta, keep_basis, model.disturbance_columns())
+
+
+@dataclass(frozen=True)
+class _CheckCase:
+    """The FE check of a reduction: the load case, its inputs, the checked h and the FE outputs at each."""
+
+    system: ThermalSystem
+    time_s: np.ndarray
+    U: np.ndarray
+    check_h: np.ndarray
+    fe: list
+    base_meta: dict
+    theta: float
+
+
+def _fe_references(model, check_h, time_s, U, theta: float) -> list:
+    """FE outputs (sensors [°C], drift [µm]) of the check load case at each checked set of coefficients h."""
+    fe = []
+    for h in check_h:
+        variant = model.with_htc(**dict(zip(model.zone_names, map(float, h))))
+        fe.append(fe_reference(variant, time_s, U, theta))
+    return fe
+
+
+def _base_meta(model, h_range, tol_K: float, tol_um: float) -> dict:
+    """What a reduced model records of its FE model and its tolerances ([K], [µm])."""
+    machine = model.machine
+    return {
+        "machine": {"name": machine.name, "file": Path(machine.source).name, "sha256": machine.sha256},
+        "pose_mm": dict(model.mesh.pose_mm),
+        "nodes": model.n,
+        "element_size_mm": machine.mesh.element_size_mm,
+        "reference_temperature_degC": machine.reference_temperature_degC,
+        "n_sensors": len(model.sensor_names),
+        "h_range": list(h_range),
+        "h_nominal_W_m2K": [float(v) for v in model.h_W_m2K],
+        "tol_K": tol_K,
+        "tol_um": tol_um,
+    }
+
+
+def _checks(case: _CheckCase, V: np.ndarray, theta: float | None) -> list[CheckResult]:
+    """The reduced model of basis ``V`` against FE at every checked h, stepped by the θ-method (None: exactly)."""
+    rom = to_reduced(case.system, Reduction(V, (), 0.0, ()), case.base_meta, keep_basis=False)
+    return [compare(rom.with_operators(h_W_m2K=h), case.time_s, case.U, ref, theta)
+            for h, ref in zip(case.check_h, case.fe)]
+
+
+def _compress(system, reductor, red: Reduction, method: str, samples, scale, tol, max_order: int, compress_step: int,
+              accept) -> tuple[Reduction, str]:
+    """The second stage: a larger Krylov basis compressed to its dominant Gramian directions.
+
+    Behind the (exact-steady-state) first block; kept only if the FE check passes at a lower order, else ``red``
+    and ``method`` are returned as they are.
+    """
+    big = reductor.reduce(order=min(max_order, max(2 * red.V.shape[1], 200)))
+    n_first = big.history[0][0] if big.points[0].complete else 0
+    first = big.V[:, :n_first]
+    D = gramian_directions(system, big.V, samples[:3], scale, tol)
+    for k in range(compress_step, min(D.shape[1], red.V.shape[1] - n_first), compress_step):
+        V = np.hstack([first, orthonormal_extension(first, D[:, :k], reductor.deflation_tol)])
+        if V.shape[1] >= red.V.shape[1]:
+            break
+        if accept(V):
+            # only the first block's point is still interpolated exactly
+            red = Reduction(V, big.points[:1], red.estimate, red.history)
+            method = (f"Krylov order {big.V.shape[1]} compressed to the first block + {V.shape[1] - n_first} "
+                      "Gramian directions")
+            break
+    return red, method
+
+
+def _reduction_meta(case: _CheckCase, red: Reduction, method: str, tol_K: float, tol_um: float) -> dict:
+    """A reduced model's metadata: its basis, how it was found and its errors against FE ([K], [µm])."""
+    res = _checks(case, red.V, case.theta)
+    exact = _checks(case, red.V, None)
+    return {
+        **case.base_meta,
         "order": red.V.shape[1],
         "method": method,
         "expansion_points": [{"s_1_s": p.s, "h_W_m2K": list(p.h), "moments": p.moments, "complete": p.complete}
@@ -367,10 +410,10 @@ def reduce_model(
         "estimate": red.estimate if np.isfinite(red.estimate) else None,
         "history": [list(h) for h in red.history],
         "check": {
-            "load_case": f"{len(loads.time_s)} rows over {loads.time_s[-1] / 3600:.3g} h",
-            "fe_theta": check_theta,
+            "load_case": f"{len(case.time_s)} rows over {case.time_s[-1] / 3600:.3g} h",
+            "fe_theta": case.theta,
             "dt_s": res[0].dt_s,
-            "h_W_m2K": [list(map(float, h)) for h in check_h],
+            "h_W_m2K": [list(map(float, h)) for h in case.check_h],
             "max_sensor_error_K": [c.max_sensor_error_K for c in res],
             "max_drift_error_um": [c.max_drift_error_um for c in res],
             "passed": bool(all(c.max_sensor_error_K <= tol_K and c.max_drift_error_um <= tol_um for c in res)),
@@ -380,6 +423,4 @@ def reduce_model(
                 "max_drift_error_um": [c.max_drift_error_um for c in exact],
             },
         },
-        "reduction_time_s": time.perf_counter() - t0,
     }
-    return to_reduced(system, red, meta, keep_basis, model.disturbance_columns())

@@ -123,9 +123,9 @@ def test_monitor_scenario_refuses_what_it_cannot_run_before_any_work(tmp_path, c
     assert not out.exists()
 
 
-def test_run_scenario_refuses_a_sensor_fault_after_the_day_before_writing(tmp_path):
-    from hybridcomp.scenario import DISTURBANCES, run_scenario
+def test_a_scenario_with_a_sensor_fault_after_the_day_is_refused_before_writing(tmp_path):
+    from hybridcomp.scenario import DISTURBANCES, Scenario
 
     with pytest.raises(ValueError, match="day_hours 6: .*sensor T1"):
-        run_scenario(tmp_path / "s", disturbance=DISTURBANCES["sensor fault"], day_hours=6.0)
+        Scenario(disturbance=DISTURBANCES["sensor fault"], day_hours=6.0)
     assert not (tmp_path / "s").exists()

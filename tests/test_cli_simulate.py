@@ -12,7 +12,7 @@ import pytest
 from hybridcomp.cli import main
 from hybridcomp.fem.loads import LoadsFileError, example_loads, read_loads, write_loads
 from hybridcomp.models import load_machine
-from hybridcomp.models.machine import resolve_machine_path
+from hybridcomp.models.loader import resolve_machine_path
 
 COARSE = ["--element-size-mm", "150", "--no-progress"]
 

@@ -373,7 +373,7 @@ def test_import_is_all_or_nothing(tmp_path, capsys, cds, cd_dir):
     refused(capsys, ["cd", "db", "import", new[0], tmp_path / "missing.xml", "--db", db], "missing.xml")
     assert n_rows(db) == 1
     other = tmp_path / "other.toml"
-    from hybridcomp.models.machine import resolve_machine_path
+    from hybridcomp.models.loader import resolve_machine_path
 
     other.write_text(resolve_machine_path("vmc800").read_text().replace('name = "vmc800"', 'name = "other"', 1))
     refused(capsys, ["cd", "db", "import", *new, "--db", db, "--machine", other], new[0], "'other'")

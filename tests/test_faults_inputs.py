@@ -29,8 +29,9 @@ from hybridcomp.errors import HybridcompError
 from hybridcomp.fem.loads import LoadsFileError, read_loads
 from hybridcomp.histogram.trace import TraceFileError, read_trace_chunks
 from hybridcomp.models import MachineFileError, load_machine
+from hybridcomp.models.geometry import MAX_ELEMENTS_ENV
 from hybridcomp.models.layout import Loads, LoadsColumnError, check_loads
-from hybridcomp.models.machine import MAX_AXES, MAX_ELEMENTS_ENV, resolve_machine_path
+from hybridcomp.models.loader import MAX_AXES, resolve_machine_path
 from hybridcomp.models.toml import MAX_TOML_DEPTH
 
 VMC800 = resolve_machine_path("vmc800").read_text(encoding="utf-8")

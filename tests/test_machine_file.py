@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from hybridcomp.models import MachineFileError, bundled_machines, load_machine, parse_machine
-from hybridcomp.models.machine import resolve_machine_path
+from hybridcomp.models.loader import resolve_machine_path
 
 VMC800_PATH = resolve_machine_path("vmc800")
 VMC800 = VMC800_PATH.read_text(encoding="utf-8")

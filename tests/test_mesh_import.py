@@ -29,7 +29,8 @@ from hybridcomp.fem import assembly
 from hybridcomp.fem.mesh import MM, MachineMesh, _box_zone_facets, mesh_machine
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.stepping import steady_state
-from hybridcomp.models.machine import MachineFileError, load_machine, resolve_machine_path
+from hybridcomp.models.loader import load_machine, resolve_machine_path
+from hybridcomp.models.machine import MachineFileError
 
 ELEMENT_SIZE_MM = 150.0
 MSH_NAME = "vmc800_tet.msh"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hybridcomp.models import load_machine
-from hybridcomp.models.machine import resolve_machine_path
+from hybridcomp.models.loader import resolve_machine_path
 from hybridcomp.monitor.regeneration import BASIC_FACTOR, forecast_scenarios
 
 VMC800 = resolve_machine_path("vmc800").read_text(encoding="utf-8")

@@ -28,7 +28,7 @@ from hybridcomp.fem.model import build_model
 from hybridcomp.fem.operators import ThermalOperators
 from hybridcomp.fem.stepping import steady_state
 from hybridcomp.models import load_machine
-from hybridcomp.models.machine import resolve_machine_path
+from hybridcomp.models.loader import resolve_machine_path
 from hybridcomp.rom import (
     ReducedModel,
     RomFileError,
