@@ -8,13 +8,7 @@ Each package's ``__init__`` calls :func:`refuse_top_level_import` with its ``__n
 
 from __future__ import annotations
 
-from hybridcomp.errors import HybridcompError
-
 PREFIX = "hybridcomp."
-
-
-class TopLevelImportError(HybridcompError, ImportError):
-    """A package imported under its folder's name instead of ``hybridcomp.<package>``."""
 
 
 def refuse_top_level_import(name: str) -> None:
@@ -26,11 +20,12 @@ def refuse_top_level_import(name: str) -> None:
 
     Raises
     ------
-    TopLevelImportError
-        When ``name`` is not under ``hybridcomp.``; the message says what to import instead.
+    ImportError
+        When ``name`` is not under ``hybridcomp.``; the message says what to import instead.  The built-in itself:
+        a failed import, not bad input (no :class:`~hybridcomp.errors.HybridcompError`).
     """
     if not name.startswith(PREFIX):
-        raise TopLevelImportError(
+        raise ImportError(
             f"import hybridcomp.{name}, not {name}: the folder {name}/ is the package hybridcomp.{name}, and "
             f"importing it as {name!r} would load a second copy of its modules beside hybridcomp.{name}"
         )

@@ -76,4 +76,4 @@ def test_a_package_imported_by_its_folder_name_is_refused_with_the_name_to_use(p
     lines = r.stdout.splitlines()
     assert len(lines) == 2
     for line in lines:
-        assert line.startswith("TopLevelImportError") and f"import hybridcomp.{package}, not {package}" in line
+        assert line.startswith("ImportError") and f"import hybridcomp.{package}, not {package}" in line
