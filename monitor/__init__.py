@@ -15,6 +15,9 @@ The scenario harness that judges the daemon against a simulated real machine is 
 """
 
 from hybridcomp._lazy import lazy_exports
+from hybridcomp._packages import refuse_top_level_import
+
+refuse_top_level_import(__name__)  # hybridcomp.<package>, never the folder's own name
 
 # module -> the public names it defines (imported on first use)
 __all__, __getattr__, __dir__ = lazy_exports(__name__, {

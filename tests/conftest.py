@@ -1,4 +1,9 @@
-"""Fixtures shared by the test modules."""
+"""Fixtures shared by the test modules.
+
+The demonstrator's coarse FE models and the small reduced model are built once per session and shared by every
+module that needs them (they are immutable): a module asks for ``model_150mm``, ``model_200mm`` or ``small_rom``
+instead of building its own copy.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +11,7 @@ import csv
 
 import pytest
 
+import hybridcomp as hc
 from hybridcomp.models import load_machine
 
 
@@ -13,6 +19,26 @@ from hybridcomp.models import load_machine
 def machine():
     """The bundled demonstrator (immutable, so one load serves every test)."""
     return load_machine("vmc800")
+
+
+@pytest.fixture(scope="session")
+def model_150mm(machine):
+    """The demonstrator's FE model at mid travel on 150 mm elements (about 4,100 nodes)."""
+    return hc.build_model(machine, None, 150.0)
+
+
+@pytest.fixture(scope="session")
+def model_200mm(machine):
+    """The demonstrator's FE model at mid travel on 200 mm elements (about 1,600 nodes)."""
+    return hc.build_model(machine, None, 200.0)
+
+
+@pytest.fixture(scope="session")
+def small_rom(machine, model_200mm):
+    """``model_200mm`` reduced to order 40 without its basis, checked on a 1 h example day: the cheap reduced model
+    of the tests that need one of the demonstrator but not the reduction tolerance."""
+    return hc.reduce_model(model_200mm, order=40, keep_basis=False,
+                           check_loads=hc.example_loads(machine, duration_h=1.0, dt_s=600.0))
 
 
 @pytest.fixture

@@ -58,8 +58,8 @@ def test_layout_names_maps_and_refuses(machine):
 
 
 @pytest.mark.slow
-def test_one_simulate_for_fe_and_reduced_models(machine):
-    model = hc.build_model(machine, element_size_mm=200)
+def test_one_simulate_for_fe_and_reduced_models(machine, model_200mm):
+    model = model_200mm  # at mid travel, 200 mm elements (shared)
     # reduced to its default tolerance (0.05 K / 0.2 µm) on another load case than the one compared below
     rom = hc.reduce_model(model, keep_basis=False, check_loads=hc.example_loads(machine, 2.0, 600.0, seed=1))
     loads = hc.example_loads(machine, duration_h=4.0, dt_s=300.0)
@@ -80,9 +80,8 @@ def test_one_simulate_for_fe_and_reduced_models(machine):
     np.testing.assert_allclose(cont.drift_um, red.drift_um[k:], rtol=1e-9, atol=1e-9)
 
 
-def test_step_hold_holds_each_row_over_its_interval(machine):
-    model = hc.build_model(machine, element_size_mm=200)
-    rom = hc.reduce_model(model, order=30, keep_basis=False, check_loads=hc.example_loads(machine, 1.0, 600.0))
+def test_step_hold_holds_each_row_over_its_interval(machine, small_rom):
+    rom = small_rom  # any reduced model of the machine: the shared one (200 mm, order 40)
     loads = hc.example_loads(machine, duration_h=2.0, dt_s=600.0)
     U = rom.layout().inputs(loads.names, loads.values)
     x = rom.steady_state(U[0])

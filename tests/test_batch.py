@@ -176,9 +176,12 @@ def test_dask_local_cluster_matches_serial(machine, cases, reference, tmp_path):
 
 
 @pytest.mark.slow
-def test_local_cluster_workers_run_one_blas_thread_without_malloc_trim():
+def test_local_cluster_workers_run_one_blas_thread_without_malloc_trim(monkeypatch):
     pytest.importorskip("distributed", reason="needs dask.distributed (extra 'dask')")
     from hybridcomp.fem.batch import dask_client
+
+    for name in WORKER_ENVIRONMENT:  # the workers get them from the cluster's configuration, not from the test run's
+        monkeypatch.delenv(name, raising=False)
 
     with dask_client("local", workers=1) as client:
         for name, value in {"MALLOC_TRIM_THRESHOLD_": None, **WORKER_ENVIRONMENT}.items():
@@ -210,7 +213,9 @@ def dask_cli_cluster(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("dask")
     sched_file = tmp / "scheduler.json"
     # the documented way to start workers: glibc's dynamic mmap threshold left alone (no MALLOC_TRIM_THRESHOLD_)
-    env = {**os.environ, "DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON": '{"MALLOC_TRIM_THRESHOLD_": None}'}
+    # and no thread counts of the test run's own (the root conftest's one BLAS thread): the workers' come from Dask
+    env = {**{k: v for k, v in os.environ.items() if k not in WORKER_ENVIRONMENT},
+           "DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON": '{"MALLOC_TRIM_THRESHOLD_": None}'}
     dask = [sys.executable, "-m"]
     procs = []
     logs = []

@@ -119,6 +119,7 @@ def _activate_many(url, sets, n, tag, barrier):
     db.close()
 
 
+@pytest.mark.slow  # separate Python processes, as on a shop floor: seconds of start-up and imports
 def test_two_processes_activating_at_once_leave_a_consistent_set(tmp_path):
     path = tmp_path / "cds.sqlite"
     db = CDDatabase(path)

@@ -36,11 +36,10 @@ def total_ratio(cds, data) -> float:
 
 
 @pytest.fixture(scope="module")
-def training(machine):
-    from hybridcomp.fem.model import build_model
-
+def training(machine, model_150mm):
     cases = standard_load_cases(machine, ["basic", "simultaneous", "jobshop"], heat_h=4.0, cool_h=4.0)
-    model = build_model(machine, {}, ELEMENT_MM)
+    model = model_150mm  # at mid travel, as {} gives
+    assert model.machine.mesh.element_size_mm == ELEMENT_MM
     return simulate_load_cases(machine, cases, model=model, dt_s=300.0)
 
 

@@ -50,3 +50,30 @@ def test_a_second_checkout_imports_its_own_code(tmp_path):
         r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(copy / "tests")],
                            cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, f"from {cwd}:\n{r.stdout}\n{r.stderr}"
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_a_package_imported_by_its_folder_name_is_refused_with_the_name_to_use(package):
+    """From the checkout's root the folder ``fem/`` is importable as ``fem``: a second copy of every module beside
+    ``hybridcomp.fem``. The import fails and names ``hybridcomp.fem``; ``hybridcomp.fem`` itself imports."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    code = (
+        "import importlib, sys\n"
+        f"good = importlib.import_module('hybridcomp.{package}')\n"
+        "assert good.__name__ == 'hybridcomp.' + sys.argv[1]\n"
+        "for name in (sys.argv[1], sys.argv[1] + '.anything'):\n"
+        "    try:\n"
+        "        importlib.import_module(name)\n"
+        "    except ImportError as e:\n"
+        "        print(type(e).__name__, e)\n"
+        "    else:\n"
+        "        raise SystemExit(f'{name} imported')\n"
+        "    assert name not in sys.modules, sorted(sys.modules)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code, package], cwd=ROOT, env=env, capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) == 2
+    for line in lines:
+        assert line.startswith("ImportError") and f"import hybridcomp.{package}, not {package}" in line

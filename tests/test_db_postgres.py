@@ -159,6 +159,7 @@ def _run_at_once(tmp_path: Path, url: str, body: str, n: int = 2, timeout: float
                 p.wait()
 
 
+@pytest.mark.slow  # separate Python processes, as on a shop floor: seconds of start-up and imports
 def test_two_monitors_write_events_at_once_none_lost_none_duplicated(chardiag, fresh_postgres_url, tmp_path):
     db, _ = chardiag
     db.CDDatabase(fresh_postgres_url).close()  # schema exists; its concurrent creation is tested below
@@ -197,6 +198,7 @@ def test_two_monitors_write_events_at_once_none_lost_none_duplicated(chardiag, f
     assert min(returned[0]) < max(returned[1]) and min(returned[1]) < max(returned[0])
 
 
+@pytest.mark.slow  # separate Python processes, as on a shop floor: seconds of start-up and imports
 def test_activation_is_atomic_under_concurrent_writers(chardiag, sets, fresh_postgres_url, tmp_path):
     db, _ = chardiag
     pose = db.pose_key(POSE)
@@ -247,6 +249,7 @@ def test_activation_is_atomic_under_concurrent_writers(chardiag, sets, fresh_pos
     assert acts[-1].payload["ids"] == final
 
 
+@pytest.mark.slow  # separate Python processes, as on a shop floor: seconds of start-up and imports
 def test_two_monitors_open_a_new_database_at_once(chardiag, fresh_postgres_url, tmp_path):
     db, _ = chardiag
     go = tmp_path / "go"

@@ -27,8 +27,9 @@ HOURS = 16.0
 
 
 @pytest.fixture(scope="module")
-def fe(machine):
-    return build_model(machine, None, H_MM)
+def fe(model_150mm):
+    assert model_150mm.machine.mesh.element_size_mm == H_MM
+    return model_150mm
 
 
 @pytest.fixture(scope="module")

@@ -452,6 +452,7 @@ def test_no_lag_crosses_a_run_boundary_and_every_run_has_its_own_zero():
     assert z[0] == 0 and z[10] == 0 and z[19] == 9
 
 
+@pytest.mark.slow  # five 12 h runs diagnosed three times, and the report's plots: seconds
 def test_campaign_diagnosis_holds_out_runs_and_beats_one_series(tmp_path):
     """Runs with different air levels and gauge zeros: treated as runs, the planted lag generalises to held-out runs;
     as one series, the offsets between runs spoil the fit."""

@@ -27,8 +27,9 @@ def vmc():
 
 
 @pytest.fixture(scope="module")
-def model(vmc):
-    return build_model(vmc, None, H_MM)
+def model(model_200mm):
+    assert model_200mm.machine.mesh.element_size_mm == H_MM
+    return model_200mm
 
 
 def _positions(vmc, axis: str, n: int = 7) -> np.ndarray:

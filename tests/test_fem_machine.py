@@ -25,8 +25,9 @@ H_MM = 150.0  # coarse: ~2,000 nodes
 
 
 @pytest.fixture(scope="module")
-def model(machine):
-    return build_model(machine, None, H_MM)
+def model(model_150mm):
+    assert model_150mm.machine.mesh.element_size_mm == H_MM
+    return model_150mm
 
 
 def one_alpha(machine):

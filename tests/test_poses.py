@@ -27,18 +27,10 @@ def vmc():
 
 
 @pytest.fixture(scope="module")
-def model(vmc):
-    return pose_rom_model(vmc)
-
-
-_MODELS: dict = {}
-
-
-def pose_rom_model(vmc):
-    """The FE model at mid travel (built once per module)."""
-    if "mid" not in _MODELS:
-        _MODELS["mid"] = build_model(vmc, None, H_MM)
-    return _MODELS["mid"]
+def model(model_200mm):
+    """The FE model at mid travel (shared with the other modules)."""
+    assert model_200mm.machine.mesh.element_size_mm == H_MM
+    return model_200mm
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +40,8 @@ def loads(vmc):
 
 @pytest.fixture(scope="module")
 def pose_rom(model, loads):
+    """The reduced model to the default tolerance and its pose-aware model over the star: an FE model built and
+    reduced at each of six support poses, so every test that takes it is marked slow."""
     rom = reduce_model(model, check_loads=loads)
     return rom, reduce_at_poses(model, rom, "star", input_scale=np.abs(model.layout().inputs(loads)).max(axis=0))
 
@@ -110,6 +104,7 @@ def test_uniform_rise_drift_at_a_support_pose_equals_the_fe_model_built_there(vm
 
 # --------------------------------------------------------------------------- the pose-aware reduced model
 
+@pytest.mark.slow
 def test_pose_aware_rom_keeps_the_model_pose_outputs(pose_rom, loads):
     rom, pr = pose_rom
     a, b = rom.simulate(loads), pr.simulate(loads)
@@ -119,7 +114,8 @@ def test_pose_aware_rom_keeps_the_model_pose_outputs(pose_rom, loads):
     assert len(pr.output_names) == rom.C.shape[0] + 18 + 3 * FEEDBACK_POINTS  # 6 poses' drift, 3 drives' errors
 
 
-def test_pose_aware_rom_carries_the_drives_exactly(vmc, pose_rom, loads):
+@pytest.mark.slow
+def test_pose_aware_rom_carries_the_drives_exactly(vmc, model, pose_rom, loads):
     rom, pr = pose_rom
     u = pr.layout().inputs(loads.names, loads.values)[25]
     y = pr.outputs(pr.steady_state(u))
@@ -131,7 +127,7 @@ def test_pose_aware_rom_carries_the_drives_exactly(vmc, pose_rom, loads):
             screw = build_screw(vmc, vmc.drive(axis))
             want = screw.error_rows(fb["positions_mm"]) @ screw.steady(u)
         else:  # the scale on the model pose's field
-            want = scale_line(pose_rom_model(vmc), vmc.drive(axis)).error_rows(fb["positions_mm"]) @ (rom.V @ x_mid)
+            want = scale_line(model, vmc.drive(axis)).error_rows(fb["positions_mm"]) @ (rom.V @ x_mid)
         np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-9)
     # along a path the drift is the structure's plus each drive's error, signed by the side the axis moves
     Y = y[None, :]
@@ -145,6 +141,7 @@ def test_pose_aware_rom_carries_the_drives_exactly(vmc, pose_rom, loads):
     assert with_fb[0, 2] - without[0, 2] == pytest.approx(e_z, rel=1e-12)  # Z moves the tool
 
 
+@pytest.mark.slow
 def test_pose_aware_rom_matches_fe_at_a_support_pose_and_beats_the_model_pose_off_grid(vmc, pose_rom, loads):
     _, pr = pose_rom
     U = pr.layout().inputs(loads.names, loads.values)
@@ -175,12 +172,14 @@ def test_pose_aware_rom_matches_fe_at_a_support_pose_and_beats_the_model_pose_of
                                                                       path[loads.time_s.size // 2][None])[0])
 
 
+@pytest.mark.slow
 def test_pose_aware_rom_round_trips_through_its_file(pose_rom, tmp_path):
     _, pr = pose_rom
     back = load_rom(save_rom(tmp_path / "p.npz", pr))
     assert grid_of(back) == grid_of(pr) and back.rom_id == pr.rom_id
 
 
+@pytest.mark.slow
 def test_pose_aware_reduction_refuses_a_model_without_basis_or_at_a_travel_end(vmc, model, pose_rom):
     import dataclasses
 
@@ -207,6 +206,7 @@ def test_reduce_cli_refuses_pose_options_that_would_be_ignored(capsys, tmp_path)
     assert not (tmp_path / "r.npz").exists()
 
 
+@pytest.mark.slow
 def test_support_poses_run_as_a_batch_on_a_process_pool(model, pose_rom, loads):
     rom, serial = pose_rom
     pooled = reduce_at_poses(model, rom, "star", input_scale=np.abs(model.layout().inputs(loads)).max(axis=0), workers=2)
@@ -217,6 +217,7 @@ def test_support_poses_run_as_a_batch_on_a_process_pool(model, pose_rom, loads):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-8 * np.abs(b).max(), err_msg=name)
 
 
+@pytest.mark.slow
 def test_a_pose_aware_model_is_refused_where_one_pose_is_meant(vmc, pose_rom):
     from hybridcomp.diagnose import prepare_model
 

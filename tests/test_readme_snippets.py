@@ -42,6 +42,7 @@ READMES = (
     "README.md",
     "models/README.md",
     "histogram/README.md",
+    "fem/README.md",
     "rom/README.md",
     "chardiag/README.md",
     "monitor/README.md",

@@ -42,6 +42,7 @@ def mat(tmp_path_factory):
     return path, m
 
 
+@pytest.mark.slow  # 400 L-BFGS iterations and dense Lyapunov references: seconds
 def test_the_h2_basis_changes_the_basis_lowers_the_error_and_the_error_is_exact(mat):
     from hybridcomp.rom import h2
 
@@ -67,13 +68,13 @@ def test_the_h2_basis_changes_the_basis_lowers_the_error_and_the_error_is_exact(
 def test_reduce_cli_with_matrices_and_basis_h2(mat, tmp_path, capsys):
     path, _ = mat
     out = tmp_path / "m.npz"
-    assert main(["reduce", "--matrices", str(path), "--order", "8", "--basis", "h2", "--h2-maxiter", "200",
+    assert main(["reduce", "--matrices", str(path), "--order", "8", "--basis", "h2", "--h2-maxiter", "20",
                  "--out", str(out)]) == 0
     cap = capsys.readouterr()
     summary = json.loads(cap.out.strip().splitlines()[-1])
     assert summary["basis"] == "h2" and summary["order"] == 8 and 0 < summary["h2_error_relative"] < 1
     # at a stated order the h2 basis is the default for exported systems; --basis krylov asks for the other
-    assert main(["reduce", "--matrices", str(path), "--order", "8", "--h2-maxiter", "200",
+    assert main(["reduce", "--matrices", str(path), "--order", "8", "--h2-maxiter", "20",
                  "--out", str(tmp_path / "d.npz")]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["basis"] == "h2"
     assert main(["reduce", "--matrices", str(path), "--order", "8", "--basis", "krylov",
@@ -92,6 +93,7 @@ def test_reduce_cli_with_matrices_and_basis_h2(mat, tmp_path, capsys):
     assert not (tmp_path / "x.npz").exists()
 
 
+@pytest.mark.slow  # H2-optimal bases of growing order, twice (library and CLI): about ten seconds
 def test_h2_basis_grows_to_a_relative_h2_error(mat, tmp_path, capsys):
     path, m = mat
     rom = reduce_matrices(path, basis="h2", h2_tol=0.02, h2_maxiter=300)

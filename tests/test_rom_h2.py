@@ -66,6 +66,7 @@ def test_progress_bar_reports_without_changing_the_result(capsys):
     assert "H2-optimal basis, order 5" in err and f"relative H2 error {np.sqrt(J2):.3g}" in err
 
 
+@pytest.mark.slow  # 2,400 L-BFGS iterations: seconds
 def test_preconditioned_optimiser_beats_plain_lbfgs_at_equal_iterations():
     """The point of the row/column preconditioning: on a system whose decay rates span four decades it gets
     (much) closer to the optimum than plain L-BFGS on the QR parametrisation with the same number of
