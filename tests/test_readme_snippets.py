@@ -56,6 +56,11 @@ SHELL = {"bash", "sh", "shell"}
 SHELL_TIMEOUT_S = 1800.0  # the slowest shell block (a structure model and a day's replay) takes minutes
 
 
+#: README.md opens with the two set-up commands and nothing before them; they install into the running
+#: environment, so the test does not run them: .ci/run runs the second, tests/test_demo.py a shortened demo
+SETUP_REASON = "the set-up commands install into the running environment (.ci/run runs the second line)"
+
+
 @dataclass(frozen=True)
 class Snippet:
     """One ```python or ```bash block: where it is, its code and the directive before it."""
@@ -91,7 +96,7 @@ def parse(readme: str, langs: frozenset[str] | None = None) -> list[Snippet]:
             if kind:
                 indent = len(fence["indent"])
                 code = "\n".join(text[indent:] for text in lines[i + 1:end]) + "\n"
-                what, reason = directive or ("", "")
+                what, reason = directive or (("skip", SETUP_REASON) if (readme, i) == ("README.md", 0) else ("", ""))
                 snippets.append(Snippet(readme, i + 1, code, what, reason, kind))
             elif directive:
                 raise ValueError(f"{readme}:{i}: a snippet comment before a {lang or 'plain'} block, "
@@ -287,3 +292,13 @@ def test_readme_shell_block_runs(snippet: Snippet, tmp_path):
     status = left_over(clone)
     assert not status, (f"the shell block at {snippet.where} leaves files that .gitignore does not cover, or changes "
                         "tracked files:\n" + "\n".join(status[:20]))
+
+
+def test_readme_starts_with_the_two_set_up_commands():
+    """The first thing README.md shows is one shell block of two commands: install + demo, install + tests."""
+    lines = (ROOT / "README.md").read_text(encoding="utf-8").splitlines()
+    assert lines[0] == "```bash" and lines[3] == "```", lines[:4]
+    assert lines[1] == 'pip install -e ".[fast,plot,db]" && hybridcomp demo --out demo'
+    assert lines[2] == 'pip install -e ".[test]" && python -m pytest -q'
+    first = parse("README.md", frozenset({"bash"}))[0]
+    assert (first.line, first.what) == (1, "skip")
