@@ -289,10 +289,10 @@ def simulate_load_cases(
             model = build_model(machine, pose, element_size_mm)
         for name, L in full.items():
             t = L.time_s
-            tt = np.union1d(np.arange(t[0], t[-1], dt_s), t) if dt_s is not None else t
-            Vt = np.column_stack([np.interp(tt, t, L.values[:, j]) for j in range(L.values.shape[1])])
+            R = L.resample(dt_s, keep_rows=True) if dt_s is not None else L
+            tt = R.time_s
             log.info("load case %s: %d loads intervals", name, len(tt) - 1)
-            res = model.simulate(Loads(tt, Vt, L.names), "steady", scheme=scheme, theta=theta, progress=progress)
+            res = model.simulate(R, "steady", scheme=scheme, theta=theta, progress=progress)
             pick = np.searchsorted(tt, t)
             outputs[name] = (model.sensor_names, res.sensors_degC[pick], res.drift_um[pick])
     else:

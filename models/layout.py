@@ -249,7 +249,7 @@ class Loads:
     values: np.ndarray
     names: tuple[str, ...]
 
-    def resample(self, dt_s: float) -> Loads:
+    def resample(self, dt_s: float, keep_rows: bool = False) -> Loads:
         """The loads at a uniform step ``dt_s`` [s], every column interpolated linearly.
 
         The times are ``t0 + k·dt_s`` (``k = 0, 1, …``, as :func:`numpy.arange` makes them) before the end
@@ -261,6 +261,8 @@ class Loads:
         Parameters
         ----------
         dt_s : the step [s], positive and finite
+        keep_rows : also keep every row's own time (the union of the grid and the rows): a kink of the loads
+            stays on a step boundary and outputs at the rows need no interpolation (the CD training's grid)
         """
         if not (np.isfinite(dt_s) and dt_s > 0):
             raise ValueError(f"dt_s must be positive and finite, got {dt_s}")
@@ -268,6 +270,8 @@ class Loads:
         t0, t1 = time_s[0], time_s[-1]
         t = np.arange(t0, t1, dt_s)
         t = np.append(t[t < t1 - END_TIME_TOLERANCE * max(1.0, abs(t1))], t1)
+        if keep_rows:
+            t = np.union1d(t, time_s)
         V = np.asarray(self.values, float)
         values = np.empty((t.size, V.shape[1]))
         for j in range(V.shape[1]):

@@ -71,3 +71,16 @@ def test_inputs_of_loads_fill_missing_columns_and_refuse_unknown_ones():
         LAYOUT.inputs(Loads(np.array([0.0]), np.array([[3.0]]), ("c_W",)))
     with pytest.raises(TypeError, match="takes no values"):
         LAYOUT.inputs(Loads(np.array([0.0]), np.array([[3.0]]), ("b_W",)), np.zeros((1, 1)))
+
+
+def test_keep_rows_adds_every_row_to_the_grid_so_a_kink_stays_on_a_step():
+    # a triangle with its peak at 130 s, off the 60 s grid: resampled alone the peak is cut, with the rows kept
+    # it stays, and the grid is the union of the uniform times and the rows
+    t = np.array([0.0, 130.0, 300.0])
+    loads = Loads(t, np.column_stack([[0.0, 13.0, 0.0], [1.0, 1.0, 1.0]]), ("a_W", "air_degC"))
+    plain = loads.resample(60.0)
+    kept = loads.resample(60.0, keep_rows=True)
+    np.testing.assert_array_equal(plain.time_s, [0.0, 60.0, 120.0, 180.0, 240.0, 300.0])
+    np.testing.assert_array_equal(kept.time_s, [0.0, 60.0, 120.0, 130.0, 180.0, 240.0, 300.0])
+    assert plain.values[:, 0].max() < 13.0 and kept.values[:, 0].max() == 13.0
+    np.testing.assert_array_equal(kept.values[np.searchsorted(kept.time_s, t)], loads.values)
