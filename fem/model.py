@@ -66,6 +66,10 @@ class ThermoElasticModel(HasOperators):
     timings_s: dict = field(default_factory=dict, compare=False)
     _cache: dict = field(default_factory=dict, compare=False, repr=False)
 
+    def __getstate__(self) -> dict:
+        """The model without its cache: factorisations hold a solver's state, and a process rebuilds them."""
+        return {**self.__dict__, "_cache": {}}
+
     @property
     def n(self) -> int:
         return self.M.shape[0]

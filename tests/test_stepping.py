@@ -141,3 +141,17 @@ def test_batch_and_train_data_pass_the_one_default_scheme(options, scheme, theta
               "--out", str(tmp_path / "t.csv"), "--no-progress", *options])
     dt = 600.0 if "--dt" in options else None
     assert seen == [(scheme, theta, dt), (scheme, theta, dt)]
+
+
+def test_a_model_pickles_without_its_factorisations(model_200mm):
+    """A model that has stepped carries factorisations (solver state, not picklable with every backend); a copy
+    sent to a worker process leaves them behind and rebuilds them, with the same result."""
+    import pickle
+
+    model = model_200mm
+    loads = example_loads(model.machine, duration_h=1.0, dt_s=600.0)
+    first = model.simulate(loads, scheme="theta", theta=1.0)
+    assert model._cache
+    copy = pickle.loads(pickle.dumps(model))
+    assert copy._cache == {} and model._cache
+    np.testing.assert_allclose(copy.simulate(loads, scheme="theta", theta=1.0).drift_um, first.drift_um, rtol=1e-10)
