@@ -44,10 +44,12 @@ def test_a_second_checkout_imports_its_own_code(tmp_path):
         "    assert Path(hybridcomp.fem.model.__file__).resolve().parent == root / 'fem'\n"
         "    assert Path(hybridcomp.models.__file__).resolve().parent == root / 'models'\n"
     )
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    # nothing of this run's own test processes (pytest-xdist's worker variables) either
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH" and not k.startswith("PYTEST_")}
     # run from the copy and, the harder case, from this checkout (its folder first on sys.path)
     for cwd in (copy, ROOT):
-        r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(copy / "tests")],
+        r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
+                            str(copy / "tests")],
                            cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, f"from {cwd}:\n{r.stdout}\n{r.stderr}"
 
@@ -56,7 +58,8 @@ def test_a_second_checkout_imports_its_own_code(tmp_path):
 def test_a_package_imported_by_its_folder_name_is_refused_with_the_name_to_use(package):
     """From the checkout's root the folder ``fem/`` is importable as ``fem``: a second copy of every module beside
     ``hybridcomp.fem``. The import fails and names ``hybridcomp.fem``; ``hybridcomp.fem`` itself imports."""
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    # nothing of this run's own test processes (pytest-xdist's worker variables) either
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH" and not k.startswith("PYTEST_")}
     code = (
         "import importlib, sys\n"
         f"good = importlib.import_module('hybridcomp.{package}')\n"
