@@ -28,7 +28,8 @@ SUBCOMMANDS = {
     "batch": ("hybridcomp.fem.cli_batch", "run a directory of load cases on the FE model: local process pool or Dask cluster"),
     "iso230": ("hybridcomp.fem.cli_iso230",
                "ISO 230-3 thermal tests, simulated: moving linear axis (feed drives) and ETVE"),
-    "monitor": ("hybridcomp.monitor.cli", "the monitoring daemon: run, status, example-config, and the hybrid scenario"),
+    "monitor": ("hybridcomp.monitor.cli",
+                "the monitoring daemon: run, status, example-config, example-trace, and the hybrid scenario"),
 }
 # subcommand -> action -> module with add_parser(actions) and run(args) -> int: actions of a package's subcommand
 # that compose every package, so they live at the top, not in the package (which imports nothing above itself)

@@ -30,7 +30,8 @@ def add_parser(actions: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    "the models [mm] (default 80)")
     c.add_argument("--day-hours", type=float, default=None, help="replay only the first hours of the day (default 16)")
     c.add_argument("--rom-order", type=int, default=None, help="order of the structure model (default: to tolerance)")
-    c.add_argument("--basic-hours", type=float, default=8.0, help="heating hours of each basic load case (default 8)")
+    c.add_argument("--basic-hours", type=float, default=8.0,
+                   help="heating hours, and as many cooling hours, of each basic load case (default 8)")
     c.add_argument("--along-path", action="store_true",
                    help="also judge every strategy at the trace's commanded position at each time, where the drift "
                    "depends on the pose and the feed drives' errors on the axis positions (builds the pose-aware "

@@ -38,6 +38,7 @@ from hybridcomp.metrics import DIRS, drift_metrics, largest_step_um, metrics_tab
 from hybridcomp.models import jsonio
 from hybridcomp.models.layout import PROBE_COLUMNS, in_model_order, temperature_column
 from hybridcomp.models.toml import open_text
+from hybridcomp.monitor.example import rom_outputs
 
 log = logging.getLogger(__name__)
 
@@ -156,24 +157,6 @@ def fit_mlr(T_degC: np.ndarray, drift_um: np.ndarray) -> np.ndarray:
 def predict_mlr(coef: np.ndarray, T_degC: np.ndarray) -> np.ndarray:
     """The drift [µm] the coefficients of :func:`fit_mlr` give for sensor rows [°C]."""
     return np.column_stack([np.ones(len(T_degC)), T_degC]) @ coef
-
-
-def rom_outputs(machine, rom, samples, increment_s: float = 300.0, loads_edit=None) -> tuple[np.ndarray, np.ndarray]:
-    """Sensor temperatures [°C] and drift [µm] at the sample times of a trace: the structure model on its own BCs.
-
-    The BCs are the histogram generator's, per ``increment_s`` [s] (``loads_edit(loads)`` may change them);
-    the ROM steps each increment with its loads row held constant (row k+1 over increment k) and the outputs
-    are interpolated linearly to the sample times.
-    """
-    from hybridcomp.histogram.bcs import boundary_conditions
-    from hybridcomp.histogram.increments import increments_from_samples
-
-    loads = boundary_conditions(machine, increments_from_samples(machine, samples, increment_s))
-    if loads_edit is not None:
-        loads = loads_edit(loads)
-    res = rom.simulate(loads, hold="step")
-    at = lambda Y: np.column_stack([np.interp(samples.time_s, loads.time_s, Y[:, j]) for j in range(Y.shape[1])])  # noqa: E731
-    return at(res.sensors_degC), at(res.drift_um)
 
 
 def rom_sensor_temperatures(machine, rom, samples, increment_s: float = 300.0) -> np.ndarray:
@@ -431,8 +414,6 @@ def _models_and_real_machine(scenario: Scenario, out: Path, models: Models | Non
     if models is None:
         models = build_models(out, s.machine_name, s.element_size_mm, s.rom_order, s.basic_hours, s.dt_s,
                               s.keep_basis, s.along_path)
-    if s.along_path and models.pose_rom is None:
-        raise ValueError("along_path needs the models' pose-aware structure model: build_models(..., poses=True)")
     real_machine, machine, disturbance = s.real_machine, models.machine, s.disturbance
     if real_machine is None:
         real_machine = (load_machine(real_machine_file(machine, disturbance, out / "real_machine.toml"))
@@ -633,7 +614,7 @@ def trace_positions(machine, trace: Path, t: np.ndarray) -> np.ndarray:
 
 
 def _along_path(out: Path, models: Models, controller: Path, t, loads, real_loads, truth, preds) -> dict:
-    """Judge the strategies at the trace's commanded positions (``run_scenario(along_path=True)``).
+    """Judge the strategies at the trace's commanded positions (``Scenario(along_path=True)``).
 
     The true drift along the path is the real machine's at the model's pose plus what the pose adds: the pose-aware
     structure model driven by the real machine's loads (its disturbance's heat and air, for the inputs the models

@@ -40,17 +40,25 @@ def jobshop_samples(machine, hours: float = JOBSHOP_HOURS, rate_hz: float = 1.0)
     return s.take(s.time_s <= hours * 3600.0 + 1e-9)
 
 
-def model_sensors_degC(machine, rom, s: Samples, increment_s: float = DEFAULT_INCREMENT_S) -> np.ndarray:
-    """Sensor temperatures [°C] at the sample times: the structure model on the samples' own loads.
+def rom_outputs(machine, rom, samples: Samples, increment_s: float = DEFAULT_INCREMENT_S,
+                loads_edit=None) -> tuple[np.ndarray, np.ndarray]:
+    """Sensor temperatures [°C] and drift [µm] at the sample times of a trace: the structure model on its own BCs.
 
-    The loads are the histogram generator's per ``increment_s`` [s], each row held over its increment (the
-    reading of a mean power per increment); the outputs are interpolated linearly to the sample times.
-    Returns an array (samples × sensors of the model).
+    The BCs are the histogram generator's, per ``increment_s`` [s] (``loads_edit(loads)`` may change them);
+    the ROM steps each increment with its loads row held constant (row k+1 over increment k, the reading of a
+    mean power per increment) and the outputs are interpolated linearly to the sample times.
     """
-    loads = boundary_conditions(machine, increments_from_samples(machine, s, increment_s))
+    loads = boundary_conditions(machine, increments_from_samples(machine, samples, increment_s))
+    if loads_edit is not None:
+        loads = loads_edit(loads)
     res = rom.simulate(loads, hold="step")
-    T = res.sensors_degC
-    return np.column_stack([np.interp(s.time_s, res.time_s, T[:, j]) for j in range(T.shape[1])])
+    at = lambda Y: np.column_stack([np.interp(samples.time_s, loads.time_s, Y[:, j]) for j in range(Y.shape[1])])  # noqa: E731
+    return at(res.sensors_degC), at(res.drift_um)
+
+
+def model_sensors_degC(machine, rom, s: Samples, increment_s: float = DEFAULT_INCREMENT_S) -> np.ndarray:
+    """Sensor temperatures [°C] at the sample times (samples × sensors of the model): :func:`rom_outputs`."""
+    return rom_outputs(machine, rom, s, increment_s)[0]
 
 
 def write_example_trace(path: str | Path, machine, rom, hours: float = JOBSHOP_HOURS,

@@ -32,8 +32,8 @@ def run(args: argparse.Namespace) -> int:
 def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], loads: Loads) -> int:
     """Check the ROM against the machine file and the options, then simulate and write ``outputs.csv`` and ``run.json``."""
     from hybridcomp.fem.loads import write_outputs
-    from hybridcomp.fem.stepping import DEFAULT_TOLERANCE
     from hybridcomp.models import jsonio
+    from hybridcomp.models.cli import given
     from hybridcomp.rom.machine import inputs_from_columns, split_outputs
     from hybridcomp.rom.reduced import RomFileError, RomInputError, load_rom
     from hybridcomp.safeio import atomic_path, write_text_atomic
@@ -44,9 +44,9 @@ def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], 
             ("--element-size-mm", args.element_size_mm is not None),
             ("--fields", args.fields > 0),
             ("--png", args.png),
-            ("--theta", args.theta not in (None, 1.0)),
-            ("--time-tol-K", args.time_tol_K != DEFAULT_TOLERANCE.sensor_K),
-            ("--time-tol-um", args.time_tol_um != DEFAULT_TOLERANCE.drift_um),
+            ("--theta", given(args, "theta")),
+            ("--time-tol-K", given(args, "time_tol_K")),
+            ("--time-tol-um", given(args, "time_tol_um")),
         ) if bad]
         if unsupported:
             raise RomInputError(f"{unsupported[0][0]} applies to the FE path only, not with --rom "

@@ -9,6 +9,7 @@ from __future__ import annotations
 import pytest
 
 from hybridcomp.cli import main
+from hybridcomp.models.loader import load_machine
 
 MONITOR_OPCUA = """\
 [monitor]
@@ -123,9 +124,21 @@ def test_monitor_scenario_refuses_what_it_cannot_run_before_any_work(tmp_path, c
     assert not out.exists()
 
 
-def test_a_scenario_with_a_sensor_fault_after_the_day_is_refused_before_writing(tmp_path):
+def test_a_scenario_with_a_sensor_fault_after_the_day_is_refused_when_it_is_made():
     from hybridcomp.scenario import DISTURBANCES, Scenario
 
     with pytest.raises(ValueError, match="day_hours 6: .*sensor T1"):
         Scenario(disturbance=DISTURBANCES["sensor fault"], day_hours=6.0)
-    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("option", [["--theta", "1"], ["--time-tol-K", "0.01"], ["--time-tol-um", "0.05"]])
+def test_simulate_with_a_rom_refuses_an_fe_stepping_option_even_at_its_default_value(tmp_path, capsys, option):
+    from hybridcomp.models.loads import example_loads, write_loads
+
+    machine = load_machine("vmc800")
+    write_loads(tmp_path / "loads.csv", example_loads(machine, duration_h=1.0, dt_s=600.0))
+    rc = main(["simulate", "--loads", str(tmp_path / "loads.csv"), "--rom", str(tmp_path / "any.rom.npz"),
+               *option, "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"{option[0]} applies to the FE path only" in err, err
+    assert not (tmp_path / "run").exists()

@@ -22,11 +22,12 @@ import pytest
 from hybridcomp.histogram.trace import samples
 from hybridcomp.monitor.config import parse_config
 from hybridcomp.monitor.daemon import Monitor, run_monitor
+from hybridcomp.monitor.example import rom_outputs
 from hybridcomp.monitor.sinks import MemorySink
 from hybridcomp.monitor.sources import ListSource, ReplaySource, read_replay
 from hybridcomp.monitor.store import MonitorStore
 from hybridcomp.rom import save_rom
-from hybridcomp.scenario import low_pass, rom_outputs
+from hybridcomp.scenario import low_pass
 
 pytestmark = pytest.mark.slow  # FE, reduced models and daemon runs: the full suite, not the fast loop
 
@@ -688,7 +689,7 @@ def test_example_trace_is_the_jobshop_day_with_the_models_sensors(machine, rom, 
     s = jobshop_samples(machine, 1.0, 0.2)
     assert data.shape == (721, 6 + len(machine.sensors)) and data[-1, 0] == 3600.0
     np.testing.assert_allclose(data[:, 1:4], s.position_mm, atol=1e-4)
-    T, _ = rom_outputs(machine, rom, s, 300.0)  # the scenario's own reading of a trace through the structure model
+    T, _ = rom_outputs(machine, rom, s, 300.0)  # the library's reading of a trace through the structure model
     np.testing.assert_allclose(data[:, 6:], T, atol=6e-5)  # written to 4 decimals
     assert np.ptp(data[:, 6:], axis=0).max() > 0.05  # the machine warms in the first hour
     replay = list(read_replay(out, machine))
