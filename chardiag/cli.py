@@ -22,6 +22,7 @@ from hybridcomp.fem.cli_batch import WORKERS_RULE, add_scheduler_arguments, chec
 from hybridcomp.fem.cli_simulate import SCHEME_HELP, add_scheme_arguments, chosen_scheme
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
+from hybridcomp.models.pose import parse_pairs, parse_pose
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, check_output_path, write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -31,10 +32,6 @@ DEFAULT_DB = "hybridcomp-cds.sqlite"
 READ_ONLY_DB_ACTIONS = ("list", "show", "search", "export")
 
 
-def _pose(text):
-    from hybridcomp.models.pose import parse_pose
-
-    return parse_pose(text)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -140,10 +137,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     q.add_argument("--force", action="store_true", help=FORCE_HELP)
 
 
-def _pairs(text: str, what: str) -> dict[str, float]:
-    from hybridcomp.models.pose import parse_pairs
-
-    return parse_pairs(text, what)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -172,7 +165,10 @@ def _unused_rules(args) -> list:
     """(option, has no effect, why) of each subcommand's options that work only together with another."""
     c = args.cd_command
     if c == "train-data":
-        return [("workers", args.scheduler not in ("process", "local"), WORKERS_RULE)]
+        heated = not {i.strip() for i in args.cases.split(",")}.isdisjoint({"basic", "simultaneous"})
+        why = "applies to the basic and simultaneous load cases only (the job-shop day and files have their own times)"
+        return [("workers", args.scheduler not in ("process", "local"), WORKERS_RULE),
+                ("heat_hours", not heated, why), ("cool_hours", not heated, why)]
     if c == "fit":
         return [("activate", args.db is None, "needs --db (the database to activate the CDs in)")]
     if c == "eval":
@@ -194,7 +190,7 @@ def _train_data(args) -> int:
     from hybridcomp.models.loader import load_machine
 
     machine = load_machine(args.machine)
-    pose = machine.check_pose(_pose(args.pose))
+    pose = machine.check_pose(parse_pose(args.pose))
     if args.dt is not None and not args.dt > 0:
         raise ValueError(f"--dt must be positive, got {args.dt}")
     if args.theta is not None and not 0.5 <= args.theta <= 1.0:
@@ -229,7 +225,7 @@ def _fit(args) -> int:
     from hybridcomp.models.loader import load_machine
 
     machine = load_machine(args.machine)
-    pose = machine.check_pose(_pose(args.pose))
+    pose = machine.check_pose(parse_pose(args.pose))
     data = read_training_csv(args.data)
     if args.cases:
         data = data.subset([c.strip() for c in args.cases.split(",") if c.strip()])
@@ -339,7 +335,7 @@ def _eval(args) -> int:
         cd_files = [args.cds / f"cd_{d}.xml" for d in cd_map] if args.cds.is_dir() else [args.cds]
         check_output_path(args.out, inputs=[*cd_files, args.data, machine.source], force=args.force)
     if args.point is not None:
-        values = _pairs(args.point, "--point")
+        values = parse_pairs(args.point, "--point")
         if args.cnc:
             if not isinstance(cds, CDSet):
                 raise ValueError("--cnc needs a directory with all three CDs (cd_X.xml, cd_Y.xml, cd_Z.xml)")
@@ -433,7 +429,7 @@ def _db(args) -> int:
             print("  fit: " + ", ".join(f"{k} {v:.4g}" for k, v in st.items()))
             print("  T_reference: " + ", ".join(f"{k} {v:.2f} °C" for k, v in cd.t_reference_degC))
         elif c == "search":
-            temps = _pairs(args.temperatures, "--temperatures")
+            temps = parse_pairs(args.temperatures, "--temperatures")
             sig = np.array([float(v) for v in args.signature.split(",")]) if args.signature else None
             found = db.search(args.machine_name, args.pose_key, sig, temps, args.threshold_K)
             if not found:
@@ -442,7 +438,7 @@ def _db(args) -> int:
             for m in found:
                 print(f"{m.load_case:<40} ids {m.ids}  ΔT {m.delta_T_K:.3f} K  distance {m.distance:.4f}")
         elif c == "activate":
-            ids = {k: int(v) for k, v in _pairs(args.ids, "ids").items()}
+            ids = {k: int(v) for k, v in parse_pairs(args.ids, "ids").items()}
             cd = db.get(ids.get("X", next(iter(ids.values()))))
             db.activate(cd.machine, cd.pose_key, ids, reason=args.reason)
             print(f"active for {cd.machine} {cd.pose_key}: {ids}")

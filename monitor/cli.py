@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 from hybridcomp.models import jsonio
+from hybridcomp.safeio import FORCE_HELP
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse._SubParsersAction:
                        "speed = 0; speed = 1 is real time), with the structure model vmc800.rom.npz and the CD "
                        "database cds.sqlite beside it.")
     e.add_argument("--out", type=Path, default=None, help="file to write (default: print)")
-    e.add_argument("--force", action="store_true", help="overwrite existing output files")
+    e.add_argument("--force", action="store_true", help=FORCE_HELP)
     t = sub.add_parser("example-trace", help="write the example replay trace: the job-shop day with sensor columns",
                        description="Write a trace CSV for a replay source: the bundled 16 h job-shop day sampled at "
                        "--rate-hz (time_s, axis positions, spindle_rpm, the workshop air Tamb_degC) plus, for every "
@@ -69,7 +70,7 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse._SubParsersAction:
                    "at most 16 [h] (default 16)")
     t.add_argument("--rate-hz", type=float, default=1.0, help="sampling rate of the trace [Hz] (default 1)")
     t.add_argument("--out", type=Path, required=True, help="trace CSV to write")
-    t.add_argument("--force", action="store_true", help="overwrite existing output files")
+    t.add_argument("--force", action="store_true", help=FORCE_HELP)
     return sub
 
 
