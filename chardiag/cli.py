@@ -191,10 +191,6 @@ def _train_data(args) -> int:
 
     machine = load_machine(args.machine)
     pose = machine.check_pose(parse_pose(args.pose))
-    if args.dt is not None and not args.dt > 0:
-        raise ValueError(f"--dt must be positive, got {args.dt}")
-    if args.theta is not None and not 0.5 <= args.theta <= 1.0:
-        raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
     scheme, theta = chosen_scheme(args)
     check_scheduler(args.scheduler, args.workers)
     items = [c.strip() for c in args.cases.split(",") if c.strip()]

@@ -96,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         check_scheduler(executor, args.workers)
+        scheme, theta = chosen_scheme(args)
         machine = load_machine(args.machine)
         pose = machine.check_pose(parse_pose(args.pose))
         cases = read_loads_dir(args.loads_dir, machine)
@@ -107,7 +108,6 @@ def run(args: argparse.Namespace) -> int:
                 logging.getLogger("distributed").setLevel(logging.WARNING)
         if not args.no_progress:
             print(f"{len(cases)} load cases of {machine.name} at {pose} on {executor} ...", file=sys.stderr)
-        scheme, theta = chosen_scheme(args)
         results = run_batch(machine, cases, pose_mm=pose, element_size_mm=args.element_size_mm, scheme=scheme,
                             theta=theta,
                             initial=args.initial, dt_s=args.dt, executor=executor, workers=args.workers,

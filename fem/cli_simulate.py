@@ -44,7 +44,14 @@ def add_scheme_arguments(p: argparse.ArgumentParser, dt_help: str) -> None:
 
 
 def chosen_scheme(args: argparse.Namespace) -> tuple[str, float | None]:
-    """The time scheme and θ that ``--dt`` and ``--theta`` choose: TR-BDF2 without either, else the θ-method."""
+    """The time scheme and θ that ``--dt`` and ``--theta`` choose: TR-BDF2 without either, else the θ-method.
+
+    Raises ``ValueError`` naming the option for a ``--dt`` that is not positive or a ``--theta`` outside [0.5, 1].
+    """
+    if args.dt is not None and not args.dt > 0:
+        raise ValueError(f"--dt must be positive, got {args.dt}")
+    if args.theta is not None and not 0.5 <= args.theta <= 1.0:
+        raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
     if args.dt is None and args.theta is None:
         return "trbdf2", None
     return "theta", DEFAULT_THETA if args.theta is None else float(args.theta)
@@ -145,16 +152,13 @@ def run(args: argparse.Namespace, reduced=None) -> int:
         machine = load_machine(args.machine)
         pose = machine.check_pose(parse_pose(args.pose))
         loads = read_loads(args.loads, machine)
+        chosen_scheme(args)  # --dt and --theta checked before any work
         if args.dt is not None:
-            if not args.dt > 0:
-                raise ValueError(f"--dt must be positive, got {args.dt}")
             loads = loads.resample(args.dt)
         if len(loads.time_s) < 2:
             raise LoadsFileError(f"{args.loads}: needs at least two rows (a start and an end time)")
         if args.element_size_mm is not None and not args.element_size_mm > 0:
             raise ValueError(f"--element-size-mm must be positive, got {args.element_size_mm}")
-        if args.theta is not None and not 0.5 <= args.theta <= 1.0:
-            raise ValueError(f"--theta must be in [0.5, 1], got {args.theta}")
         tolerance = time_tolerance(args)
         check_output_dir(args.out, output_files(args, len(loads.time_s)),
                          inputs=(args.loads, machine.source, getattr(args, "rom", None)), force=args.force)

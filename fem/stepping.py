@@ -99,6 +99,20 @@ def _times_and_inputs(time_s, inputs, n_inputs: int) -> tuple[np.ndarray, np.nda
     return t, U
 
 
+def _model_inputs(model: ThermoElasticModel, inputs) -> np.ndarray:
+    """``inputs`` as a float array (nt × inputs of ``model``), or ``ValueError`` naming the expected columns."""
+    U = np.asarray(inputs, float)
+    if U.ndim != 2 or U.shape[1] != len(model.input_names):
+        raise ValueError(f"inputs must have {len(model.input_names)} columns ({model.input_names}), got shape {U.shape}")
+    return U
+
+
+def _check_theta(theta: float) -> None:
+    """``ValueError`` unless θ is in [0.5, 1], where the θ-method is unconditionally stable."""
+    if not 0.5 <= theta <= 1.0:
+        raise ValueError(f"theta must be in [0.5, 1] for an unconditionally stable scheme, got {theta}")
+
+
 def integrate_theta(
     M,
     A,
@@ -129,8 +143,7 @@ def integrate_theta(
     per output an (nt × r) array, the stored states, and timings [s]
     """
     t, U = _times_and_inputs(time_s, inputs, Bu.shape[1])
-    if not 0.5 <= theta <= 1.0:
-        raise ValueError(f"theta must be in [0.5, 1] for an unconditionally stable scheme, got {theta}")
+    _check_theta(theta)
     n = M.shape[0]
     # No dense BLAS call inside the loop: numpy's OpenBLAS threads spin after each call and starve
     # the sparse solver's own BLAS threads (measured 8x slower steps on 2 cores).  Sparse products
@@ -408,9 +421,7 @@ def integrate_controlled(
     store_steps : indices of loads times whose full field is kept
     max_substeps : largest number of sub-steps per loads interval
     """
-    U = np.asarray(inputs, float)
-    if U.ndim != 2 or U.shape[1] != len(model.input_names):
-        raise ValueError(f"inputs must have {len(model.input_names)} columns ({model.input_names}), got shape {U.shape}")
+    U = _model_inputs(model, inputs)
     if not (isinstance(max_substeps, (int, np.integer)) and max_substeps >= 2):
         raise ValueError(f"max_substeps must be an integer of at least 2, got {max_substeps!r}")
     x0 = initial_state(initial, model.n, lambda: steady_state(model, U[0]))
@@ -475,8 +486,7 @@ def check_scheme(scheme: str, theta: float | None = None, tolerance: TimeToleran
         raise ValueError("a time tolerance applies to scheme='trbdf2' (the θ-method at the loads' times has no error "
                          "control)")
     theta = DEFAULT_THETA if theta is None else float(theta)
-    if not 0.5 <= theta <= 1.0:
-        raise ValueError(f"theta must be in [0.5, 1] for an unconditionally stable scheme, got {theta}")
+    _check_theta(theta)
     return theta
 
 
@@ -513,9 +523,7 @@ def integrate_inputs(
         result, estimate = integrate_controlled(model, time_s, inputs, DEFAULT_TOLERANCE if tolerance is None else
                                                 tolerance, initial=initial, store_steps=store_steps, progress=progress)
         return dataclasses.replace(result, time_error=estimate.as_dict())
-    U = np.asarray(inputs, float)
-    if U.ndim != 2 or U.shape[1] != len(model.input_names):
-        raise ValueError(f"inputs must have {len(model.input_names)} columns ({model.input_names}), got shape {U.shape}")
+    U = _model_inputs(model, inputs)
     x0 = initial_state(initial, model.n, lambda: steady_state(model, U[0]))
     (sens, drift), fields, timings = integrate_theta(
         model.M,

@@ -146,3 +146,18 @@ def test_simulate_with_a_rom_refuses_an_fe_stepping_option_even_at_its_default_v
     err = capsys.readouterr().err
     assert rc == 2 and f"{option[0]} applies to the FE path only" in err, err
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("command", [["batch", "run", "{d}"], ["cd", "train-data"], ["simulate", "--loads", "{d}/l.csv"]])
+@pytest.mark.parametrize("option, message", [(["--theta", "3"], "--theta must be in [0.5, 1], got 3.0"),
+                                             (["--dt", "-60"], "--dt must be positive, got -60.0")])
+def test_every_fe_command_refuses_a_bad_dt_or_theta_by_its_option_before_any_work(tmp_path, capsys, command,
+                                                                                   option, message):
+    from hybridcomp.models.loads import example_loads, write_loads
+
+    write_loads(tmp_path / "l.csv", example_loads(load_machine("vmc800"), duration_h=1.0, dt_s=600.0))
+    out = tmp_path / "out"
+    rc = main([c.replace("{d}", str(tmp_path)) for c in command] + [*option, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err, err
+    assert not out.exists()
