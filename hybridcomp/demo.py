@@ -346,11 +346,16 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
               "| strategy (nominal models) | RMS [µm] | P2P [µm] | " + " | ".join(f"E_P95 {w} [µm]" for w in windows)
               + " |", "|---|---|---|" + "---|" * len(windows)]
     lines += [_fmt_row(k, v) for k, v in along["residual_3d"].items()]
-    lines += ["", "Every strategy but the last compensates at one pose; *ROM direct along the path* is the pose-aware "
-              "structure model (a reduced model per support pose, the screws' thermal models) at the path's "
-              "position. The true drift's pose-dependent part comes from that same pose-aware model driven by the "
-              "real machine's loads (benchmarks/pose_drift.py checks it against FE models built at the pose), so "
-              "this table measures what ignoring the pose costs; volumetric CDs are the next step.", ""]
+    lines += ["", "*hybrid monitor* and *observer* are the daemons of the rows above, compensating where the tool "
+              "is: besides the model pose's structure model and its observer they run the pose-aware structure model "
+              "(a reduced model per support pose, the screws' thermal models) and write, every 5 s, a table of the "
+              "drift at the support points of a 3 × 3 × 3 grid over the workspace and of each drive's error over its "
+              "axis (the offsets at the model's pose carried to every pose); the control interpolates it at the "
+              "commanded position. Their probing cycles touch a star of poses, from which they learn each drive's "
+              "gain. *… at one pose* is the same run's one-pose offsets, *ROM direct along the path* the pose-aware "
+              "model used directly. The true drift at the path's position is the real machine's FE drift at the "
+              "model's pose plus what the pose adds on the real machine, from the real machine's own pose-aware "
+              "model (its machine file with the planted effect).", ""]
     for label, res in (("nominal models", nominal), ("extended machine file", after)):
         if res.files.get("plot"):
             rel = Path(res.files["plot"]).relative_to(out)

@@ -65,6 +65,9 @@ class Disturbance:
     ambient_swing_K : every zone's air swings by ± this around what the trace says [K] ...
     swing_period_h : ... with this period [h]
     sensor_fault : (sensor, from [h], kind): ``"stuck"`` (the reading freezes) or ``"open"`` (it reads NaN)
+    drive_edits : (axis, field, value) edits of the real machine's ``[[drives]]`` tables (a nut that puts more heat
+        into its screw, a scale of another expansion coefficient): position-dependent errors that the drift at the
+        model's pose hardly shows
     """
 
     name: str
@@ -75,9 +78,10 @@ class Disturbance:
     ambient_swing_K: float = 0.0
     swing_period_h: float = 6.0
     sensor_fault: tuple[str, float, str] | None = None
+    drive_edits: tuple[tuple[str, str, float], ...] = ()
 
     def machine_edits(self) -> bool:
-        return self.source_factor is not None or self.added_source is not None
+        return self.source_factor is not None or self.added_source is not None or bool(self.drive_edits)
 
 
 NOMINAL = Disturbance("nominal", "the real machine is the model")
@@ -100,12 +104,18 @@ DISTURBANCES = {
                     source_factor=("spindle_bearing_front", 1.6), sensor_fault=("T1", 8.0, "stuck")),
         Disturbance("workspace air", "the workspace air behind the enclosure runs 2 K warmer than the workshop "
                     "air the trace measures", workspace_air_K=2.0),
+        Disturbance("nut heat", "the X and Y nuts, preloaded harder than the machine file says, put 2.5 x the heat "
+                    "into their screws", drive_edits=(("X", "nut_screw_W", 37.5), ("Y", "nut_screw_W", 37.5))),
+        Disturbance("scale expansion", "the Z scale is a steel scale (11.5e-6 1/K), not the glass scale of the machine "
+                    "file (8e-6 1/K)", drive_edits=(("Z", "scale_expansion_1_K", 11.5e-6),)),
     )
 }
+#: the disturbances whose effect depends on the pose: judged along the path only (at the model's pose they are small)
+POSITION_DEPENDENT = ("nut heat", "scale expansion")
 
 
 def real_machine_file(machine, disturbance: Disturbance, path: Path) -> Path:
-    """Write the real machine's file: the machine file with the disturbance's source edits."""
+    """Write the real machine's file: the machine file with the disturbance's source and drive edits."""
     from hybridcomp.models.toml import dumps_toml, read_toml
 
     data, _ = read_toml(machine.source)
@@ -123,6 +133,13 @@ def real_machine_file(machine, disturbance: Disturbance, path: Path) -> Path:
     if disturbance.added_source is not None:
         data.setdefault("heat_sources", []).append(dict(disturbance.added_source))
         notes.append(f"an added source {disturbance.added_source['name']!r}")
+    drives = {d["axis"]: d for d in data.get("drives", [])}
+    for axis, name, value in disturbance.drive_edits:
+        if axis not in drives:
+            raise ValueError(f"disturbance {disturbance.name!r}: machine {machine.name!r} has no drive of axis {axis!r} "
+                             f"(drives: {', '.join(drives) or 'none'})")
+        drives[axis][name] = value
+        notes.append(f"drive {axis} {name} = {value:g}")
     data["machine"]["name"] = f"{machine.name}_real"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(f"# the real machine of the scenario: {machine.name} with {', '.join(notes) or 'no change'}\n\n"
@@ -183,6 +200,7 @@ class Models:
     database: Path
     timings_s: dict
     pose_rom: object | None = None
+    pose_rom_path: Path | None = None
 
 
 def build_models(out_dir, machine_name: str = "vmc800", element_size_mm: float = 80.0, rom_order: int | None = None,
@@ -215,6 +233,7 @@ def build_models(out_dir, machine_name: str = "vmc800", element_size_mm: float =
         if not keep_basis:
             rom = dataclasses.replace(rom, V=None, _cache={})
     rom_path = save_rom(out / "structure.rom.npz", rom)
+    pose_rom_path = save_rom(out / "structure_poses.rom.npz", pose_rom) if pose_rom is not None else None
     timings["reduction_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     cases = standard_load_cases(machine, ("basic",), heat_h=basic_hours, cool_h=basic_hours)
@@ -230,7 +249,7 @@ def build_models(out_dir, machine_name: str = "vmc800", element_size_mm: float =
         db.activate(machine.name, pose_key(pose), db.add_set(default, "basic"), "default CDs of the basic load cases", 0.0)
     finally:
         db.close()
-    return Models(machine, pose, model, rom, rom_path, default, train, database, timings, pose_rom)
+    return Models(machine, pose, model, rom, rom_path, default, train, database, timings, pose_rom, pose_rom_path)
 
 
 @dataclass(frozen=True)
@@ -387,15 +406,20 @@ def run_scenario(scenario: Scenario, out_dir, models: Models | None = None) -> S
     models, real_machine = _models_and_real_machine(scenario, out, models)
     timings = dict(models.timings_s)
     day = _real_machine_day(scenario, out, models, real_machine, timings)
-    measured = _measure(scenario, out, models.machine, day)
-    runs = _replay_strategies(scenario, out, models, measured.trace, day.t, timings)
+    path = None
+    if scenario.along_path:
+        t0 = time.perf_counter()
+        path = _path_truth(models, real_machine, day)
+        timings["real_pose_model_s"] = time.perf_counter() - t0
+    measured = _measure(scenario, out, models.machine, day, path)
+    runs = _replay_strategies(scenario, out, models, measured.trace, day.t, timings, volumetric=scenario.along_path)
     preds = _predictions(models, measured, day, runs)
     metrics = _metrics(day, preds, runs)
     table = metrics_table(metrics)
     path_summary = None
     if scenario.along_path:
         t0 = time.perf_counter()
-        path_summary = _along_path(out, models, day.controller, day.t, day.loads, day.real_loads, day.truth, preds)
+        path_summary = _along_path(out, models, day, preds, runs, path)
         timings["along_path_s"] = time.perf_counter() - t0
     files, all_events = _write_results(scenario, out, day, preds, runs, table)
     summary = _summary(scenario, models, real_machine, day, metrics, runs, timings, t_all, path_summary)
@@ -431,6 +455,7 @@ class _Day:
     res: object
     t: np.ndarray
     truth: np.ndarray
+    real_model: object = None
 
 
 def _real_machine_day(scenario: Scenario, out: Path, models: Models, real_machine, timings: dict) -> _Day:
@@ -464,7 +489,7 @@ def _real_machine_day(scenario: Scenario, out: Path, models: Models, real_machin
     truth = np.column_stack([np.interp(t, res.time_s, res.drift_um[:, j]) for j in range(3)])
     timings["real_machine_s"] = time.perf_counter() - t0
     log.info("real machine: %d nodes, %d steps, |drift| up to %.1f µm", real_model.n, res.time_s.size, np.abs(truth).max())
-    return _Day(controller, loads, real_loads, res, t, truth)
+    return _Day(controller, loads, real_loads, res, t, truth, real_model)
 
 
 @dataclass(frozen=True)
@@ -477,8 +502,12 @@ class _Measured:
     sensor_names: list
 
 
-def _measure(scenario: Scenario, out: Path, machine, day: _Day) -> _Measured:
-    """What the controller measures (sensors with noise and the fault, probes) and a measuring campaign records."""
+def _measure(scenario: Scenario, out: Path, machine, day: _Day, path: PathTruth | None = None) -> _Measured:
+    """What the controller measures (sensors with noise and the fault, probes) and a measuring campaign records.
+
+    With ``path`` (along the path) every probe cycle touches the support poses of a star over the workspace
+    (:func:`probe_poses`), one a sample, and measures the real machine's drift there.
+    """
     s = scenario
     sensor_names = [x.name for x in machine.sensors]
     trace = out / "jobshop_monitor_trace.csv"
@@ -486,22 +515,29 @@ def _measure(scenario: Scenario, out: Path, machine, day: _Day) -> _Measured:
                                                                          day.res.drift_um),
                             sensor_names=sensor_names, noise_K=s.sensor_noise_K, rng=np.random.default_rng(s.seed),
                             fault=s.disturbance.sensor_fault, probe_every_h=s.probe_every_h,
-                            probe_noise_um=s.probe_noise_um)
+                            probe_noise_um=s.probe_noise_um,
+                            probe_cycle=None if path is None else (probe_poses(machine, path.pose_mm), path.at,
+                                                                   [position_column(a.name) for a in machine.axes]))
     recorded = out / "recorded.csv"
     _write_recorded(trace, recorded, day.res, sensor_names)
     return _Measured(trace, recorded, measured, sensor_names)
 
 
 def _replay_strategies(scenario: Scenario, out: Path, models: Models, trace: Path, t: np.ndarray,
-                       timings: dict) -> dict:
+                       timings: dict, volumetric: bool = False) -> dict:
     """The daemon on the replay, once per strategy, each with its own copy of the database.
 
-    Returns each strategy's run (:func:`_replay`) with its offsets [µm] at the times ``t`` [s] (``"at_t"``);
-    adds ``<strategy>_s`` to ``timings``.
+    Returns each strategy's run (:func:`_replay`) with its offsets [µm] at the model's pose at the times ``t`` [s]
+    (``"at_t"``); adds ``<strategy>_s`` to ``timings``. ``volumetric``: the daemon runs the pose-aware structure
+    model and writes a support-point table every cycle (the run's ``"tables"``).
     """
     from hybridcomp.chardiag.cd import pose_key
 
-    machine, pose, rom = models.machine, models.pose_mm, models.rom
+    machine, pose, rom, rom_path = models.machine, models.pose_mm, models.rom, models.rom_path
+    if volumetric and models.pose_rom is not None:
+        if models.pose_rom_path is None:
+            raise ValueError("the pose-aware structure model has no file (build_models(..., poses=True) writes one)")
+        rom, rom_path = models.pose_rom, models.pose_rom_path
     pkey = pose_key(pose)
     runs = {}
     for strategy in scenario.strategies:
@@ -509,7 +545,7 @@ def _replay_strategies(scenario: Scenario, out: Path, models: Models, trace: Pat
         db_path = out / f"cd_{strategy}.db"
         _fresh_db(db_path)
         shutil.copyfile(models.database, db_path)
-        runs[strategy] = _replay(strategy, str(machine.source), db_path, models.rom_path, trace, pose, pkey, machine,
+        runs[strategy] = _replay(strategy, str(machine.source), db_path, rom_path, trace, pose, pkey, machine,
                                  rom, scenario.element_size_mm, scenario.monitor_overrides)
         timings[f"{strategy}_s"] = time.perf_counter() - t0
         tt, off = runs[strategy]["time_s"], runs[strategy]["offsets_um"]
@@ -613,39 +649,127 @@ def trace_positions(machine, trace: Path, t: np.ndarray) -> np.ndarray:
     return P[k]
 
 
-def _along_path(out: Path, models: Models, controller: Path, t, loads, real_loads, truth, preds) -> dict:
-    """Judge the strategies at the trace's commanded positions (``Scenario(along_path=True)``).
+@dataclass(frozen=True)
+class PathTruth:
+    """The real machine's drift at any pose over the day (``Scenario(along_path=True)``).
 
-    The true drift along the path is the real machine's at the model's pose plus what the pose adds: the pose-aware
-    structure model driven by the real machine's loads (its disturbance's heat and air, for the inputs the models
-    know) gives the drift at the path's pose, the drives' errors included, less its drift at the model's pose.
-    Every single-pose strategy compensates at the model's pose; ``ROM direct along the path`` is the pose-aware
-    model on the models' loads at the path's pose.
+    The real machine's FE drift at the model's pose plus what the pose adds on the real machine: the real
+    machine's OWN pose-aware structure model (its machine file, disturbance and all, reduced at the support
+    poses like the models' one; the models' own when the real machine is the model) driven by the real machine's
+    loads, at the pose less at the model's pose.  ``positions`` and ``added`` are at the day's times ``t``.
+    """
+
+    pose_mm: dict
+    t: np.ndarray
+    truth: np.ndarray
+    rom: object
+    Y: np.ndarray
+    positions: np.ndarray
+    added: np.ndarray
+    own: bool
+
+    def at(self, t_s: float, positions_mm: np.ndarray) -> np.ndarray:
+        """The real machine's drift [µm] (m × 3) at the time ``t_s`` at the poses ``positions_mm`` (m × axes)."""
+        from hybridcomp.rom.poses import drift_along
+
+        P = np.atleast_2d(np.asarray(positions_mm, float))
+        y = np.array([np.interp(t_s, self.t, self.Y[:, j]) for j in range(self.Y.shape[1])])[None, :]
+        at_pose = np.array([np.interp(t_s, self.t, self.truth[:, j]) for j in range(3)])
+        Yr = np.repeat(y, P.shape[0], axis=0)
+        return at_pose + drift_along(self.rom, Yr, P) - _tcp_um(self.rom, Yr)
+
+
+def _path_truth(models: Models, real_machine, day: _Day) -> PathTruth:
+    """The real machine's drift along the day's path and at any pose (:class:`PathTruth`)."""
+    from hybridcomp.rom.poses import drift_along
+
+    prom, machine, t = models.pose_rom, models.machine, day.t
+    positions = trace_positions(machine, day.controller, t)
+    own = real_machine.sha256 != machine.sha256
+    real_prom = real_pose_model(day.real_model, models.rom.order) if own else prom
+    values = np.column_stack([np.interp(t, day.real_loads.time_s, day.real_loads.values[:, j])
+                              for j in range(len(day.real_loads.names))])
+    Y_real, _ = real_prom.integrate(t, real_prom.layout().inputs(list(day.real_loads.names), values, "real machine"))
+    added = drift_along(real_prom, Y_real, positions) - _tcp_um(real_prom, Y_real)
+    log.info("real machine along the path: its %s pose-aware model, position-dependent part up to %.1f µm",
+             "own" if own else "models'", np.abs(added).max())
+    return PathTruth(dict(models.pose_mm), t, day.truth, real_prom, Y_real, positions, added, own)
+
+
+def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, path: PathTruth) -> dict:
+    """Judge the strategies at the trace's commanded positions against the real machine's drift there.
+
+    (:class:`PathTruth`.) A daemon run that wrote support-point tables (a pose-aware structure model) is judged by
+    its tables evaluated at the commanded position of every time (what the control interpolates), beside its
+    offsets at the model's pose (``<strategy> at one pose``); ``ROM direct along the path`` is the models'
+    pose-aware model on the models' loads at the path's pose.
     """
     from hybridcomp.rom.poses import drift_along
 
-    prom = models.pose_rom
-    machine = models.machine
-    positions = trace_positions(machine, controller, t)
-    layout = prom.layout()
-    known = [j for j, n in enumerate(real_loads.names) if n in layout.columns]
-    values = np.column_stack([np.interp(t, real_loads.time_s, real_loads.values[:, j]) for j in known])
-    Y_real, _ = prom.integrate(t, layout.inputs([real_loads.names[j] for j in known], values, "real machine"))
-    ns = len(layout.sensors)
-    added = drift_along(prom, Y_real, positions) - Y_real[:, ns:ns + 3] * 1e6
-    truth_path = truth + added
-    Y, _ = prom.integrate(t, layout.inputs(loads.names, loads.values, "loads"))
-    path_preds = {k: p for k, p in preds.items() if k != BOUND} | {PATH_STRATEGY: drift_along(prom, Y, positions)}
+    prom, machine, t, positions = models.pose_rom, models.machine, day.t, path.positions
+    truth_path = day.truth + path.added
+    Y, _ = prom.integrate(t, prom.layout().inputs(day.loads.names, day.loads.values, "loads"))
+    path_preds = {}
+    for k, p in preds.items():
+        if k == BOUND:
+            continue
+        strategy = next((s for s, name in NAMES.items() if name == k), None)
+        tables = runs.get(strategy, {}).get("tables") if strategy else None
+        if tables:
+            path_preds[f"{k} at one pose"] = p
+            path_preds[k] = tables_along(tables, t, positions)
+        else:
+            path_preds[k] = p
+    path_preds[PATH_STRATEGY] = drift_along(prom, Y, positions)
     m = {k: drift_metrics(t, truth_path - p) for k, p in path_preds.items()}
+    for strategy, r in runs.items():
+        if r.get("tables"):
+            m[NAMES[strategy]]["largest_step_um"] = r["table_largest_step_um"]
     (out / "table_along_path.md").write_text(metrics_table(m) + "\n")
     return {
         "rms_3d_um": {k: v["3d"]["rms_um"] for k, v in m.items()},
         "p2p_3d_um": {k: v["3d"]["p2p_um"] for k, v in m.items()},
-        "position_dependent_um": {d: float(np.ptp(added[:, j])) for j, d in enumerate(DIRS)},
+        "position_dependent_um": {d: float(np.ptp(path.added[:, j])) for j, d in enumerate(DIRS)},
         "positions_mm": {a.name: [float(positions[:, i].min()), float(positions[:, i].max())]
                          for i, a in enumerate(machine.axes)},
+        "truth": "the real machine's own pose-aware model" if path.own else "the models' pose-aware model (the "
+                 "real machine is the model)",
+        "largest_table_step_um": {NAMES[s]: r["table_largest_step_um"] for s, r in runs.items() if r.get("tables")},
         "metrics": m,
     }
+
+
+def _tcp_um(rom, Y: np.ndarray) -> np.ndarray:
+    """The TCP drift outputs [µm] (nt × 3) of a reduced model's outputs ``Y``."""
+    from hybridcomp.models.layout import DRIFT_OUTPUTS
+
+    return Y[:, [list(rom.output_names).index(n) for n in DRIFT_OUTPUTS]] * 1e6
+
+
+def real_pose_model(real_model, order: int | None = None):
+    """The real machine's own pose-aware structure model: its FE model reduced, then at the support poses."""
+    from hybridcomp.rom.machine import reduce_model
+    from hybridcomp.rom.poses import reduce_at_poses
+
+    rom = reduce_model(real_model, order=order, keep_basis=True)
+    return reduce_at_poses(real_model, rom, "star")
+
+
+def tables_along(tables: list, t: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """The drift [µm] a control applies at the times ``t`` (the tables as the daemon wrote them).
+
+    The last table written at or before each time, interpolated at that time's commanded position (nt × axes)
+    [mm]; zero before the first table.
+    """
+    from hybridcomp.rom.volumetric import interpolate
+
+    times = np.array([tb.time_s for tb in tables])
+    k = np.searchsorted(times, t, side="right") - 1
+    out = np.zeros((t.size, 3))
+    for j in np.unique(k[k >= 0]):
+        rows = k == j
+        out[rows] = interpolate(tables[j], positions[rows])
+    return out
 
 
 def _fresh_db(path: Path) -> None:
@@ -686,11 +810,23 @@ def _replay(strategy, machine_name, db_path, rom_path, trace, pose, pkey, machin
                                    or (e.kind == "decision" and e.payload["action"] != "keep"))]
     finally:
         db.close()
-    off = np.array([[r.dx_um, r.dy_um, r.dz_um] for r in sink.rows])
+    # the offsets at the model's pose (a pose-aware run writes them at the commanded position, and its tables)
+    off = np.array([r.pose_um if r.pose_um is not None else (r.dx_um, r.dy_um, r.dz_um) for r in sink.rows], float)
+    tables = [r.table for r in sink.rows if r.table is not None]
     return {"time_s": np.array([r.time_s for r in sink.rows]), "offsets_um": off, "events": ev,
             "activations": sum(1 for e in ev if e["kind"] == "activation"),
             "generations": sum(1 for e in ev if e["kind"] == "generation" and e.get("status") == "finished"),
-            "largest_step_um": largest_step_um(off)}
+            "largest_step_um": largest_step_um(off), "tables": tables,
+            "table_largest_step_um": table_largest_step_um(tables) if tables else None}
+
+
+def table_largest_step_um(tables: list) -> float:
+    """The largest change of any entry of the support-point tables from one cycle to the next [µm]."""
+    def entries(tb) -> np.ndarray:  # the structure at the grid points, each drive's error over its axis
+        return np.concatenate([np.ravel(tb.structure_um)] + [np.ravel(f[2]) for f in tb.feedback_um])
+
+    E = np.array([entries(tb) for tb in tables])
+    return float(np.abs(np.diff(E, axis=0)).max()) if len(E) > 1 else 0.0
 
 
 def _event_brief(e) -> dict:
@@ -707,11 +843,14 @@ def _event_brief(e) -> dict:
 
 
 def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, fe=None, sensor_names=(),
-                 noise_K: float = 0.0, rng=None, fault=None, probe_every_h=None, probe_noise_um: float = 0.3) -> dict:
+                 noise_K: float = 0.0, rng=None, fault=None, probe_every_h=None, probe_noise_um: float = 0.3,
+                 probe_cycle=None) -> dict:
     """Every sample of ``src`` on the ``rate_hz`` grid up to ``t_end`` [s], with what the real machine measures.
 
     With ``fe`` = (times, sensors, drift) of the real machine: the sensors it measures (noise, fault) and, every
-    ``probe_every_h``, a probed drift.
+    ``probe_every_h``, a probed drift: at the model's pose, or with ``probe_cycle`` = (poses (m × axes) [mm],
+    truth(t, positions) → drift [µm], the position columns) at each of those poses on ``m`` consecutive samples,
+    the samples' commanded positions set to them (the probing cycle moves the axes).
 
     Returns the measured sensors at the samples and their low-pass (the daemon's filter), per sample time.
     """
@@ -746,7 +885,16 @@ def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, 
     if probe_every_h:
         D = np.column_stack([np.interp(times, t_fe, D_fe[:, j]) for j in range(3)])
         for k in np.unique(np.searchsorted(times, np.arange(times[0], times[-1], probe_every_h * 3600.0))):
-            P[k] = D[k] + rng.normal(0.0, probe_noise_um, 3)
+            if probe_cycle is None:
+                P[k] = D[k] + rng.normal(0.0, probe_noise_um, 3)
+                continue
+            poses, truth, columns = probe_cycle
+            ks = np.arange(k, min(k + len(poses), len(times)))
+            for kk, pose in zip(ks, poses):
+                f = rows[kk][1]
+                for c, v in zip(columns, pose):
+                    f[header.index(c)] = f"{v:g}"
+                P[kk] = truth(times[kk], np.asarray(pose, float)[None, :])[0] + rng.normal(0.0, probe_noise_um, 3)
     names = [temperature_column(n) for n in sensor_names] + (list(PROBE_COLUMNS) if probe_every_h else [])
     with dst.open("w") as fo:
         fo.write(",".join(header + names) + "\n")
@@ -756,6 +904,22 @@ def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, 
     from hybridcomp.monitor.config import MonitorConfig
 
     return {"time_s": times, "degC": M, "filtered_degC": low_pass(times, M, MonitorConfig.sensor_filter_s)}
+
+
+def probe_poses(machine, pose_mm: dict) -> np.ndarray:
+    """The poses of a probing cycle over the workspace (m × axes) [mm], a star like the support poses'.
+
+    The model's pose, then each axis near its travel ends (5 % of the travel in) with the others at the model's pose.
+    """
+    base = np.array([float(pose_mm[a.name]) for a in machine.axes])
+    out = [base]
+    for i, a in enumerate(machine.axes):
+        lo, hi = a.travel_mm
+        for v in (lo + 0.05 * (hi - lo), hi - 0.05 * (hi - lo)):
+            p = base.copy()
+            p[i] = v
+            out.append(p)
+    return np.array(out)
 
 
 def at_times(times: np.ndarray, X: np.ndarray, t: np.ndarray) -> np.ndarray:

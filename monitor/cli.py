@@ -112,9 +112,10 @@ def _example_trace(args) -> int:
     out = check_output_path(args.out, inputs=[args.rom], force=args.force)
     machine = load_machine(args.machine)
     rom = load_rom(args.rom, machine)
-    if rom.meta.get("poses"):
-        raise ValueError(f"--rom {args.rom} is a pose-aware reduced model (reduce --poses): give the model pose's "
-                         "reduced model (reduce without --poses)")
+    if rom.meta.get("poses"):  # the sensors come from the model pose's block
+        from hybridcomp.rom.poses import model_pose_block
+
+        rom = model_pose_block(rom)
     write_example_trace(out, machine, rom, hours=args.hours, rate_hz=args.rate_hz)
     print(f"wrote {out}: {args.hours:g} h of the job-shop day at {args.rate_hz:g} Hz, sensors "
           f"{', '.join(rom.layout().sensors)} from {args.rom}")
@@ -130,10 +131,7 @@ def open_everything(cfg):
     from hybridcomp.rom import load_rom
 
     machine = load_machine(cfg.machine)
-    rom = load_rom(cfg.rom, machine)
-    if rom.meta.get("poses"):
-        raise ConfigError(f"{cfg.source_file}: monitor.rom {cfg.rom} is a pose-aware reduced model (reduce --poses); the "
-                          "daemon compensates at one pose: give it the model pose's reduced model (reduce without --poses)")
+    rom = load_rom(cfg.rom, machine)  # a pose-aware one: the daemon compensates where the tool is
     rom_pose = {k: float(v) for k, v in (rom.meta.get("pose_mm") or {}).items()}
     pose = machine.check_pose(dict(cfg.pose_mm or rom_pose))
     if rom_pose and any(abs(pose[k] - rom_pose.get(k, math.nan)) > 1e-9 for k in pose):

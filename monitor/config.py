@@ -61,12 +61,15 @@ class SinkConfig:
     path : output file (jsonl, csv)
     url : OPC UA endpoint (opcua)
     nodes : ``dx_um``/``dy_um``/``dz_um`` -> node id to write (opcua)
+    table_path : with a pose-aware structure model: the support-point table of every cycle, one JSON object a
+        line (:func:`hybridcomp.rom.volumetric.table_to_dict`), for a control that interpolates it itself
     """
 
     kind: str = "jsonl"
     path: Path | None = None
     url: str = ""
     nodes: Mapping[str, str] = field(default_factory=dict)
+    table_path: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -101,7 +104,10 @@ class MonitorConfig:
     machine : machine name or machine file
     pose_mm : pose of the CDs [mm] (default: the machine's default pose)
     database : CD database (path of an SQLite file or an SQLAlchemy URL)
-    rom : reduced structure model file (``hybridcomp reduce``)
+    rom : reduced structure model file (``hybridcomp reduce``); a pose-aware one (``hybridcomp reduce --poses``)
+        makes the daemon compensate where the tool is, writing a support-point table every cycle
+        (:mod:`hybridcomp.monitor.volumetric`); one reduced at one pose compensates at the CDs' pose
+    table_points : support points per axis of that table (over the travel; 3: ends and the model's pose)
     compensation_interval_s : compensation cycle in machine time [s]
     monitoring_interval_s : monitoring cycle in machine time [s]
     increment_s : histogram increment and step of the structure model and its observer [s] (the monitoring
@@ -138,6 +144,7 @@ class MonitorConfig:
     database: str
     rom: Path
     pose_mm: Mapping[str, float] | None = None
+    table_points: int = 3
     compensation_interval_s: float = 5.0
     monitoring_interval_s: float = 900.0
     increment_s: float = 20.0
@@ -170,13 +177,14 @@ _MONITOR_KEYS = {
 }
 _SECTIONS = {
     "monitor": _MONITOR_KEYS,
-    "compensation": {"strategy", "sensor_filter_s", "max_offset_um", "max_step_um", "blend_s", "model_transient_s"},
+    "compensation": {"strategy", "sensor_filter_s", "max_offset_um", "max_step_um", "blend_s", "model_transient_s",
+                     "table_points"},
     "validity": {f.name for f in dataclass_fields(Validity)},
     "observer": {f.name for f in dataclass_fields(ObserverSettings)},
     "sensors": {"hold_s", "frozen_s", "frozen_model_K", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
     "time": {"max_step_s", "confirm_samples"},
     "source": {"kind", "path", "speed", "start_s", "url", "nodes", "publishing_interval_ms", "stale_s"},
-    "sink": {"kind", "path", "url", "nodes"},
+    "sink": {"kind", "path", "url", "nodes", "table_path"},
     "regeneration": {"enabled", "job", "timeout_s", "element_size_mm", "history_s", "retry_after_s"},
     "reconnect": {"initial_s", "factor", "max_s", "jitter"},
 }
@@ -293,7 +301,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
 
     si = _Reader(source, "sink", data.get("sink", {}))
     sink = SinkConfig(kind=si.string("kind", "jsonl", SINK_KINDS), path=si.path("path", base), url=si.string("url", ""),
-                      nodes=si.mapping("nodes"))
+                      nodes=si.mapping("nodes"), table_path=si.path("table_path", base))
     if sink.kind in ("jsonl", "csv") and sink.path is None:
         raise ConfigError(f"{source}: sink.path is missing (the {sink.kind} file for the offsets)")
     if sink.kind == "opcua" and not (sink.url and sink.nodes):
@@ -311,6 +319,9 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         history_s=r.number("history_s", RegenerationConfig.history_s, positive=True),
         retry_after_s=r.number("retry_after_s", RegenerationConfig.retry_after_s, nonneg=True),
     )
+    points = c.number("table_points", MonitorConfig.table_points, positive=True, integer=True)
+    if points < 2:
+        raise ConfigError(f"{source}: compensation.table_points = {points} must be at least 2 (the travel's ends)")
     if ":" not in regen.job:
         raise ConfigError(f"{source}: regeneration.job {regen.job!r} must be 'module:function'")
 
@@ -330,6 +341,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         database=_database_url(m.string("database", None), base),
         rom=m.path("rom", base),
         pose_mm=pose,
+        table_points=points,
         compensation_interval_s=comp,
         monitoring_interval_s=mon,
         increment_s=inc,
@@ -369,7 +381,8 @@ EXAMPLE = """\
 [monitor]
 machine = "vmc800"                 # bundled machine name or a machine file
 database = "cds.sqlite"            # SQLite file or any SQLAlchemy URL (postgresql+psycopg://user:pw@host/db)
-rom = "vmc800.rom.npz"             # hybridcomp reduce --machine vmc800 --out vmc800.rom.npz
+rom = "vmc800.rom.npz"             # hybridcomp reduce --machine vmc800 --out vmc800.rom.npz; reduced with
+                                   # --poses star the daemon compensates where the tool is (a table every cycle)
 compensation_interval_s = 5        # machine time between compensation cycles [s]
 monitoring_interval_s = 900        # machine time between monitoring cycles [s]
 increment_s = 20                   # histogram increment = step of the structure model and its observer [s]
@@ -390,6 +403,7 @@ blend_s = 0                        # after a change of CD set, what is left of a
                                    # (0: it is taken out at max_step_um per cycle)
 model_transient_s = 57600          # hybrid: what changes faster than this comes from the corrected structure model,
                                    # the rest from the CDs (a complementary filter; 0: the CDs alone) [s]
+table_points = 3                   # with a pose-aware rom: support points per axis of the table over the travel
 
 [validity]                         # the active set's predicted compensation error decides
 keep_um = 1.5                      # keep while |CD(T) - drift| over the last interval stays below this [um]
@@ -434,6 +448,7 @@ speed = 0                          # machine seconds per wall second: 0 as fast 
 [sink]
 kind = "jsonl"                     # "jsonl", "csv", "opcua" or "none"
 path = "offsets.jsonl"
+# table_path = "tables.jsonl"      # with a pose-aware rom: the support-point table of every cycle
 
 [regeneration]
 enabled = true

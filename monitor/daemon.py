@@ -52,7 +52,7 @@ from hybridcomp.histogram.signature import SignatureLayout, signatures
 from hybridcomp.histogram.trace import Samples, TraceFileError, position_column
 from hybridcomp.models import jsonio
 from hybridcomp.models.layout import DIRECTIONS, DRIFT_COLUMNS, temperature_column
-from hybridcomp.monitor import decisions
+from hybridcomp.monitor import decisions, volumetric
 from hybridcomp.monitor.config import MonitorConfig
 from hybridcomp.monitor.decisions import Candidate, Decision, SensorState, SetError
 from hybridcomp.monitor.regeneration import FORECAST_STEP_S, RegenerationRequest
@@ -144,7 +144,9 @@ class Monitor:
     ----------
     cfg : configuration
     machine : the machine (axes, sensors, zones, heat sources)
-    rom : reduced structure model of the machine at the CDs' pose
+    rom : reduced structure model of the machine at the CDs' pose; a pose-aware one (its first block that model)
+        makes the monitor write a support-point table every cycle and the offsets at the commanded position
+        (:mod:`hybridcomp.monitor.volumetric`)
     db : CD database (``hybridcomp.chardiag.db.CDDatabase`` or anything with its methods)
     pose_key : the pose's database key
     clock : gives Unix time for freshness (default :class:`WallClock`)
@@ -162,11 +164,13 @@ class Monitor:
         self.sensor_names = tuple(s.name for s in machine.sensors)
         self.axis_names = tuple(a.name for a in machine.axes)
         self.pose_mm = dict(rom.meta.get("pose_mm") or machine.default_pose_mm())
+        # a pose-aware model: the observer keeps its model-pose block on the machine, the whole runs beside it
+        self.pose = volumetric.pose_model(rom, cfg.table_points) if rom.meta.get("poses") else None
         self.counters = Counters()
         self.sig_layout = SignatureLayout.of(machine)
         self.layout = machine.layout()
         self.t_ref = self.layout.reference_temperature_degC
-        self.observer = build_observer(rom, machine, cfg.observer)
+        self.observer = build_observer(self.pose.block if self.pose is not None else rom, machine, cfg.observer)
         self.s = self._fresh()
         # --- not persisted
         self.buffer: list[Reading] = []  # samples of the current model step
@@ -185,6 +189,12 @@ class Monitor:
         self._invalid_after: float | None = -math.inf  # last_time_s of the last invalid-stamp event
         self._snap: dict | None = None
         self.rewind: deque[StepRecord] = deque()  # the recent model steps (not persisted: a restart cannot rewind)
+        self.track: volumetric.PoseTrack | None = None  # the pose-aware model (persisted as s.pose_track)
+        self.table = None  # the support-point table written last (persisted as s.table)
+        self.raw_table = None  # ... before the drives' gains and the rate limit
+        self.gain_settings = volumetric.GainSettings(probe_sigma_um=cfg.observer.probe_sigma_um)
+        self.gains = (volumetric.initial_gains(tuple(rom.meta.get("feedback", {})), self.gain_settings)
+                      if self.pose is not None else None)  # persisted as s.gains
         self.restore()
         self.reload_active()
 
@@ -227,6 +237,13 @@ class Monitor:
             return
         self.s = s
         self._snap = s.to_dict()
+        if self.pose is not None:
+            from hybridcomp.rom.volumetric import table_from_dict
+
+            self.track = volumetric.state_in(self.pose, s.pose_track, s.step_inputs, self.cfg.increment_s)
+            self.table = table_from_dict(s.table) if s.table is not None else None
+            if s.gains is not None:
+                self.gains = volumetric.DriveGains.from_dict(s.gains)
         if s.carry is not None:
             self.buffer = [s.carry]
         if s.pending is not None:
@@ -268,7 +285,13 @@ class Monitor:
         self._check_sensors(r)
         self._filter(r.time_s)
         if r.probe_um is not None:
-            s.probe_um = [float(v) for v in r.probe_um]
+            probe = [float(v) for v in r.probe_um]
+            if self.pose is not None and self.raw_table is not None:
+                self.gains = volumetric.update_gains(self.gains, self.raw_table, r.position_mm, probe, r.time_s,
+                                                     self.gain_settings)
+                s.gains = self.gains.as_dict()
+                probe = self._probe_at_model_pose(r, probe)
+            s.probe_um, s.probe_n = _mean_probe(s.probe_um, s.probe_n, probe)
         if first:
             self._first_estimate(r.time_s)
         out = []
@@ -504,7 +527,7 @@ class Monitor:
             self.event("probe", end_s, {"measured_um": dict(zip(DRIFT_COLUMNS, s.probe_um)),
                                         "estimate_um": dict(zip(DRIFT_COLUMNS, map(float, self.observer.drift_um(s.observer))))},
                        _t(end_s))
-            s.probe_um = None
+            s.probe_um, s.probe_n = None, 0
         self._after_update(end_s, u)
         if sig is not None:
             d = self.cfg.increment_s
@@ -580,6 +603,12 @@ class Monitor:
         s.step_inputs = [float(v) for v in u]
         s.drift_um = [float(v) for v in self.observer.drift_um(s.observer)]
         s.drift_next_um = [float(v) for v in self.observer.forecast(s.observer, u[None, :], self.cfg.increment_s)[1][0]]
+        if self.pose is not None:  # the pose-aware model on the same inputs (a rewind's earlier steps leave it)
+            if self.track is None:
+                self.track = volumetric.start(self.pose, u, t, self.cfg.increment_s)
+            elif t > self.track.time_s:
+                self.track = volumetric.advance(self.pose, self.track, u, t, self.cfg.increment_s)
+            s.pose_track = volumetric.state_out(self.track)
         est = self._estimate_degC()
         for n, v in self.measured.items():
             if math.isfinite(v) and s.sensors[n].status == "ok":
@@ -601,6 +630,16 @@ class Monitor:
             keep = t - self.cfg.regeneration.history_s
             s.history = [h for h in s.history if h[0] >= keep]
             s.loads = [h for h in s.loads if h[0] >= keep]
+
+    def _probe_at_model_pose(self, r: Reading, probe: list[float]) -> list[float]:
+        """A drift probed at the reading's commanded position, taken to the model's pose for the observer.
+
+        Less what the last table adds at that position over the model's pose (the pose-aware model's position
+        part and the drives' errors there): the observer keeps the model pose's block on the machine.
+        """
+        table = volumetric.with_gains(self.raw_table, self.gains)
+        at = volumetric.position_part_um(table, r.position_mm, self.s.offsets_um)
+        return [p - a for p, a in zip(probe, at)]
 
     # ------------------------------------------------------------------ compensation
     def _model_drift_now(self, t: float) -> dict[str, float] | None:
@@ -677,8 +716,28 @@ class Monitor:
         applied, clamped, limited = decisions.limit_offsets(target, s.offsets_um, self.cfg.max_offset_um, step)
         s.offsets_um, s.written = applied, True
         ids = s.active_ids or {}
-        return Offset(r.time_s, applied["dx_um"], applied["dy_um"], applied["dz_um"],
-                      ",".join(f"{k}={ids[k]}" for k in sorted(ids)), clamped, limited, bool(outside), degraded, by)
+        active = ",".join(f"{k}={ids[k]}" for k in sorted(ids))
+        at_pose = tuple(applied[c] for c in DRIFT_COLUMNS)
+        if self.pose is not None and self.track is not None:
+            return self._compensate_at_position(r, at_pose, active, clamped, limited, bool(outside), degraded, by)
+        return Offset(r.time_s, *at_pose, active, clamped, limited, bool(outside), degraded, by)
+
+    def _compensate_at_position(self, r: Reading, at_pose: tuple, active: str, clamped: bool, limited: bool,
+                                outside: bool, degraded: str, by: str) -> Offset:
+        """The support-point table of this cycle and the offsets it gives at the reading's commanded position.
+
+        The one-pose offsets carried to every pose, each entry rate limited against the last table.
+        """
+        from hybridcomp.rom.volumetric import interpolate_one, table_to_dict
+
+        self.raw_table = volumetric.table_now(self.pose, self.track, r.time_s, self.cfg.increment_s, at_pose)
+        table = volumetric.with_gains(self.raw_table, self.gains)
+        table, moved = volumetric.table_step(table, self.table, self.cfg.max_step_um)
+        self.table = table
+        self.s.table = table_to_dict(table)
+        dx, dy, dz = interpolate_one(table, r.position_mm)
+        return Offset(r.time_s, dx, dy, dz, active, clamped, limited or moved, outside, degraded, by,
+                      position_mm=tuple(float(v) for v in r.position_mm), pose_um=at_pose, table=table)
 
     # ------------------------------------------------------------------ monitoring
     def _close_interval(self, boundary: float) -> None:
@@ -892,6 +951,16 @@ class Monitor:
             "offsets_um": s.offsets_um, "degraded": [n for n in self.sensor_names if s.sensors[n].status == "degraded"],
             "regeneration_running": self.regeneration_running, **self.counters.__dict__,
         }
+
+
+def _mean_probe(mean: list | None, n: int, probe: list[float]) -> tuple[list[float], int]:
+    """The running mean of the probes of one model step, per direction (NaN: a direction not probed)."""
+    if mean is None or n <= 0:
+        return list(probe), 1
+    out = []
+    for m, p in zip(mean, probe):
+        out.append(p if not math.isfinite(m) else m if not math.isfinite(p) else m + (p - m) / (n + 1))
+    return out, n + 1
 
 
 def _brief(req: Mapping) -> dict:
@@ -1185,7 +1254,25 @@ def check_offset(off: Offset, max_abs_um: float) -> str:
                       source=f"offset at {off.time_s:.3f} s")
     except OffsetGuardError as exc:
         return str(exc)
+    if off.table is not None:
+        from hybridcomp.rom.volumetric import table_to_dict
+
+        bad = [v for v in _numbers(table_to_dict(off.table)) if not math.isfinite(v)]
+        if bad:
+            return f"the support-point table at {off.time_s:.3f} s has {len(bad)} values that are not finite"
     return ""
+
+
+def _numbers(obj):
+    """Every number inside a JSON-like structure."""
+    if isinstance(obj, dict):
+        for v in obj.values():
+            yield from _numbers(v)
+    elif isinstance(obj, (list, tuple)):
+        for v in obj:
+            yield from _numbers(v)
+    elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
+        yield float(obj)
 
 
 async def _take_lease(monitor: Monitor, lease: str, owner: dict, ttl_s: float, clock, stop: asyncio.Event,

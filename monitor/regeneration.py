@@ -201,7 +201,12 @@ def _rom(path: str, machine):
     key = ("rom", path, machine.sha256)
     if key not in _MODELS:
         _MODELS.clear()
-        _MODELS[key] = load_rom(path, machine)
+        rom = load_rom(path, machine)
+        if rom.meta.get("poses"):  # the daemon's observer runs on the model pose's block: so does the job
+            from hybridcomp.rom.poses import model_pose_block
+
+            rom = model_pose_block(rom)
+        _MODELS[key] = rom
     return _MODELS[key]
 
 

@@ -15,7 +15,7 @@ import csv
 import json
 import logging
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from hybridcomp.models.layout import DRIFT_COLUMNS
@@ -40,6 +40,10 @@ class Offset:
     degraded : sensors standing in by the structure model's estimate
     by : what computed the offsets: ``"cd"`` (the active CD set), ``"cd+model"`` (the CDs' slow part and the corrected
         structure model's fast part) or ``"observer"`` (the corrected structure model)
+    position_mm : with a pose-aware structure model: the commanded axis positions the offsets are for [mm]
+    pose_um : ... the offsets at the model's pose (what a one-pose compensation writes) [µm]
+    table : ... the support-point table of the cycle (:class:`hybridcomp.rom.volumetric.VolumetricTable`); the
+        offsets are this table interpolated at ``position_mm``
     """
 
     time_s: float
@@ -52,6 +56,13 @@ class Offset:
     outside: bool = False
     degraded: str = ""
     by: str = "cd"
+    position_mm: tuple[float, ...] | None = None
+    pose_um: tuple[float, float, float] | None = None
+    table: object = field(default=None, compare=False, repr=False)
+
+    def record(self) -> dict:
+        """The offsets' JSON-ready fields (the table goes to its own file: :class:`TableSink`)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "table"}
 
     def values(self) -> dict[str, float]:
         return {"dx_um": self.dx_um, "dy_um": self.dy_um, "dz_um": self.dz_um}
@@ -100,7 +111,7 @@ class JsonlSink(_FileSink):
         self.flush_every = flush_every
 
     async def write(self, offset: Offset) -> None:
-        self._fh.write(json.dumps(asdict(offset), allow_nan=False) + "\n")
+        self._fh.write(json.dumps(offset.record(), allow_nan=False) + "\n")
         self._wrote()
 
 
@@ -121,10 +132,48 @@ class CsvSink(_FileSink):
         self.flush_every = flush_every
 
     async def write(self, offset: Offset) -> None:
-        d = asdict(offset)
+        d = offset.record()
         self._w.writerow([f"{d[k]:.6f}" if isinstance(d[k], float) else int(d[k]) if isinstance(d[k], bool) else d[k]
                           for k in self.FIELDS])
         self._wrote()
+
+
+class TableSink(_FileSink):
+    """Appends the support-point table of every cycle that has one, one JSON object a line.
+
+    (:func:`hybridcomp.rom.volumetric.table_to_dict`: the grid, the structure's drift at its points and each
+    drive's error over its axis [µm]; a control that interpolates the table itself reads it.)
+    """
+
+    def __init__(self, path: str | Path, flush_every: int = 1):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = self.path.open("a")
+        self._n = 0
+        self.flush_every = flush_every
+
+    async def write(self, offset: Offset) -> None:
+        if offset.table is None:
+            return
+        from hybridcomp.rom.volumetric import table_to_dict
+
+        self._fh.write(json.dumps(table_to_dict(offset.table), allow_nan=False) + "\n")
+        self._wrote()
+
+
+class TeeSink:
+    """Writes every offset to each of its sinks, in order."""
+
+    def __init__(self, *sinks):
+        self.sinks = sinks
+
+    async def write(self, offset: Offset) -> None:
+        for sk in self.sinks:
+            await sk.write(offset)
+
+    async def close(self) -> None:
+        for sk in self.sinks:
+            await sk.close()
 
 
 class OpcUaSink:
@@ -193,7 +242,14 @@ class OpcUaSink:
 
 
 def make_sink(cfg, backoff: Backoff | None = None, clock=None):
-    """The sink of a :class:`~hybridcomp.monitor.config.SinkConfig`."""
+    """The sink of a :class:`~hybridcomp.monitor.config.SinkConfig` (with its table file, when it has one)."""
+    main = _make_offsets_sink(cfg, backoff, clock)
+    if getattr(cfg, "table_path", None) is None:
+        return main
+    return TeeSink(main, TableSink(cfg.table_path))
+
+
+def _make_offsets_sink(cfg, backoff: Backoff | None = None, clock=None):
     if cfg.kind == "jsonl":
         return JsonlSink(cfg.path)
     if cfg.kind == "csv":

@@ -20,7 +20,7 @@ from hybridcomp.monitor.decisions import SensorState
 from hybridcomp.monitor.sources import Reading
 from hybridcomp.rom.observer import ObserverState
 
-STATE_VERSION = 3
+STATE_VERSION = 4
 ZERO_OFFSETS = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
 NO_DROPS = {"repeated": 0, "backwards": 0, "jump": 0, "invalid": 0}
 
@@ -87,7 +87,9 @@ class MonitorState:
         filter, and when it was updated
     carry : the last sample of the previous model step (continuity of the histogram)
     air_hold, pos_hold, spindle_hold : last finite air, positions, spindle speed
-    probe_um : a probed drift waiting for the next model step (dx, dy, dz), or None
+    probe_um : a probed drift waiting for the next model step (dx, dy, dz), or None (the mean of several probes
+        within the step; with a pose-aware model each taken to the model's pose)
+    probe_n : how many probes that mean holds
     history : rows ``[time_s, *sensors, dx, dy, dz]`` every history step: the sensors the CDs read and the
         estimated drift (the generation job trains on them)
     loads : rows ``[time_s, *inputs]``: mean model inputs over each history step
@@ -103,6 +105,9 @@ class MonitorState:
     rejected : sensors the observer's gate rejected in the current interval, with counts
     interval_drops : samples dropped in the current interval, by reason
     active_ids : the active set's ids (the database has the last word)
+    pose_track : a pose-aware structure model's state at ``step_time_s`` (:func:`hybridcomp.monitor.volumetric.state_out`)
+    table : the support-point table written last (:func:`hybridcomp.rom.volumetric.table_to_dict`)
+    gains : the drives' gains learnt from probes at several positions (:class:`hybridcomp.monitor.volumetric.DriveGains`)
     """
 
     version: int = STATE_VERSION
@@ -139,6 +144,7 @@ class MonitorState:
     pos_hold: list = field(default_factory=list)
     spindle_hold: float = 0.0
     probe_um: list | None = None
+    probe_n: int = 0
     history: list = field(default_factory=list)
     loads: list = field(default_factory=list)
     step_rows: list = field(default_factory=list)
@@ -156,6 +162,9 @@ class MonitorState:
     rejected: dict = field(default_factory=dict)
     interval_drops: dict = field(default_factory=lambda: dict(NO_DROPS))
     active_ids: dict | None = None
+    pose_track: dict | None = None
+    table: dict | None = None
+    gains: dict | None = None
 
     def to_dict(self) -> dict:
         """JSON-able (non-finite floats become null)."""

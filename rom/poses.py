@@ -124,9 +124,28 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     meta = {**rom.meta, "poses": grid.as_dict() | {"orders": orders, "enrich": enrich,
                                                    "build_s": time.perf_counter() - t0},
             "feedback": feedback}
+    D = None if rom.D is None else np.vstack([rom.D, np.zeros((M.shape[0] - rom.order, rom.D.shape[1]))])
     return ReducedModel(ThermalOperators(M=M, K=K, H=H, h_W_m2K=np.asarray(rom.h_W_m2K, float), B=B, Hb=Hb, C=C,
                                          input_names=rom.input_names,
-                                         output_names=tuple(rom.output_names) + mid_names + tuple(names)), meta=meta)
+                                         output_names=tuple(rom.output_names) + mid_names + tuple(names)),
+                        D=D, disturbance_names=tuple(rom.disturbance_names) if rom.D is not None else (), meta=meta)
+
+
+def model_pose_block(prom: ReducedModel) -> ReducedModel:
+    """The model pose's reduced model inside a pose-aware one: its first block, as :func:`reduce_at_poses` got it.
+
+    Its operators, sensors, drift and disturbance shapes are those of the reduced model the pose-aware one was
+    built from (a model written before the shapes were kept has none).
+    """
+    grid_of(prom)
+    r = int(prom.meta["poses"]["orders"][0])
+    q = int(prom.meta["n_sensors"]) + 3
+    meta = {k: v for k, v in prom.meta.items() if k not in ("poses", "feedback")}
+    ops = ThermalOperators(M=prom.M[:r, :r], K=prom.K[:r, :r], H=prom.H[:, :r, :r], h_W_m2K=prom.h_W_m2K,
+                           B=prom.B[:r], Hb=prom.Hb[:r], C=prom.C[:q, :r], input_names=prom.input_names,
+                           output_names=tuple(prom.output_names[:q]))
+    D = None if prom.D is None else prom.D[:r]
+    return ReducedModel(ops, D=D, disturbance_names=tuple(prom.disturbance_names) if D is not None else (), meta=meta)
 
 
 def pose_block(model, V_mid: np.ndarray, pose_mm: dict, enrich: int, tol: np.ndarray, scale: np.ndarray,

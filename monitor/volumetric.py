@@ -1,0 +1,246 @@
+"""Volumetric compensation in the daemon: the drift where the tool is, as a support-point table every cycle.
+
+The observer keeps the model pose's reduced model on the machine with the sensors and the probes; the CDs and
+the complementary filter give the offsets at the model's pose (:mod:`hybridcomp.monitor.daemon`).  Beside
+them the pose-aware structure model (``hybridcomp reduce --poses``, :mod:`hybridcomp.rom.poses`: a reduced
+model per support pose and the feed drives' screws) runs on the same inputs, and every compensation cycle the
+daemon writes the table of the drift at the support points of a workspace grid
+(:mod:`hybridcomp.rom.volumetric`)::
+
+    table(p) = offsets at the model's pose + [pose-aware model at p − pose-aware model at the model's pose]
+
+What the monitor knows at the model's pose (CDs fitted on the machine's history, the observer's corrections,
+the probes) carries over to every pose unchanged; what the pose adds (lever arms, heat paths per pose, the
+screws' elongation and the scales' expansion at the axis positions) comes from the pose-aware model.  Its first
+block is the model pose's reduced model itself, so the bracket is zero at the model's pose: at that pose the
+table gives the one-pose offsets plus the drives' error at the model's axis positions.
+
+Each entry of the table moves at most ``max_step_um`` per cycle (the rate limit of the one-pose offsets,
+per support point); the offsets at the commanded position are the table interpolated there, as the control
+interpolates it every 2–4 ms.
+
+Everything here is pure: :class:`PoseTrack` is the pose-aware model's state, each function returns a new one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hybridcomp.models.layout import DRIFT_OUTPUTS
+
+
+@dataclass(frozen=True)
+class PoseModel:
+    """The fixed part: the pose-aware reduced model, its model-pose block, its table operator, its TCP outputs."""
+
+    rom: object
+    block: object
+    op: object
+    tcp: tuple[int, int, int]
+
+
+@dataclass(frozen=True)
+class PoseTrack:
+    """The pose-aware model's state at the end of the last model step, its outputs then and one step ahead."""
+
+    time_s: float
+    x: np.ndarray
+    y_now: np.ndarray
+    y_next: np.ndarray
+
+
+def pose_model(prom, points: int = 3) -> PoseModel:
+    """The pose-aware reduced model ``prom`` (:func:`hybridcomp.rom.poses.reduce_at_poses`) ready for the daemon.
+
+    ``block`` is the model pose's reduced model inside it (the observer's), ``op`` the table over a grid of
+    ``points`` support points per axis over the travel.
+    """
+    from hybridcomp.rom.poses import model_pose_block
+    from hybridcomp.rom.volumetric import default_grid, table_operator
+
+    names = list(prom.output_names)
+    tcp = tuple(names.index(n) for n in DRIFT_OUTPUTS)
+    return PoseModel(prom, model_pose_block(prom), table_operator(prom, default_grid(prom, points)), tcp)
+
+
+def _outputs(pm: PoseModel, x: np.ndarray) -> np.ndarray:
+    return np.asarray(pm.rom.outputs(x), float)
+
+
+def start(pm: PoseModel, u: np.ndarray, time_s: float, horizon_s: float) -> PoseTrack:
+    """The pose-aware model at rest in the first inputs (the observer's prior), and one step ahead."""
+    x = np.asarray(pm.rom.steady_state(u), float)
+    return _track(pm, time_s, x, u, horizon_s)
+
+
+def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizon_s: float) -> PoseTrack:
+    """One model step to ``end_s`` with the inputs ``u`` held over it (as the observer steps), and the forecast."""
+    dt = end_s - track.time_s
+    x = track.x if dt <= 0 else np.asarray(pm.rom.step(track.x, u, u, dt), float)
+    return _track(pm, end_s, x, u, horizon_s)
+
+
+def _track(pm: PoseModel, time_s: float, x: np.ndarray, u: np.ndarray, horizon_s: float) -> PoseTrack:
+    x_next = np.asarray(pm.rom.step(x, u, u, horizon_s), float)
+    return PoseTrack(float(time_s), x, _outputs(pm, x), _outputs(pm, x_next))
+
+
+def outputs_at(track: PoseTrack, t: float, horizon_s: float) -> np.ndarray:
+    """The outputs at ``t``: linear between the last step's end and its forecast (as the one-pose drift)."""
+    f = min(max((t - track.time_s) / horizon_s, 0.0), 1.0)
+    return track.y_now + f * (track.y_next - track.y_now)
+
+
+def table_now(pm: PoseModel, track: PoseTrack, t: float, horizon_s: float, offsets_um) -> object:
+    """The support-point table at ``t`` (module docstring): the offsets at the model's pose carried to every pose.
+
+    ``offsets_um``: the one-pose offsets (dx, dy, dz) written this cycle [µm].
+    """
+    from hybridcomp.rom.volumetric import shifted, table_of
+
+    y = outputs_at(track, t, horizon_s)
+    at_pose = y[list(pm.tcp)] * 1e6
+    return shifted(table_of(pm.op, y, t), np.asarray(offsets_um, float) - at_pose)
+
+
+def table_step(new, old, max_step_um: float):
+    """The table rate-limited against the last one written (each entry by at most ``max_step_um``).
+
+    Returns the table and whether the limit acted; the first table is not limited (nothing to continue).
+    """
+    from hybridcomp.rom.volumetric import limit_table
+
+    if old is None or not math.isfinite(max_step_um):
+        return new, False
+    return limit_table(new, old, max_step_um)
+
+
+def position_part_um(table, position_mm, offsets_um) -> tuple[float, float, float]:
+    """What ``table`` adds at ``position_mm`` over the one-pose ``offsets_um`` it was built from [µm]."""
+    from hybridcomp.rom.volumetric import interpolate_one
+
+    at = interpolate_one(table, position_mm)
+    return tuple(float(a - offsets_um[c]) for a, c in zip(at, ("dx_um", "dy_um", "dz_um")))
+
+
+def state_out(track: PoseTrack | None) -> dict | None:
+    """JSON-ready (the daemon's persisted state)."""
+    if track is None:
+        return None
+    return {"time_s": track.time_s, "x": [float(v) for v in track.x]}
+
+
+def state_in(pm: PoseModel, d: dict | None, u, horizon_s: float) -> PoseTrack | None:
+    """The track of :func:`state_out`, its outputs recomputed with the last step's inputs ``u``."""
+    if d is None or u is None:
+        return None
+    x = np.asarray(d["x"], float)
+    if x.shape != (pm.rom.order,):
+        raise ValueError(f"pose-aware state of {x.size} values for a model of order {pm.rom.order}")
+    return _track(pm, float(d["time_s"]), x, np.asarray(u, float), horizon_s)
+
+
+# ---------------------------------------------------------------------------------------------- the drives' gains
+@dataclass(frozen=True)
+class GainSettings:
+    """Priors and rates of the drives' gains (:class:`DriveGains`).
+
+    Attributes
+    ----------
+    gain_sigma : prior spread of each drive's relative error [-] (1: as large as the error itself)
+    gain_rate : its random walk per √h [-]
+    offset_sigma_um, offset_rate_um : the uniform offset's prior spread [µm] and random walk per √h [µm]
+    probe_sigma_um : noise of a probed drift [µm]
+    """
+
+    gain_sigma: float = 1.0
+    gain_rate: float = 0.05
+    offset_sigma_um: float = 5.0
+    offset_rate_um: float = 1.0
+    probe_sigma_um: float = 0.5
+
+
+@dataclass(frozen=True)
+class DriveGains:
+    """A relative error of each drive's positioning error, learnt from drift probed at several positions.
+
+    The pose-aware model's drives (a screw's elongation, a scale's expansion) are known only as well as their
+    heat inputs and coefficients: a nut that runs warmer than its machine file says, or a scale of another
+    material, scales the error along the axis.  A probing cycle that touches several positions along the axes
+    sees it: the probe less the table without gains is ``b + Σ_a g_a · sign_a · e_a(p_a)`` in the drive's direction
+    (``b`` a uniform offset the observer at the model's pose takes care of, here a nuisance), and a Kalman filter
+    on ``(g, b)`` (random walks) estimates the gains; the table's drive entries are scaled by ``1 + g``.
+    """
+
+    axes: tuple[str, ...]
+    g: np.ndarray
+    b: np.ndarray
+    P: np.ndarray
+    time_s: float | None = None
+
+    def as_dict(self) -> dict:
+        return {"axes": list(self.axes), "g": [float(v) for v in self.g], "b": [float(v) for v in self.b],
+                "P": [[float(v) for v in row] for row in self.P], "time_s": self.time_s}
+
+    @staticmethod
+    def from_dict(d: dict) -> DriveGains:
+        return DriveGains(tuple(d["axes"]), np.asarray(d["g"], float), np.asarray(d["b"], float),
+                          np.asarray(d["P"], float), d.get("time_s"))
+
+
+def initial_gains(axes, settings: GainSettings = GainSettings()) -> DriveGains:
+    """No error known yet: every gain 0 and the offset 0 at their prior spreads."""
+    n = len(axes)
+    P = np.diag(np.r_[np.full(n, settings.gain_sigma ** 2), np.full(3, settings.offset_sigma_um ** 2)])
+    return DriveGains(tuple(axes), np.zeros(n), np.zeros(3), P)
+
+
+def _drive_rows(table, position_mm, axes) -> np.ndarray:
+    """(3 × n): each drive's error at ``position_mm`` (sign applied) in its direction's row [µm]."""
+    H = np.zeros((3, len(axes)))
+    grid_axes = list(table.grid.axes)
+    for axis, positions, error, direction, sign in table.feedback_um:
+        if axis in axes:
+            p = float(position_mm[grid_axes.index(axis)])
+            H[direction, list(axes).index(axis)] = sign * float(np.interp(p, positions, error))
+    return H
+
+
+def update_gains(gains: DriveGains, raw_table, position_mm, probe_um, time_s: float,
+                 settings: GainSettings = GainSettings()) -> DriveGains:
+    """The gains after a probe at ``position_mm`` (``raw_table``: the table at that time without gains)."""
+    from hybridcomp.rom.volumetric import interpolate_one
+
+    n = len(gains.axes)
+    P = gains.P
+    if gains.time_s is not None and time_s > gains.time_s:
+        h = (time_s - gains.time_s) / 3600.0
+        P = P + np.diag(np.r_[np.full(n, settings.gain_rate ** 2 * h), np.full(3, settings.offset_rate_um ** 2 * h)])
+    y = np.asarray(probe_um, float) - np.asarray(interpolate_one(raw_table, position_mm), float)
+    H = np.hstack([_drive_rows(raw_table, position_mm, gains.axes), np.eye(3)])
+    ok = np.isfinite(y)
+    if not ok.any():
+        return DriveGains(gains.axes, gains.g, gains.b, P, time_s)
+    H, y = H[ok], y[ok]
+    x = np.r_[gains.g, gains.b]
+    S = H @ P @ H.T + settings.probe_sigma_um ** 2 * np.eye(H.shape[0])
+    K = np.linalg.solve(S, H @ P).T
+    x = x + K @ (y - H @ x)
+    IKH = np.eye(P.shape[0]) - K @ H
+    P = IKH @ P @ IKH.T + settings.probe_sigma_um ** 2 * K @ K.T  # Joseph form: stays symmetric and positive
+    return DriveGains(gains.axes, x[:n], x[n:], 0.5 * (P + P.T), time_s)
+
+
+def with_gains(table, gains: DriveGains | None):
+    """The table with each drive's entries scaled by ``1 + g`` of its axis."""
+    if gains is None or not len(gains.axes):
+        return table
+    import dataclasses
+
+    g = dict(zip(gains.axes, gains.g))
+    fb = tuple(f._replace(error_um=np.asarray(f.error_um, float) * (1.0 + g.get(f.axis, 0.0)))
+               for f in table.feedback_um)
+    return dataclasses.replace(table, feedback_um=fb)
