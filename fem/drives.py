@@ -50,8 +50,13 @@ with conduction along it, convection to the air of a zone all along its surface,
 bearings' lengths and, from the nut, over the stretch of screw each rail segment covers (the nut's heat
 input per segment ``<nut>[k]`` of the loads).  The heat into the screw is given per source in the machine file
 (``*_screw_W`` at load factor 1) and follows that source's loads column in proportion; it is heat in addition
-to what the source puts into the structure.  The bearings' ends are taken as adiabatic: what the screw takes
-leaves it through its surface.
+to what the source puts into the structure.  The screw's convection coefficient is the drive's
+``screw_h_W_m2K``: given, or from its mean speed ``screw_mean_rpm`` (a rotating cylinder and natural convection,
+:mod:`hybridcomp.models.convection`).  The bearings conduct heat to their housings on the carrier:
+``bearing_conductance_W_K`` per bearing (default 0), spread over the bearing's stretch of screw, to a sink at the
+screw zone's air temperature, not the carrier's (the carrier's temperature is not coupled back: the screw model
+stays a model of its own, run before or beside the FE model).  The screw's ends are otherwise adiabatic: what the
+screw takes leaves it through its surface and its bearings.
 
 Units: axial coordinates in mm (global, along the axis, at the reference pose), temperatures as rises over
 the reference [K], errors in µm.
@@ -137,8 +142,9 @@ class ScrewModel:
     """The 1D thermal model of one ball screw (SI operators on the nodes ``s_mm``).
 
     ``M x' + A x = Bu u`` with ``x`` the temperature rise [K] and ``u`` the machine's inputs in layout order
-    (heat inputs [W], zone air rises [K]); ``A = K + H``: conduction along the screw and convection from its
-    surface at ``screw_h_W_m2K``.
+    (heat inputs [W], zone air rises [K]); ``A = K + H + G``: conduction along the screw, convection from its
+    surface at ``screw_h_W_m2K`` and the bearings' conductance ``bearing_conductance_W_K`` each, spread over its
+    bearing's stretch (lumped), to a sink at the screw zone's air.
     """
 
     drive: Drive
@@ -147,6 +153,7 @@ class ScrewModel:
     Bu: np.ndarray
     K: sp.csr_matrix
     H: sp.csr_matrix
+    G: sp.csr_matrix
     alpha_1_K: float
     s_fixed_mm: float
     s_other_mm: float
@@ -155,8 +162,8 @@ class ScrewModel:
 
     @property
     def A(self) -> sp.csr_matrix:
-        """K + H [W/K]."""
-        return (self.K + self.H).tocsr()
+        """K + H + G [W/K]."""
+        return (self.K + self.H + self.G).tocsr()
 
     @property
     def length_mm(self) -> float:
@@ -250,9 +257,14 @@ def build_screw(machine: Machine, drive: Drive, element_mm: float = SCREW_ELEMEN
         cols = layout.source_columns(nut.name)
         for k, (a, b) in enumerate(zip(axis.segment_bounds_mm[:-1], axis.segment_bounds_mm[1:])):
             Bu[:, cols[k]] += drive.nut_screw_W / nut.power_W * _interval_column(s, nut_at + a, nut_at + b)
+    g = np.zeros(s.size)
+    for src in (fixed, other):  # the bearing's conductance over its stretch, to the zone's air
+        c = src.position_mm[d]
+        g += drive.bearing_conductance_W_K * _interval_column(s, c - half[src.name], c + half[src.name])
+    G = sp.diags(g, format="csr")
     zone = layout.zones.index(drive.screw_zone)
-    Bu[:, len(layout.heat_inputs) + zone] = H @ np.ones(s.size)
-    return ScrewModel(drive=drive, s_mm=s, M=M, Bu=Bu, K=K, H=H, alpha_1_K=mat.expansion_1_K,
+    Bu[:, len(layout.heat_inputs) + zone] = H @ np.ones(s.size) + g
+    return ScrewModel(drive=drive, s_mm=s, M=M, Bu=Bu, K=K, H=H, G=G, alpha_1_K=mat.expansion_1_K,
                       s_fixed_mm=s_fixed, s_other_mm=s_other, nut_at_mm=nut_at, layout=layout)
 
 

@@ -112,7 +112,9 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
         z = machine.layout().zones.index(drive.screw_zone)
         h_zone = float(rom.h_W_m2K[z])
         Hs = np.zeros((len(rom.h_W_m2K),) + screw.M.shape)
-        Hs[z] = screw.H.toarray() / h_zone  # so that h_zone * Hs[z] is the screw's own convection
+        # so that h_zone * Hs[z] is the screw's own convection and its bearings' conductance (both to the zone's
+        # air; a changed zone coefficient scales the bearings' conductance too)
+        Hs[z] = (screw.H + screw.G).toarray() / h_zone
         m = len(machine.layout().heat_inputs)
         blocks.append((screw.M.toarray(), screw.K.toarray(), Hs, screw.Bu[:, :m], Hs.sum(axis=2).T,
                        err.screw_rows(positions) * 1e-6))

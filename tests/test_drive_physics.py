@@ -15,12 +15,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from hybridcomp.fem.drives import carrier_line, drive_error
+from hybridcomp.fem.drives import build_screw, carrier_line, drive_error, integral_weights
 from hybridcomp.fem.iso230 import axis_sign, axis_test_of_loads, etve_of_loads
 from hybridcomp.fem.model import build_model
 from hybridcomp.models import load_machine
+from hybridcomp.models.convection import horizontal_cylinder_natural_h_W_m2K, rotating_cylinder_h_W_m2K, screw_h_W_m2K
 from hybridcomp.models.layout import Loads
-from tests.test_machine_file import edit
+from tests.test_machine_file import assert_names, edit, load_error
 
 H_MM = 200.0
 ALPHA_STEEL = 11.5e-6
@@ -169,3 +170,85 @@ def test_uniform_air_rise_etve_error_at_the_travel_ends_has_the_feedbacks_alpha(
                                                                 abs=STRUCTURE_TOL_UM_PER_M)
         r = res[axis]  # the same error as the moving-axis machinery's at the ends
         np.testing.assert_allclose(e, r.error_um[-1][[0, -1]], rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- the screw's heat paths
+
+def test_turning_screw_convection_is_the_rotating_cylinder_correlation():
+    # by hand, 40 mm at 1000 rpm: ω = 104.72 1/s, Re = ω D² / ν = 104.72 · 0.0016 / 1.516e-5 = 11,052,
+    # Nu = 0.133 · 11,052^(2/3) · 0.713^(1/3) = 0.133 · 496.2 · 0.8934 = 58.96, h = Nu k / D = 58.96 · 0.0257 / 0.04
+    assert rotating_cylinder_h_W_m2K(40.0, 1000.0) == pytest.approx(37.88, rel=1e-3)
+    # at rest, 5 K over the air: Ra = 9.81 · (5 / 293.15) · 0.04³ / (1.516e-5 · 2.126e-5) = 33,220,
+    # Nu = (0.60 + 0.387 · 33,220^(1/6) / 1.2042)² = (0.60 + 0.387 · 5.670 / 1.2042)² = 5.866, h = Nu k / D
+    assert horizontal_cylinder_natural_h_W_m2K(40.0) == pytest.approx(3.769, rel=1e-3)
+    assert screw_h_W_m2K(40.0, 0.0) == pytest.approx(3.769, rel=1e-3)  # at rest: natural convection alone
+    assert screw_h_W_m2K(40.0, 1000.0) == pytest.approx((37.88**3 + 3.769**3) ** (1 / 3), rel=1e-3)
+    # the forced part grows as (ω D²)^(2/3) / D = ω^(2/3) D^(1/3)
+    assert rotating_cylinder_h_W_m2K(80.0, 250.0) / rotating_cylinder_h_W_m2K(40.0, 1000.0) == pytest.approx(
+        0.25 ** (2 / 3) * 2 ** (1 / 3), rel=1e-12)
+
+
+def _drive_text(extra: str) -> str:
+    return edit('fixed_bearing = "x_bearing_fixed"', 'fixed_bearing = "x_bearing_fixed"\n' + extra)
+
+
+@pytest.mark.parametrize("extra, want", [
+    ("screw_mean_rpm = 1000.0", 37.89),  # the correlation
+    ("screw_mean_rpm = 1000.0\nscrew_h_W_m2K = 12.5", 12.5),  # given: it wins
+    ("", 20.0),  # neither: the default
+])
+def test_screw_coefficient_from_the_mean_speed_unless_given(tmp_path, extra, want):
+    path = tmp_path / "m.toml"
+    path.write_text(_drive_text(extra), encoding="utf-8")
+    assert load_machine(path).drive("X").screw_h_W_m2K == pytest.approx(want, rel=1e-3)
+
+
+def test_screw_speed_beyond_the_correlation_is_refused(tmp_path):
+    assert_names(load_error(tmp_path, _drive_text("screw_mean_rpm = 50000.0")), "drives[0].screw_mean_rpm", "50000")
+
+
+@pytest.fixture(scope="module")
+def conducting(tmp_path_factory):
+    """vmc800 with 0.8 W/K at each X bearing."""
+    path = tmp_path_factory.mktemp("g") / "m.toml"
+    path.write_text(_drive_text("bearing_conductance_W_K = 0.8"), encoding="utf-8")
+    return load_machine(path)
+
+
+def test_bearing_conductance_leaves_a_uniform_air_rise_uniform_and_balances_the_heat(conducting):
+    m = conducting
+    drive = m.drive("X")
+    assert drive.bearing_conductance_W_K == 0.8
+    screw = build_screw(m, drive)
+    assert screw.G.sum() == pytest.approx(2 * 0.8, rel=1e-12)  # two bearings
+    layout = m.layout()
+    u = np.zeros(layout.n_inputs)
+    u[len(layout.heat_inputs) + layout.zones.index(drive.screw_zone)] = 1.0
+    np.testing.assert_allclose(screw.steady(u), 1.0, rtol=1e-12)
+    u[:] = 0.0
+    u[layout.source_columns(drive.fixed_bearing)[0]] = 20.0
+    x = screw.steady(u)
+    q_in = drive.fixed_bearing_screw_W / m.heat_source(drive.fixed_bearing).power_W * 20.0
+    area = np.pi * drive.screw_diameter_mm * 1e-3 * 1e-3  # m² per mm of screw
+    q_conv = drive.screw_h_W_m2K * area * (integral_weights(screw.s_mm, screw.s_mm[0], screw.s_mm[-1]) @ x)
+    assert q_conv + screw.G @ x @ np.ones(x.size) == pytest.approx(q_in, rel=1e-9)
+    assert screw.G @ x @ np.ones(x.size) > 0.05 * q_in  # the bearings take a share
+
+
+def test_bearing_conductance_of_a_well_conducting_screw_gives_the_lumped_temperature(conducting):
+    """A screw conducting a million times better is isothermal: T = Q / (h π D L + 2 G) by hand."""
+    m = conducting
+    steel = m.materials["steel"]
+    m = dataclasses.replace(m, materials={**m.materials, "steel": dataclasses.replace(
+        steel, conductivity_W_mK=1e6 * steel.conductivity_W_mK)})
+    drive = m.drive("X")
+    screw = build_screw(m, drive)
+    layout = m.layout()
+    u = np.zeros(layout.n_inputs)
+    u[layout.source_columns(drive.fixed_bearing)[0]] = 20.0
+    q = drive.fixed_bearing_screw_W / m.heat_source(drive.fixed_bearing).power_W * 20.0
+    length_m = (screw.s_mm[-1] - screw.s_mm[0]) * 1e-3
+    want = q / (drive.screw_h_W_m2K * np.pi * drive.screw_diameter_mm * 1e-3 * length_m + 2 * 0.8)
+    x = screw.steady(u)
+    assert np.ptp(x) < 2e-3 * want
+    assert x.mean() == pytest.approx(want, rel=2e-3)
