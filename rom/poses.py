@@ -18,9 +18,10 @@ scale's ``α_scale − α_carrier`` on it) reads the model pose's block, the car
 screw's output row spans its own block and the first one.  Their outputs are the positioning errors
 ``e<AXIS>@<x>`` [m] at ``FEEDBACK_POINTS`` positions over each axis' travel.
 
-The result is one :class:`~hybridcomp.rom.reduced.ReducedModel`, block diagonal: the model pose's reduced model
-first, unchanged (its sensors and drift are the first outputs, so everything that reads a reduced model reads this
-one), then per further support pose its drift ``dx@k``, ``dy@k``, ``dz@k``, then the screws.  ``meta["poses"]``
+The result is one :class:`~hybridcomp.rom.reduced.ReducedModel`, block diagonal but for the screws' output rows:
+the model pose's reduced model first, unchanged (its sensors and drift are the first outputs, so everything that
+reads a reduced model reads this one), then per further support pose its drift ``dx@k``, ``dy@k``, ``dz@k``, then
+the screws.  ``meta["poses"]``
 holds the grid, ``meta["feedback"]`` the drives; :func:`drift_along` gives the drift, TCP minus table, at the axis
 positions of every time: the support poses interpolated plus every drive's added error at its axis' position.
 """
