@@ -1,7 +1,7 @@
 """``hybridcomp iso230``: the ISO 230-3 thermal tests simulated on a machine (:mod:`hybridcomp.fem.iso230`).
 
-``moving-axis`` writes ``moving_axis_<AXIS>.csv`` (time, the error and the feedback's share at every target, the
-structure's drift along the axis), ``moving_axis_<AXIS>.png`` (error over position at every hour, error over
+``moving-axis`` writes ``moving_axis_<AXIS>.csv`` (time, the error, the drive's added share and the structure's
+drift along the axis at every target), ``moving_axis_<AXIS>.png`` (error over position at every hour, error over
 time per target) and ``moving_axis_<AXIS>.json`` (the summary); ``etve`` writes ``etve.csv``, ``etve.png`` and
 ``etve.json``.
 """
@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         cols = {"time_h": res.time_s / 3600}
         cols |= {f"error_um@{p:g}": res.error_um[:, j] for j, p in enumerate(targets)}
         cols |= {f"feedback_um@{p:g}": res.feedback_um[:, j] for j, p in enumerate(targets)}
-        cols["structure_um"] = res.structure_um
+        cols |= {f"structure_um@{p:g}": res.structure_um[:, j] for j, p in enumerate(targets)}
         picture = lambda tmp: plot_moving_axis(res, machine.name, tmp)  # noqa: E731
     else:
         res = etve_test(model, args.hours, args.amplitude_K, args.period_hours, args.step_s, progress=progress)
@@ -108,6 +108,8 @@ def run(args: argparse.Namespace) -> int:
         for axis, e in res.feedback_um.items():
             lo, hi = machine.axis(axis).travel_mm
             cols |= {f"{axis}_feedback_um@{lo:g}": e[:, 0], f"{axis}_feedback_um@{hi:g}": e[:, 1]}
+            err = res.error_um[axis]
+            cols |= {f"{axis}_error_um@{lo:g}": err[:, 0], f"{axis}_error_um@{hi:g}": err[:, 1]}
         picture = lambda tmp: plot_etve(res, machine.name, tmp)  # noqa: E731
     summary |= {"machine": machine.name, "machine_sha256": machine.sha256, "nodes": model.n,
                 "element_size_mm": model.machine.mesh.element_size_mm, "wall_s": time.perf_counter() - t0}
@@ -163,7 +165,9 @@ def plot_moving_axis(res, machine_name: str, path) -> None:
     a.grid(alpha=0.3)
     for j, p in enumerate(res.targets_mm):
         b.plot(hours, change[:, j], label=f"{p:g} mm")
-    b.plot(hours, res.structure_um - res.structure_um[0], "k--", lw=1, label="structure")
+    for j in range(len(res.targets_mm)):
+        b.plot(hours, res.structure_um[:, j] - res.structure_um[0, j], "k--", lw=0.8,
+               label="structure at the targets" if j == 0 else None)
     b.set_xlabel("time [h]")
     b.set_ylabel("change of the error [µm]")
     b.legend(fontsize=8)

@@ -7,10 +7,12 @@
   zone swings sinusoidally; the drift in x, y and z and the feedback errors over a day or more.
 
 The error at a target is the TCP-minus-table drift along the axis (the project's drift convention, what an
-interferometer between spindle and table reads): the structure's drift at the model's pose plus the drive's
-positioning error at the target, with the sign of the side the axis moves (an axis that moves the table side
-displaces the table, so its error enters TCP minus table negatively).  The structure's share is the drift at the
-pose the model was built at, the same at every target: the position-dependent part is the feedback's.
+interferometer between spindle and table reads): the structure's drift at the target's pose (the model's field
+carried with the bodies onto the support poses of :mod:`hybridcomp.fem.poses` and interpolated there, so lever
+arms and the carrier's expansion up to the moving body change with the target) plus the error the drive adds to
+it at the target (:class:`hybridcomp.fem.drives.DriveError`: the feedback's length less the carrier's, which
+the structure holds already), with the sign of the side the axis moves (an axis that moves the table side
+displaces the table, so its error enters TCP minus table negatively).
 
 The summary values are this module's, named after what they measure (the standard's own evaluation, for a
 measurement, reads the same curves): the largest error change at each target, the spread of the error over the
@@ -24,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hybridcomp.fem.drives import build_screw, scale_line
+from hybridcomp.fem.drives import drive_error
+from hybridcomp.fem.poses import drift_rows_at
 from hybridcomp.histogram.bcs import standstill_powers
 from hybridcomp.models.layout import Loads
 from hybridcomp.models.machine import Machine, MachineFileError
@@ -105,27 +108,36 @@ def etve_loads(machine: Machine, hours: float, amplitude_K: float, period_h: flo
     return Loads(t, layout.loads_values(U), layout.columns)
 
 
-def feedback_errors_um(model, axis: str, loads: Loads, positions_mm, fields: dict[int, np.ndarray] | None = None,
+def feedback_errors_um(model, axis: str, loads: Loads, positions_mm, fields: dict[int, np.ndarray],
                        initial: str = "steady") -> tuple[np.ndarray, np.ndarray | None]:
-    """The positioning error of an axis' feedback [µm] (nt × positions) on a loads time series.
+    """The positioning error an axis' drive adds to the structure [µm] (nt × positions) on a loads time series.
 
-    Also the pre-stretch left [µm] (nt,) for a pre-stretched screw (else None).
-
-    A rotary encoder's comes from the screw model; a linear scale's from the FE fields (``fields``: loads row →
-    state, every row) of ``model`` along the scale.
+    Also the pre-stretch left [µm] (nt,) for a pre-stretched screw (else None).  The carrier's share (and a linear
+    scale's whole error) reads the FE fields ``fields`` (loads row → state, every row) of ``model``; a rotary
+    encoder's screw share comes from the screw model started from ``initial`` (:class:`~hybridcomp.fem.drives.DriveError`).
     """
-    machine = model.machine
-    drive = _require_drive(machine, axis)
-    if drive.feedback == "linear_scale":
-        if fields is None or len(fields) != loads.time_s.size:
-            raise ValueError("a linear scale's error needs the FE field at every loads row")
-        R = scale_line(model, drive).error_rows(positions_mm)
-        X = np.array([fields[i] for i in range(loads.time_s.size)])
-        return X @ R.T, None
-    screw = build_screw(machine, drive)
-    T = screw.temperature_rise_of_loads(loads, initial)
-    left = screw.prestretch_left_um(T) if drive.mounting == "pre-stretched" else None
-    return T @ screw.error_rows(positions_mm).T, left
+    drive = _require_drive(model.machine, axis)
+    if fields is None or len(fields) != loads.time_s.size:
+        raise ValueError("a drive's error needs the FE field at every loads row (its carrier's temperature)")
+    err = drive_error(model, drive)
+    X = np.array([fields[i] for i in range(loads.time_s.size)])
+    if err.screw is None:
+        return err.error_um(positions_mm, X), None
+    T = err.screw.temperature_rise_of_loads(loads, initial)
+    left = err.prestretch_left_um(X, T) if drive.mounting == "pre-stretched" else None
+    return err.error_um(positions_mm, X, T), left
+
+
+def structure_along_um(model, axis: str, positions_mm, fields: dict[int, np.ndarray]) -> np.ndarray:
+    """The structure's drift along an axis [µm] (nt × positions), TCP minus table, at the axis' positions.
+
+    The other axes at the model's pose; the model's field at every row (``fields``) carried onto the support poses
+    and the drift interpolated between them (:func:`hybridcomp.fem.poses.drift_rows_at`).
+    """
+    d = model.machine.axis(axis).direction
+    R = drift_rows_at(model, [{axis: float(p)} for p in np.atleast_1d(positions_mm)])[:, d, :]
+    X = np.array([fields[i] for i in range(len(fields))])
+    return X @ R.T * 1e6
 
 
 @dataclass(frozen=True)
@@ -139,8 +151,9 @@ class AxisTestResult:
     targets_mm : target positions [mm]
     time_s : times [s]
     error_um : TCP-minus-table drift along the axis at each target (nt × targets) [µm]
-    feedback_um : the drive's positioning error at each target (nt × targets) [µm] (as the drive sees it)
-    structure_um : the structure's drift along the axis at the model's pose (nt,) [µm]
+    feedback_um : the error the drive adds to the structure at each target (nt × targets) [µm] (as the drive sees
+        it: the feedback's length less the carrier's)
+    structure_um : the structure's drift along the axis at each target's pose (nt × targets) [µm]
     prestretch_left_um : pre-stretch left of a pre-stretched screw (nt,) [µm], else None
     """
 
@@ -188,41 +201,52 @@ def moving_axis_test(model, axis: str, feed_mm_min: float, targets_mm=None, hour
                      step_s: float = 300.0, progress: bool = False) -> AxisTestResult:
     """Simulate the ISO 230-3 moving-axis test of ``axis`` on an FE model (module docstring)."""
     machine = model.machine
-    drive = _require_drive(machine, axis)
+    _require_drive(machine, axis)  # before the default targets: names a missing drive
     targets = default_targets_mm(machine, axis) if targets_mm is None else np.asarray(targets_mm, float)
     lo, hi = machine.axis(axis).travel_mm
     if targets.size < 2 or np.any(targets < lo) or np.any(targets > hi):
         raise ValueError(f"targets {targets.tolist()} mm must be two or more positions within the travel of "
                          f"{axis} [{lo:g}, {hi:g}] mm")
     loads = axis_cycle_loads(machine, axis, feed_mm_min, hours, step_s)
-    store = tuple(range(loads.time_s.size)) if drive.feedback == "linear_scale" else None
-    res = model.simulate(loads, initial="steady", store_steps=store, progress=progress)
+    return axis_test_of_loads(model, axis, loads, targets, feed_mm_min, progress)
+
+
+def axis_test_of_loads(model, axis: str, loads: Loads, targets_mm, feed_mm_min: float = 0.0,
+                       progress: bool = False) -> AxisTestResult:
+    """:func:`moving_axis_test`'s evaluation on any loads (from the steady state of row 0): the error at each target."""
+    machine = model.machine
+    drive = _require_drive(machine, axis)
+    targets = np.asarray(targets_mm, float)
+    res = model.simulate(loads, initial="steady", store_steps=tuple(range(loads.time_s.size)), progress=progress)
     fb, left = feedback_errors_um(model, axis, loads, targets, res.fields_K)
-    d = machine.axis(axis).direction
-    structure = res.drift_um[:, d]
-    error = structure[:, None] + axis_sign(machine, axis) * fb
+    structure = structure_along_um(model, axis, targets, res.fields_K)
+    error = structure + axis_sign(machine, axis) * fb
     return AxisTestResult(axis, drive.feedback, float(feed_mm_min), targets, loads.time_s, error, fb, structure, left)
 
 
 @dataclass(frozen=True)
 class EtveResult:
-    """A simulated ETVE test: drift at the model's pose and each drive's feedback error at its travel ends.
+    """A simulated ETVE test: drift at the model's pose and each drive's axis at its travel ends.
 
-    ``feedback_um`` maps axis → (nt × 2) errors at the travel's ends [µm]; ``air_rise_K`` is the air's rise (nt,).
+    ``feedback_um`` maps axis → (nt × 2) errors the drive adds at the travel's ends [µm]; ``error_um`` axis →
+    (nt × 2) the error along the axis at the travel's ends, TCP minus table (the structure at that pose plus the
+    signed added error); ``air_rise_K`` is the air's rise (nt,).
     """
 
     time_s: np.ndarray
     air_rise_K: np.ndarray
     drift_um: np.ndarray
     feedback_um: dict[str, np.ndarray]
+    error_um: dict[str, np.ndarray]
 
     def summary(self) -> dict:
-        """Range of the drift per direction, and of each feedback error at the travel ends [µm]."""
+        """Range of the drift per direction, of each added feedback error and each axis' error at the travel ends."""
         return {
             "duration_h": float(self.time_s[-1] / 3600),
             "air_range_K": float(np.ptp(self.air_rise_K)),
             "drift_range_um": {c: float(np.ptp(self.drift_um[:, j])) for j, c in enumerate("xyz")},
             "feedback_range_um": {a: [float(x) for x in np.ptp(e, axis=0)] for a, e in self.feedback_um.items()},
+            "error_range_um": {a: [float(x) for x in np.ptp(e, axis=0)] for a, e in self.error_um.items()},
         }
 
 
@@ -231,15 +255,23 @@ def etve_test(model, hours: float = 48.0, amplitude_K: float = 2.0, period_h: fl
     """Simulate the ETVE test on an FE model: at rest, the air swinging, from the steady state at the mean."""
     machine = model.machine
     loads = etve_loads(machine, hours, amplitude_K, period_h, step_s)
-    scales = any(d.feedback == "linear_scale" for d in machine.drives)
-    res = model.simulate(loads, initial="steady", store_steps=tuple(range(loads.time_s.size)) if scales else None,
-                         progress=progress)
-    fb = {d.axis: feedback_errors_um(model, d.axis, loads, machine.axis(d.axis).travel_mm, res.fields_K)[0]
-          for d in machine.drives}
+    return etve_of_loads(model, loads, progress=progress)
+
+
+def etve_of_loads(model, loads: Loads, progress: bool = False) -> EtveResult:
+    """:func:`etve_test`'s evaluation on any loads with the machine at rest (from the steady state of row 0)."""
+    machine = model.machine
+    res = model.simulate(loads, initial="steady", store_steps=tuple(range(loads.time_s.size)), progress=progress)
+    fb, err = {}, {}
+    for d in machine.drives:
+        ends = machine.axis(d.axis).travel_mm
+        fb[d.axis] = feedback_errors_um(model, d.axis, loads, ends, res.fields_K)[0]
+        err[d.axis] = structure_along_um(model, d.axis, ends, res.fields_K) + axis_sign(machine, d.axis) * fb[d.axis]
     air = loads.values[:, len(machine.layout().heat_inputs)] - machine.reference_temperature_degC \
         if machine.zones else np.zeros(loads.time_s.size)
-    return EtveResult(loads.time_s, air, res.drift_um, fb)
+    return EtveResult(loads.time_s, air, res.drift_um, fb, err)
 
 
 __all__ = ["axis_sign", "axis_cycle_loads", "etve_loads", "moving_axis_test", "etve_test",
-           "AxisTestResult", "EtveResult", "feedback_errors_um", "default_targets_mm", "axis_summary"]
+           "AxisTestResult", "EtveResult", "feedback_errors_um", "structure_along_um", "default_targets_mm",
+           "axis_summary", "etve_of_loads", "axis_test_of_loads"]

@@ -186,19 +186,37 @@ def pose_drift(model, scheme: str = "star", progress: bool = False) -> PoseDrift
 
     The model's field is carried with the bodies (module docstring).
     """
-    from hybridcomp.fem import assembly
-    from hybridcomp.fem.mesh import mesh_machine
-    from hybridcomp.fem.model import _material_arrays, drift_rows
-
-    machine: Machine = model.machine
     grid = pose_grid(model, scheme)
     rows = np.empty((len(grid.poses), 3, model.n))
     rows[0] = model.G
     for k in _progress(range(1, len(grid.poses)), progress):
-        mm = mesh_machine(machine, grid.pose_mm(k), machine.mesh.element_size_mm)
-        G, _ = drift_rows(machine, mm, assembly.cell_basis(mm.mesh), _material_arrays(machine, mm))
-        rows[k] = np.asarray((carry_field(model, mm).T @ G.T).T)
+        rows[k] = support_rows(model, grid, k)
     return PoseDrift(grid, rows)
+
+
+def support_rows(model, grid: PoseGrid, k: int) -> np.ndarray:
+    """The drift rows (3 × n) [m/K] at support pose ``k`` of ``grid`` for the model's state (the carried field)."""
+    from hybridcomp.fem import assembly
+    from hybridcomp.fem.mesh import mesh_machine
+    from hybridcomp.fem.model import _material_arrays, drift_rows
+
+    if k == 0:
+        return np.asarray(model.G)
+    machine: Machine = model.machine
+    mm = mesh_machine(machine, grid.pose_mm(k), machine.mesh.element_size_mm)
+    G, _ = drift_rows(machine, mm, assembly.cell_basis(mm.mesh), _material_arrays(machine, mm))
+    return np.asarray((carry_field(model, mm).T @ G.T).T)
+
+
+def drift_rows_at(model, poses_mm: list[dict[str, float]], scheme: str = "star") -> np.ndarray:
+    """The drift rows (poses × 3 × n) [m/K] at each pose for the model's state, as :class:`PoseDrift` gives them.
+
+    Only the support poses with a weight at one of the poses are meshed (an axis moved alone: two).
+    """
+    grid = pose_grid(model, scheme)
+    W = np.array([grid.weights(p) for p in poses_mm])
+    rows = {k: support_rows(model, grid, k) for k in range(len(grid.poses)) if np.any(np.abs(W[:, k]) > 1e-14)}
+    return np.array([sum(w[k] * r for k, r in rows.items()) for w in W])
 
 
 def _progress(it, show: bool):

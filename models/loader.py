@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridcomp.models.convection import screw_h_W_m2K
 from hybridcomp.models.geometry import GEOMETRY_TOLERANCE_MM, inside_box, validate_geometry
 from hybridcomp.models.layout import COORDINATES, MAX_HEAT_POWER_W, TEMPERATURE_RANGE_DEGC
 from hybridcomp.models.machine import (
@@ -111,7 +112,8 @@ KEYS = {
     "drive": ("axis", "feedback", "screw_diameter_mm", "screw_lead_mm", "screw_material", "mounting", "prestretch_um",
               "fixed_bearing", "floating_bearing", "nut", "fixed_bearing_screw_W", "floating_bearing_screw_W",
               "nut_screw_W", "screw_h_W_m2K", "screw_zone", "scale_body", "scale_from_mm", "scale_to_mm",
-              "scale_fixed_at_mm", "scale_head_at_mm", "scale_expansion_1_K"),
+              "scale_fixed_at_mm", "scale_head_at_mm", "scale_expansion_1_K", "screw_mean_rpm",
+              "bearing_conductance_W_K"),
 }
 
 
@@ -545,8 +547,12 @@ def _read_drives(top: _Reader, machine: Machine) -> tuple[Drive, ...]:
 
 
 #: default heat-transfer coefficient of a turning ball screw to the air around it [W/(m^2 K)] (forced convection
-#: at a few hundred rpm; Xu et al. 2007 report 20-50)
+#: at a few hundred rpm; Xu et al. 2007 report 20-50), when neither it nor the screw's mean speed is given
 SCREW_H_W_M2K = 20.0
+#: default conductance from each bearing's stretch of screw to its housing [W/K]: 0, the bearings' ends adiabatic
+BEARING_CONDUCTANCE_W_K = 0.0
+#: the largest mean screw speed taken [rpm] (the rotating-cylinder correlation holds to Re 4.3e5: 40 mm, 38,000 rpm)
+MAX_SCREW_RPM = 20000.0
 
 
 def _read_drive(machine: Machine, where: str, t: dict) -> Drive:
@@ -610,7 +616,8 @@ def _read_drive(machine: Machine, where: str, t: dict) -> Drive:
         screw_lead_mm=r.number("screw_lead_mm", positive=True),
         screw_material=material, mounting=mounting, prestretch_um=prestretch,
         fixed_bearing=fixed.name, floating_bearing=floating.name, nut=nut.name, **heat,
-        screw_h_W_m2K=r.number("screw_h_W_m2K", SCREW_H_W_M2K, positive=True), screw_zone=zone,
+        screw_h_W_m2K=_screw_h(r), screw_zone=zone, screw_mean_rpm=r.number("screw_mean_rpm", None, nonneg=True),
+        bearing_conductance_W_K=r.number("bearing_conductance_W_K", BEARING_CONDUCTANCE_W_K, nonneg=True),
     )
     scale_keys = [k for k in KEYS["drive"] if k.startswith("scale_") and k in t]
     if feedback == "rotary_encoder":
@@ -618,6 +625,20 @@ def _read_drive(machine: Machine, where: str, t: dict) -> Drive:
             raise r.err(scale_keys[0], "is only for feedback = 'linear_scale' (this drive reads a rotary encoder)")
         return drive
     return dataclasses.replace(drive, **_read_scale(r, machine, axis, carrier, nut))
+
+
+def _screw_h(r: _Reader) -> float:
+    """``screw_h_W_m2K`` when given, else from ``screw_mean_rpm`` when given, else :data:`SCREW_H_W_M2K`."""
+    h = r.number("screw_h_W_m2K", None, positive=True)
+    rpm = r.number("screw_mean_rpm", None, nonneg=True)
+    if rpm is not None and rpm > MAX_SCREW_RPM:
+        raise r.err("screw_mean_rpm", f"= {rpm!r} rpm is beyond {MAX_SCREW_RPM:g} rpm, where the convection correlation "
+                                      "is not taken")
+    if h is not None:
+        return h
+    if rpm is None:
+        return SCREW_H_W_M2K
+    return screw_h_W_m2K(r.number("screw_diameter_mm", positive=True), rpm)
 
 
 def _read_scale(r: _Reader, machine: Machine, axis: Axis, carrier: str, nut: HeatSource) -> dict:

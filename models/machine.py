@@ -134,6 +134,9 @@ class Drive:
     Axial coordinates (``*_at_mm``) are global coordinates along the axis direction at the reference pose.
     A linear scale lies on the carrier body along the line ``scale_from_mm`` → ``scale_to_mm``, fixed at
     ``scale_fixed_at_mm``; its reading head, on the moving body, is at ``scale_head_at_mm`` at the reference pose.
+    ``screw_h_W_m2K`` is the screw's convection coefficient: given, or from ``screw_mean_rpm``
+    (:mod:`hybridcomp.models.convection`); ``bearing_conductance_W_K`` the conductance from each bearing's stretch
+    of screw to a sink at the screw zone's air.
     """
 
     axis: str
@@ -157,6 +160,8 @@ class Drive:
     scale_fixed_at_mm: float | None = None
     scale_head_at_mm: float | None = None
     scale_expansion_1_K: float | None = None
+    screw_mean_rpm: float | None = None
+    bearing_conductance_W_K: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -10,17 +10,20 @@ mesh (:func:`~hybridcomp.fem.poses.carry_field`), extended by ``enrich`` rationa
 own system (its steady state exact), and the pose's operators are projected on it (one-sided Galerkin: symmetric
 and stable like every reduced model here).  No FE check runs per pose: the benchmark checks the result.
 
-The feed drives (``[[drives]]``) come along: a screw's 1D thermal model is a block of its own (full order, a
+The feed drives (``[[drives]]``) come along with the error they add beyond the structure
+(:class:`hybridcomp.fem.drives.DriveError`): a screw's 1D thermal model is a block of its own (full order, a
 hundred-odd nodes; its convection enters as part of its zone's, scaled to the screw's coefficient, so a changed
-zone coefficient scales both alike), a linear scale's error is an output of the model pose's block (its carrier's
-field at the model's pose).  Their outputs are the positioning errors ``e<AXIS>@<x>`` [m] at ``FEEDBACK_POINTS``
-positions over each axis' travel.
+zone coefficient scales both alike), and the carrier's share (minus its expansion along the screw; a linear
+scale's ``α_scale − α_carrier`` on it) reads the model pose's block, the carrier's field at the model's pose: a
+screw's output row spans its own block and the first one.  Their outputs are the positioning errors
+``e<AXIS>@<x>`` [m] at ``FEEDBACK_POINTS`` positions over each axis' travel.
 
-The result is one :class:`~hybridcomp.rom.reduced.ReducedModel`, block diagonal: the model pose's reduced model
-first, unchanged (its sensors and drift are the first outputs, so everything that reads a reduced model reads this
-one), then per further support pose its drift ``dx@k``, ``dy@k``, ``dz@k``, then the screws.  ``meta["poses"]``
+The result is one :class:`~hybridcomp.rom.reduced.ReducedModel`, block diagonal but for the screws' output rows:
+the model pose's reduced model first, unchanged (its sensors and drift are the first outputs, so everything that
+reads a reduced model reads this one), then per further support pose its drift ``dx@k``, ``dy@k``, ``dz@k``, then
+the screws.  ``meta["poses"]``
 holds the grid, ``meta["feedback"]`` the drives; :func:`drift_along` gives the drift, TCP minus table, at the axis
-positions of every time: the support poses interpolated plus every drive's error at its axis' position.
+positions of every time: the support poses interpolated plus every drive's added error at its axis' position.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import time
 import numpy as np
 import scipy.linalg as la
 
-from hybridcomp.fem.drives import build_screw, scale_line
+from hybridcomp.fem.drives import drive_error
 from hybridcomp.fem.iso230 import axis_sign
 from hybridcomp.fem.operators import ThermalOperators
 from hybridcomp.fem.poses import PoseGrid, carry_field, pose_grid
@@ -87,7 +90,7 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     ns = len(model.sensor_names)
     tol = np.r_[np.full(ns, rom.meta.get("tol_K", 0.05)), np.full(3, rom.meta.get("tol_um", 0.2) * 1e-6)]
     blocks, names, orders = [], [], [rom.order]
-    mid_C, mid_names, feedback = rom.C, (), {}
+    mid_C, mid_names, feedback, spans = rom.C, (), {}, []
     h_range = tuple(rom.meta.get("h_range", (0.5, 2.0)))
     jobs = [(model, rom.V, grid.pose_mm(k), enrich, tol, scale, h_range, ns) for k in range(1, len(grid.poses))]
     for k, block in enumerate(_run_jobs(jobs, workers, scheduler, progress), start=1):
@@ -100,20 +103,25 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
         feedback[drive.axis] = {"feedback": drive.feedback, "positions_mm": positions.tolist(), "outputs": list(out),
                                 "direction": machine.axis(drive.axis).direction,
                                 "sign": axis_sign(machine, drive.axis)}
-        if drive.feedback == "linear_scale":  # the carrier's field at the model's pose: rows of the first block
-            mid_C = np.vstack([mid_C, scale_line(model, drive).error_rows(positions) @ rom.V * 1e-6])
+        err = drive_error(model, drive)  # the error the drive adds beyond the structure (fem.drives)
+        carrier = err.fe_rows(positions) @ rom.V * 1e-6  # the carrier's field at the model's pose: the first block
+        if err.screw is None:  # a linear scale: rows of the first block only
+            mid_C = np.vstack([mid_C, carrier])
             mid_names += out
             continue
-        screw = build_screw(machine, drive)
+        screw = err.screw
         z = machine.layout().zones.index(drive.screw_zone)
         h_zone = float(rom.h_W_m2K[z])
         Hs = np.zeros((len(rom.h_W_m2K),) + screw.M.shape)
-        Hs[z] = screw.H.toarray() / h_zone  # so that h_zone * Hs[z] is the screw's own convection
+        # so that h_zone * Hs[z] is the screw's own convection and its bearings' conductance (both to the zone's
+        # air; a changed zone coefficient scales the bearings' conductance too)
+        Hs[z] = (screw.H + screw.G).toarray() / h_zone
         m = len(machine.layout().heat_inputs)
         blocks.append((screw.M.toarray(), screw.K.toarray(), Hs, screw.Bu[:, :m], Hs.sum(axis=2).T,
-                       screw.error_rows(positions) * 1e-6))
+                       err.screw_rows(positions) * 1e-6))
         names += out
         orders.append(screw.s_mm.size)
+        spans.append((out, carrier))  # these outputs' rows span the screw's block and the first one
     M = la.block_diag(rom.M, *(b[0] for b in blocks))
     K = la.block_diag(rom.K, *(b[1] for b in blocks))
     H = np.array([la.block_diag(rom.H[i], *(b[2][i] for b in blocks)) for i in range(len(rom.h_W_m2K))])
@@ -121,13 +129,16 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     B = np.vstack([rom.B] + [b[3] for b in blocks])
     Hb = np.vstack([rom.Hb] + [b[4] for b in blocks])
     C = la.block_diag(mid_C, *(b[5] for b in blocks))
+    all_names = tuple(rom.output_names) + mid_names + tuple(names)
+    for out, carrier in spans:
+        C[[all_names.index(n) for n in out], :rom.order] += carrier
     meta = {**rom.meta, "poses": grid.as_dict() | {"orders": orders, "enrich": enrich,
                                                    "build_s": time.perf_counter() - t0},
             "feedback": feedback}
     D = None if rom.D is None else np.vstack([rom.D, np.zeros((M.shape[0] - rom.order, rom.D.shape[1]))])
     return ReducedModel(ThermalOperators(M=M, K=K, H=H, h_W_m2K=np.asarray(rom.h_W_m2K, float), B=B, Hb=Hb, C=C,
                                          input_names=rom.input_names,
-                                         output_names=tuple(rom.output_names) + mid_names + tuple(names)),
+                                         output_names=all_names),
                         D=D, disturbance_names=tuple(rom.disturbance_names) if rom.D is not None else (), meta=meta)
 
 
@@ -215,15 +226,16 @@ def grid_of(rom: ReducedModel) -> PoseGrid:
 def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray, feedback: bool = True) -> np.ndarray:
     """The drift [µm] (nt × 3), TCP minus table, at the axis positions of every row, from a pose-aware model.
 
-    The structure's drift interpolated between the support poses, plus (``feedback``) every drive's positioning
-    error at its axis' position (linear between its output positions), with the sign of the side the axis moves.
+    The structure's drift interpolated between the support poses, plus (``feedback``) the positioning error every
+    drive adds to it at its axis' position (linear between its output positions; the feedback's length less the
+    carrier's, :class:`hybridcomp.fem.drives.DriveError`), with the sign of the side the axis moves.
 
     Parameters
     ----------
     rom : a pose-aware reduced model (:func:`reduce_at_poses`)
     Y : its outputs (nt × q), from :meth:`~hybridcomp.rom.reduced.ReducedModel.integrate`
     positions_mm : axis positions per row (nt × axes, machine order), or one row for every time [mm]
-    feedback : add the drives' positioning errors
+    feedback : add the drives' added positioning errors
     """
     grid = grid_of(rom)
     ns = int(rom.meta["n_sensors"])

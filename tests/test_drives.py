@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from hybridcomp.cli import main
-from hybridcomp.fem.drives import build_screw, integral_weights, scale_line
-from hybridcomp.fem.iso230 import axis_sign, etve_test, moving_axis_test
+from hybridcomp.fem.drives import build_screw, drive_error, integral_weights
+from hybridcomp.fem.iso230 import axis_sign, etve_loads, moving_axis_test
 from hybridcomp.fem.model import build_model
 from hybridcomp.models import MachineFileError, load_machine
 from tests.test_machine_file import VMC800, append, assert_names, edit, load_error
@@ -44,7 +44,7 @@ def test_uniform_screw_rise_gives_alpha_dT_times_distance_from_fixed_bearing(vmc
     screw = build_screw(vmc, vmc.drive(axis))
     dT = 3.7
     p = _positions(vmc, axis)
-    got = screw.error_rows(p) @ np.full(screw.s_mm.size, dT)
+    got = screw.elongation_rows(p) @ np.full(screw.s_mm.size, dT)
     x_nut = vmc.heat_source(vmc.drive(axis).nut).position_mm[vmc.axis(axis).direction] + p
     want = ALPHA_STEEL * dT * (x_nut - screw.s_fixed_mm) * 1e3
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)
@@ -56,18 +56,19 @@ def test_linear_gradient_along_the_screw_gives_the_closed_form_integral(vmc):
     a, b = 1.5, 4e-3  # ΔT(s) = a + b s [K], s in mm
     p = _positions(vmc, "Y")  # off the nodes
     s = screw.nut_mm(p)
-    got = screw.error_rows(p) @ (a + b * screw.s_mm)
+    got = screw.elongation_rows(p) @ (a + b * screw.s_mm)
     sf = screw.s_fixed_mm
     want = ALPHA_STEEL * (a * (s - sf) + b * (s**2 - sf**2) / 2) * 1e3
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)
 
 
-def test_linear_scale_on_a_uniformly_heated_carrier_expands_with_its_own_alpha(vmc, model):
+def test_linear_scale_on_a_uniformly_heated_carrier_adds_its_alpha_less_the_carriers(vmc, model):
     drive = vmc.drive("Z")
     dT = 2.3
     p = _positions(vmc, "Z")
-    got = scale_line(model, drive).error_rows(p) @ np.full(model.n, dT)
-    want = drive.scale_expansion_1_K * dT * (drive.scale_head_at_mm + p - drive.scale_fixed_at_mm) * 1e3
+    got = drive_error(model, drive).error_um(p, np.full(model.n, dT))
+    alpha_column = vmc.materials[vmc.body(drive.scale_body).material].expansion_1_K
+    want = (drive.scale_expansion_1_K - alpha_column) * dT * (drive.scale_head_at_mm + p - drive.scale_fixed_at_mm) * 1e3
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)
 
 
@@ -78,17 +79,15 @@ def test_a_pre_stretched_screw_keeps_its_length(tmp_path):
     m = load_machine(path)
     screw = build_screw(m, m.drive("X"))
     p = _positions(m, "X")
-    # uniform: the bearings hold the length, no error anywhere; the pre-stretch left is the stretch less α ΔT L
-    np.testing.assert_allclose(screw.error_rows(p) @ np.full(screw.s_mm.size, 5.0), 0.0, atol=1e-9)
-    np.testing.assert_allclose(screw.prestretch_left_um(np.full(screw.s_mm.size, 5.0)),
-                               40.0 - ALPHA_STEEL * 5.0 * screw.length_mm * 1e3, rtol=1e-9)
+    # uniform: the bearings hold the length, the screw's share is no error anywhere
+    np.testing.assert_allclose(screw.elongation_rows(p) @ np.full(screw.s_mm.size, 5.0), 0.0, atol=1e-9)
     # linear gradient: the free elongation less the share of the mean the nut's distance takes
     b = 6e-3
     s, sf, so = screw.nut_mm(p), screw.s_fixed_mm, screw.s_other_mm
     free = b * (s**2 - sf**2) / 2
     whole = b * (so**2 - sf**2) / 2
     want = ALPHA_STEEL * (free - (s - sf) / (so - sf) * whole) * 1e3
-    np.testing.assert_allclose(screw.error_rows(p) @ (b * screw.s_mm), want, rtol=1e-6)
+    np.testing.assert_allclose(screw.elongation_rows(p) @ (b * screw.s_mm), want, rtol=1e-6)
 
 
 def test_integral_weights_are_exact_and_signed():
@@ -143,7 +142,7 @@ def test_screw_error_converges_at_second_order_in_the_element_length(vmc):
     u[layout.source_columns(drive.fixed_bearing)[0]] = 15.0
     u[list(layout.source_columns(drive.nut))] = [2.0, 8.0, 1.0, 4.0]
     p = [-333.3, 123.4]
-    e = {h: build_screw(vmc, drive, h).error_rows(p) @ build_screw(vmc, drive, h).steady(u) for h in (20, 10, 5, 1.25)}
+    e = {h: build_screw(vmc, drive, h).elongation_rows(p) @ build_screw(vmc, drive, h).steady(u) for h in (20, 10, 5, 1.25)}
     e1, e2 = np.abs(e[20] - e[1.25]).max(), np.abs(e[10] - e[1.25]).max()
     e3 = np.abs(e[5] - e[1.25]).max()
     assert e1 / e2 > 3.0 and e2 / e3 > 3.0, (e1, e2, e3)
@@ -212,16 +211,18 @@ def test_moving_axis_test_error_grows_with_travel_for_encoders_not_for_the_scale
     assert axis_sign(vmc, "X") == -1 and axis_sign(vmc, "Z") == 1
 
 
-def test_etve_screw_follows_the_air_with_its_first_order_lag(vmc, model):
+def test_etve_screw_follows_the_air_with_its_first_order_lag(vmc):
+    """The screw's share of the ETVE error: the free expansion through the screw's first-order lag."""
     drive = vmc.drive("X")
     mat = vmc.materials[drive.screw_material]
     tau = mat.density_kg_m3 * mat.specific_heat_J_kgK * drive.screw_diameter_mm * 1e-3 / (4 * drive.screw_h_W_m2K)
     omega = 2 * np.pi / (24 * 3600)
-    res = etve_test(model, hours=48, amplitude_K=2.0, period_h=24, step_s=300)
+    loads = etve_loads(vmc, 48, 2.0, 24, 300)
     screw = build_screw(vmc, drive)
+    e = screw.temperature_rise_of_loads(loads) @ screw.elongation_rows(vmc.axis("X").travel_mm).T
     length = screw.nut_mm(vmc.axis("X").travel_mm[1]) - screw.s_fixed_mm
     want = 2 * 2.0 * ALPHA_STEEL * length * 1e3 / np.hypot(1, omega * tau)
-    got = np.ptp(res.feedback_um["X"][res.time_s > 24 * 3600, 1])  # the second day: the start has died out
+    got = np.ptp(e[loads.time_s > 24 * 3600, 1])  # the second day: the start has died out
     assert got == pytest.approx(want, rel=0.01)
 
 

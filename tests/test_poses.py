@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hybridcomp.cli import main
-from hybridcomp.fem.drives import build_screw, scale_line
+from hybridcomp.fem.drives import drive_error
 from hybridcomp.fem.loads import example_loads
 from hybridcomp.fem.mesh import mesh_machine
 from hybridcomp.fem.model import build_model
@@ -123,11 +123,11 @@ def test_pose_aware_rom_carries_the_drives_exactly(vmc, model, pose_rom, loads):
     for axis in "XYZ":
         fb = pr.meta["feedback"][axis]
         got = y[[pr.output_names.index(n) for n in fb["outputs"]]] * 1e6
+        err = drive_error(model, vmc.drive(axis))  # the carrier (and a scale) on the model pose's field
         if fb["feedback"] == "rotary_encoder":  # the screw's own block: its steady state is the screw model's
-            screw = build_screw(vmc, vmc.drive(axis))
-            want = screw.error_rows(fb["positions_mm"]) @ screw.steady(u)
-        else:  # the scale on the model pose's field
-            want = scale_line(model, vmc.drive(axis)).error_rows(fb["positions_mm"]) @ (rom.V @ x_mid)
+            want = err.error_um(fb["positions_mm"], rom.V @ x_mid, err.screw.steady(u))
+        else:
+            want = err.error_um(fb["positions_mm"], rom.V @ x_mid)
         np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-9)
     # along a path the drift is the structure's plus each drive's error, signed by the side the axis moves
     Y = y[None, :]
@@ -139,6 +139,27 @@ def test_pose_aware_rom_carries_the_drives_exactly(vmc, model, pose_rom, loads):
     e_z = np.interp(77.0, fb_z["positions_mm"], y[[pr.output_names.index(n) for n in fb_z["outputs"]]] * 1e6)
     assert with_fb[0, 0] - without[0, 0] == pytest.approx(-e_x, rel=1e-12)  # X moves the table
     assert with_fb[0, 2] - without[0, 2] == pytest.approx(e_z, rel=1e-12)  # Z moves the tool
+
+
+@pytest.mark.slow
+def test_pose_aware_rom_uniform_air_rise_gives_the_feedbacks_alpha_along_each_axis(vmc, pose_rom):
+    """All zones' air +1 K, no heat, steady: a uniform rise; along each axis the drift grows with the feedback's α
+    alone (X, Y the steel screws on the table side, Z the glass scale on the tool side), as on the FE model
+    (tests/test_drive_physics.py): the structure holds the carrier's cast iron, the drives add the difference."""
+    from tests.test_drive_physics import FEEDBACK_ALPHA, SIGN, STRUCTURE_TOL_UM_PER_M, slope_um_per_m
+
+    _, pr = pose_rom
+    layout = pr.layout()
+    u = np.zeros(layout.n_inputs)
+    u[len(layout.heat_inputs):] = 1.0
+    Y = pr.outputs(pr.steady_state(u))[None, :]
+    for i, axis in enumerate(a.name for a in vmc.axes):
+        p = np.linspace(*vmc.axis(axis).travel_mm, 5)
+        at = np.zeros((p.size, 3))
+        at[:, i] = p
+        d = np.array([drift_along(pr, Y, row[None])[0, i] for row in at])
+        assert slope_um_per_m(p, d) == pytest.approx(SIGN[axis] * FEEDBACK_ALPHA[axis] * 1e6,
+                                                     abs=STRUCTURE_TOL_UM_PER_M), axis
 
 
 @pytest.mark.slow
