@@ -631,8 +631,7 @@ def _along_path(out: Path, models: Models, controller: Path, t, loads, real_load
     known = [j for j, n in enumerate(real_loads.names) if n in layout.columns]
     values = np.column_stack([np.interp(t, real_loads.time_s, real_loads.values[:, j]) for j in known])
     Y_real, _ = prom.integrate(t, layout.inputs([real_loads.names[j] for j in known], values, "real machine"))
-    ns = len(layout.sensors)
-    added = drift_along(prom, Y_real, positions) - Y_real[:, ns:ns + 3] * 1e6
+    added = drift_along(prom, Y_real, positions) - prom.output_layout().take(Y_real, "drift") * 1e6
     truth_path = truth + added
     Y, _ = prom.integrate(t, layout.inputs(loads.names, loads.values, "loads"))
     path_preds = {k: p for k, p in preds.items() if k != BOUND} | {PATH_STRATEGY: drift_along(prom, Y, positions)}
