@@ -41,7 +41,7 @@ def prepare_model(machine, *, rom=None, model=None, element_size_mm: float | Non
     if rom is not None and rom.meta.get("poses"):
         raise ValueError("a pose-aware reduced model (reduce --poses) cannot be diagnosed: give the diagnosis the "
                          "model pose's reduced model (reduce without --poses)")
-    if rom is not None and any("@" in n for n in rom.output_names):
+    if rom is not None and rom.output_layout().bodies:
         body_rows = False  # already has per-body drift rows
     if model is None and (rom is None or (body_rows and rom.V is not None)):
         model = build_model(machine, pose_mm, element_size_mm)
@@ -77,8 +77,7 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
         split = parse_split(split, dataset.time_s)
     if rom is None:
         rom = prepare_model(machine)
-    bodies = tuple(dict.fromkeys(n.split("@", 1)[1] for n in rom.output_names if "@" in n))
-    problem = build_problem(machine, rom, dataset, split, bodies, tolerance)
+    problem = build_problem(machine, rom, dataset, split, None, tolerance)
     cands = library(problem, kinds)
     log.info("%d candidate effects", len(cands))
     with single_blas_thread():

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hybridcomp.diagnose.problem import DRIFT, Problem, Setup, activity_mask, first_order_lag
+from hybridcomp.diagnose.problem import Problem, Setup, activity_mask, first_order_lag
 
 KINDS = ("ambient_lag", "missing_source", "located_source", "power_scale", "exponent", "htc", "htc_motion", "sensor_lag",
          "sensor_offset", "workspace_offset", "expansion")
@@ -218,8 +218,7 @@ def library(problem: Problem, kinds=None) -> list[Candidate]:
                              physical=((False, False), (True, False))))
 
     if "expansion" in kinds and problem.body_names and any(c.endswith("_um") for c in problem.channels):
-        out_names = list(problem.rom.output_names)
-        drift_rows = [out_names.index(d) for d in DRIFT]
+        drift_rows = list(problem.rom.output_layout().drift_indices)
         for b in problem.body_names:
             mat = m.materials[m.body(b).material]
             a0 = mat.expansion_1_K * 1e6

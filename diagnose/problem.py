@@ -19,11 +19,10 @@ from scipy.signal import lfilter
 
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, check_channels
 from hybridcomp.diagnose.metrics import noise_level
-from hybridcomp.models.layout import DRIFT_COLUMNS, DRIFT_OUTPUTS
+from hybridcomp.models.layout import DRIFT_COLUMNS, body_output_names
 
 log = logging.getLogger(__name__)
 
-DRIFT = DRIFT_OUTPUTS
 # noise floors: below these a channel's noise estimate is not trusted (quantisation, smoothing)
 NOISE_FLOOR = {"degC": 0.002, "um": 0.02}
 
@@ -115,13 +114,9 @@ class Problem:
     def is_temperature(self, c: int) -> bool:
         return self.channels[c].endswith("_degC")
 
-    def n_base_outputs(self) -> int:
-        return len(self.rom.output_names) - 3 * len(self.body_names)
-
     def body_rows(self, body: str) -> list[int]:
-        q = self.n_base_outputs()
-        i = self.body_names.index(body)
-        return [q + 3 * i + d for d in range(3)]
+        """The reduced model's outputs of one body's share of the drift (dx, dy, dz)."""
+        return list(self.rom.output_layout().body_indices(body))
 
 
 def first_order_lag(time_s: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
@@ -181,7 +176,7 @@ def with_body_rows(rom, bodies: tuple[str, ...], rows: np.ndarray):
     if rom.V is None:
         raise ValueError("the reduced model has no basis V: per-body drift rows cannot be projected")
     extra = np.vstack([rows[i] @ rom.V for i in range(len(bodies))])
-    names = tuple(f"{d}@{b}" for b in bodies for d in DRIFT)
+    names = tuple(n for b in bodies for n in body_output_names(b))
     return rom.with_operators(C=np.vstack([rom.C, extra]), output_names=tuple(rom.output_names) + names)
 
 
@@ -191,7 +186,7 @@ def _factor(machine, s, P: np.ndarray) -> np.ndarray | None:
     return np.clip(P / s.power_W, 0.0, 1.0) ** (1.0 / s.exponent)
 
 
-def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tuple[str, ...] = (),
+def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tuple[str, ...] | None = (),
                   tolerance: tuple[float, float] = (0.0, 0.0)) -> Problem:
     """Model inputs, measured channels, noise levels and activity signals of a dataset.
 
@@ -201,7 +196,8 @@ def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tupl
     sensors ``<sensor>_degC`` and ``dx_um``, ``dy_um``, ``dz_um`` present in the dataset.
 
     ``tolerance`` = (K, µm): the residual the model itself may leave (its reduction error); a channel
-    whose residual is below it counts as explained.
+    whose residual is below it counts as explained.  ``body_names``: the bodies whose drift rows the
+    expansion effects use (None: every body the reduced model has rows of).
 
     Raises
     ------
@@ -220,12 +216,7 @@ def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tupl
             f"{dataset.source}: no heat-input column of machine {machine.name!r} ({', '.join(heat_cols[:4])}, ...){hint}; "
             "columns found: " + ", ".join(dataset.names)
         )
-    out_names = list(rom.output_names)
-    channels, idx = [], []
-    for name, col in zip(layout.output_names, layout.output_columns):
-        if col in dataset:
-            channels.append(col)
-            idx.append(out_names.index(name))
+    channels = [c for c in layout.output_columns if c in dataset]
     if not channels:
         raise DatasetError(
             f"{dataset.source}: no measured channel: expected sensor columns "
@@ -234,6 +225,14 @@ def build_problem(machine, rom, dataset: Dataset, split: Split, body_names: tupl
     check_channels(dataset, channels, split)
     if tuple(names) != layout.columns:
         raise DatasetError(f"{dataset.source}: the reduced model's inputs are not those of machine {machine.name!r}")
+    outputs = rom.output_layout()
+    if outputs.sensors != layout.sensors:
+        raise DatasetError(f"{dataset.source}: the reduced model's sensors are not those of machine {machine.name!r}")
+    row = dict(zip(outputs.columns("sensors") + outputs.columns("drift"),
+                   outputs.indices("sensors") + outputs.indices("drift")))
+    idx = [row[c] for c in channels]
+    if body_names is None:
+        body_names = outputs.bodies
     for n in present:
         if np.any(dataset[n] < 0):
             raise DatasetError(f"{dataset.source}: column {n!r}: a heat power cannot be negative, got {dataset[n].min()}")

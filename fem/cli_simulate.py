@@ -112,7 +112,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--rom", type=Path, metavar="ROM.npz",
                    help="simulate with this reduced model (from 'hybridcomp reduce') instead of FE: exact stepping, "
-                   "same outputs.csv; the ROM must come from the --machine file as it is now")
+                   "same outputs.csv (the sensors and the drift at the model's pose); a pose-aware model (reduce "
+                   "--poses) also writes poses.csv (pose<k>_dx_um, _dy_um, _dz_um: the drift at support pose k, "
+                   "whose axis positions run.json lists under support_poses_mm) and feedback.csv "
+                   "(<axis>_feedback_um@<x>: each drive's positioning error at axis position x [mm]); every table's "
+                   "header names its columns. The ROM must come from the --machine file as it is now")
 
 
 def stored_steps(args: argparse.Namespace, nt: int) -> tuple[int, ...]:

@@ -740,10 +740,8 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
 
 
 def _tcp_um(rom, Y: np.ndarray) -> np.ndarray:
-    """The TCP drift outputs [µm] (nt × 3) of a reduced model's outputs ``Y``."""
-    from hybridcomp.models.layout import DRIFT_OUTPUTS
-
-    return Y[:, [list(rom.output_names).index(n) for n in DRIFT_OUTPUTS]] * 1e6
+    """The TCP drift at the model's pose [µm] (nt × 3) of a reduced model's outputs ``Y``."""
+    return rom.output_layout().take(Y, "drift") * 1e6
 
 
 def real_pose_model(real_model, order: int | None = None):

@@ -14,7 +14,7 @@ refuse_top_level_import(__name__)  # hybridcomp.<package>, never the folder's ow
 __all__, __getattr__, __dir__ = lazy_exports(__name__, {
     "layout": (
         "COORDINATES", "DIRECTIONS", "DRIFT_COLUMNS", "DRIFT_OUTPUTS", "InputLayout", "Loads", "LoadsColumnError",
-        "heat_input_name", "in_model_order", "input_layout",
+        "OutputLayout", "OutputLayoutError", "heat_input_name", "in_model_order", "input_layout", "output_layout",
     ),
     "machine": ("Axis", "Body", "HeatSource", "Machine", "MachineFileError", "Material", "Point", "Support", "Zone"),
     "loader": ("bundled_machines", "load_machine", "parse_machine"),

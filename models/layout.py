@@ -7,8 +7,10 @@ A machine model (FE or reduced) has inputs, in this order:
 * one air temperature per convection zone — loads column ``<zone>_degC`` [°C]; the model
   itself takes the rise over the reference temperature [K];
 
-and outputs: one temperature per sensor (column ``<sensor>_degC`` [°C]) and the TCP-minus-table
-drift in three directions.  Directions have one spelling per layer:
+and outputs (:class:`OutputLayout`), in typed groups: one temperature per sensor (column ``<sensor>_degC``
+[°C]), the TCP-minus-table drift in three directions at the model's pose, and in a pose-aware reduced model the drift
+at every further support pose and every drive's positioning error, in a diagnosis' model each body's share of the
+drift.  Directions have one spelling per layer:
 
 =======================  ======================  ==================================================
 layer                    spelling                where
@@ -19,8 +21,10 @@ model outputs (SI)       ``dx``, ``dy``, ``dz``   :data:`DRIFT_OUTPUTS`: FE/ROM 
 files, tables, sinks     ``dx_um`` …              :data:`DRIFT_COLUMNS`: CSV columns, offsets [µm]
 =======================  ======================  ==================================================
 
-This module builds every heat-input name (:func:`heat_input_name`) and maps named columns to
-model inputs (:meth:`InputLayout.inputs`); no other module does either.
+This module builds every heat-input name (:func:`heat_input_name`) and every output name beyond the sensors and
+the drift (:func:`pose_output_names`, :func:`feedback_output_names`, :func:`body_output_names`), maps named columns to
+model inputs (:meth:`InputLayout.inputs`) and finds a model's outputs by group (:func:`output_layout`); no other
+module does any of these.
 """
 
 from __future__ import annotations
@@ -420,8 +424,241 @@ def layout_from_names(input_names: Sequence[str], output_names: Sequence[str],
             [temperature_column(z) for z in zones]:
         raise LoadsColumnError(f"input names {list(input_names)} are not heat inputs (*_W) followed by zones (*_degC)")
     outputs = tuple(output_names)
-    ns = outputs.index(DRIFT_OUTPUTS[0]) if DRIFT_OUTPUTS[0] in outputs else -1
-    if ns < 0 or outputs[ns:ns + 3] != DRIFT_OUTPUTS:
+    ns = _drift_start(outputs)
+    if ns < 0:
         raise LoadsColumnError(f"output names {list(outputs)} have no {', '.join(DRIFT_OUTPUTS)} after the sensors")
     return InputLayout(tuple(heat), tuple(zones), ("ambient",) * len(zones), outputs[:ns],
                        float(reference_temperature_degC), model=model)
+
+
+# -- outputs ---------------------------------------------------------------------------------------
+#: the output groups of a model, in model order (:meth:`OutputLayout.indices`)
+OUTPUT_GROUPS = ("sensors", "drift", "poses", "feedback", "bodies")
+
+
+class OutputLayoutError(HybridcompError, ValueError):
+    """A model's output names and metadata do not form the typed groups; the message names the output or field."""
+
+
+def pose_output_names(k: int) -> tuple[str, ...]:
+    """Output names of the drift at support pose ``k`` (k ≥ 1) of a pose-aware model: ``dx@k``, ``dy@k``, ``dz@k`` [m]."""
+    return tuple(f"{d}@{k}" for d in DRIFT_OUTPUTS)
+
+
+def feedback_output_names(axis: str, positions_mm: Sequence[float]) -> tuple[str, ...]:
+    """Output names of a drive's positioning error at positions over its axis' travel: ``e<axis>@<x>`` [m]."""
+    return tuple(f"e{axis}@{p:g}" for p in positions_mm)
+
+
+def body_output_names(body: str) -> tuple[str, ...]:
+    """Output names of one body's share of the drift (a diagnosis' expansion rows): ``dx@<body>`` … [m]."""
+    return tuple(f"{d}@{body}" for d in DRIFT_OUTPUTS)
+
+
+@dataclass(frozen=True)
+class FeedbackOutputs:
+    """One drive's positioning-error outputs [m], at positions over its axis' travel (linear between them).
+
+    Attributes
+    ----------
+    axis : the axis (``X``)
+    feedback : the drive's feedback kind (``rotary_encoder``, ``linear_scale``)
+    positions_mm : axis positions of the outputs [mm]
+    names : output names, one per position
+    indices : output indices, one per position
+    direction : the drift direction the error adds to (0, 1, 2: dx, dy, dz)
+    sign : +1 when the axis moves the tool, -1 when it moves the table
+    """
+
+    axis: str
+    feedback: str
+    positions_mm: tuple[float, ...]
+    names: tuple[str, ...]
+    indices: tuple[int, ...]
+    direction: int
+    sign: float
+
+
+@dataclass(frozen=True)
+class OutputLayout:
+    """A model's outputs in typed groups, each found by name (:func:`output_layout`); no output is found by position.
+
+    Groups (:data:`OUTPUT_GROUPS`): ``sensors`` (temperature rises [K]), ``drift`` (dx, dy, dz at the model's pose
+    [m]), ``poses`` (dx, dy, dz at support pose k = 1 … of a pose-aware model [m]), ``feedback`` (each drive's
+    positioning error over its travel [m]) and ``bodies`` (each body's share of the drift, a diagnosis' rows [m]).
+
+    Attributes
+    ----------
+    names : every output name in model order
+    sensors : sensor names, in output order
+    sensor_indices : output index per sensor
+    drift_indices : output indices of dx, dy, dz at the model's pose
+    pose_rows : per support pose k = 1, 2, … the output indices of its dx, dy, dz
+    feedback : per drive its :class:`FeedbackOutputs`, in the model's order
+    body_rows : per body its name and the output indices of its dx, dy, dz
+    """
+
+    names: tuple[str, ...]
+    sensors: tuple[str, ...]
+    sensor_indices: tuple[int, ...]
+    drift_indices: tuple[int, int, int]
+    pose_rows: tuple[tuple[int, int, int], ...] = ()
+    feedback: tuple[FeedbackOutputs, ...] = ()
+    body_rows: tuple[tuple[str, tuple[int, int, int]], ...] = ()
+
+    @property
+    def n_poses(self) -> int:
+        """Poses whose drift is an output: the model's own (k = 0) and every support pose."""
+        return 1 + len(self.pose_rows)
+
+    @property
+    def bodies(self) -> tuple[str, ...]:
+        return tuple(b for b, _ in self.body_rows)
+
+    @property
+    def feedback_axes(self) -> tuple[str, ...]:
+        return tuple(f.axis for f in self.feedback)
+
+    def pose_indices(self, k: int) -> tuple[int, int, int]:
+        """Output indices of dx, dy, dz at pose ``k``: 0 the model's pose, 1 … the support poses."""
+        if not 0 <= k < self.n_poses:
+            raise OutputLayoutError(f"pose {k} has no drift outputs: the model has poses 0 … {self.n_poses - 1}")
+        return self.drift_indices if k == 0 else self.pose_rows[k - 1]
+
+    def feedback_of(self, axis: str) -> FeedbackOutputs:
+        """The positioning-error outputs of the drive of ``axis``."""
+        for f in self.feedback:
+            if f.axis == axis:
+                return f
+        raise OutputLayoutError(f"axis {axis!r} has no positioning-error outputs "
+                                f"(axes with outputs: {', '.join(self.feedback_axes) or 'none'})")
+
+    def body_indices(self, body: str) -> tuple[int, int, int]:
+        """Output indices of dx, dy, dz of one body's share of the drift."""
+        for b, rows in self.body_rows:
+            if b == body:
+                return rows
+        raise OutputLayoutError(f"body {body!r} has no drift outputs (bodies with outputs: {', '.join(self.bodies) or 'none'})")
+
+    def indices(self, group: str, key: str | int | None = None) -> tuple[int, ...]:
+        """Output indices of a group (:data:`OUTPUT_GROUPS`) or of one member of it.
+
+        ``key``: a sensor name, a support pose k ≥ 1, an axis, a body.  A whole group's indices are in the order of
+        :meth:`columns`.
+        """
+        if group == "sensors":
+            return self.sensor_indices if key is None else (self.sensor_indices[self._member(self.sensors, key, group)],)
+        if group == "drift":
+            if key is not None:
+                raise OutputLayoutError("the drift group has no members: indices('drift') gives dx, dy, dz")
+            return self.drift_indices
+        if group == "poses":
+            if key is None:
+                return tuple(i for rows in self.pose_rows for i in rows)
+            if not (isinstance(key, int) and key >= 1):
+                raise OutputLayoutError(f"a support pose is a number k ≥ 1, got {key!r} (pose 0 is the 'drift' group)")
+            return self.pose_indices(key)
+        if group == "feedback":
+            return tuple(i for f in self.feedback for i in f.indices) if key is None else self.feedback_of(key).indices
+        if group == "bodies":
+            return tuple(i for _, rows in self.body_rows for i in rows) if key is None else self.body_indices(key)
+        raise OutputLayoutError(f"unknown output group {group!r} (groups: {', '.join(OUTPUT_GROUPS)})")
+
+    def columns(self, group: str) -> tuple[str, ...]:
+        """Table columns of a whole group, in the order of :meth:`indices`, in file units.
+
+        ``<sensor>_degC`` [°C]; ``dx_um`` …; ``pose<k>_dx_um`` …; ``<axis>_feedback_um@<x>`` (``x`` the axis
+        position [mm]); ``<body>_dx_um`` … (drifts and errors [µm]).
+        """
+        if group == "sensors":
+            return tuple(temperature_column(s) for s in self.sensors)
+        if group == "drift":
+            return DRIFT_COLUMNS
+        if group == "poses":
+            return tuple(f"pose{k}_{c}" for k in range(1, self.n_poses) for c in DRIFT_COLUMNS)
+        if group == "feedback":
+            return tuple(f"{f.axis}_feedback_um@{p:g}" for f in self.feedback for p in f.positions_mm)
+        if group == "bodies":
+            return tuple(f"{b}_{c}" for b in self.bodies for c in DRIFT_COLUMNS)
+        raise OutputLayoutError(f"unknown output group {group!r} (groups: {', '.join(OUTPUT_GROUPS)})")
+
+    def take(self, Y: np.ndarray, group: str, key: str | int | None = None) -> np.ndarray:
+        """The columns of outputs ``Y`` (… × outputs, model units) that :meth:`indices` names."""
+        return np.asarray(Y)[..., list(self.indices(group, key))]
+
+    @staticmethod
+    def _member(members: tuple[str, ...], key, group: str) -> int:
+        if key not in members:
+            raise OutputLayoutError(f"{key!r} is not in output group {group!r} ({', '.join(members)})")
+        return members.index(key)
+
+
+def _drift_start(outputs: tuple[str, ...]) -> int:
+    """Index of ``dx`` in output names where ``dx``, ``dy``, ``dz`` follow one another, or -1."""
+    ns = outputs.index(DRIFT_OUTPUTS[0]) if DRIFT_OUTPUTS[0] in outputs else -1
+    return ns if ns >= 0 and outputs[ns:ns + 3] == DRIFT_OUTPUTS else -1
+
+
+def output_layout(output_names: Sequence[str], meta: Mapping | None = None, model: str = "the model") -> OutputLayout:
+    """The typed outputs of a model from its output names and the metadata a reduced model records.
+
+    The names are the sensors, then ``dx``, ``dy``, ``dz`` (the model's pose), then in any order: per support pose
+    k = 1 … n - 1 of ``meta["poses"]["poses"]`` (n poses) :func:`pose_output_names`; per axis of
+    ``meta["feedback"]`` the names its ``"outputs"`` list at its ``"positions_mm"``; per body
+    :func:`body_output_names`.  ``meta["n_sensors"]``, where given, must agree.  Files written before the layout
+    existed carry exactly these names and fields, so they load as they are.
+
+    Raises
+    ------
+    OutputLayoutError
+        no drift after the sensors, a missing or repeated output of a group, or an output no group holds; the message
+        names it and ``model``.
+    """
+    outputs = tuple(output_names)
+    meta = meta or {}
+    ns = _drift_start(outputs)
+    if ns < 0:
+        raise OutputLayoutError(f"{model}: output names {list(outputs)} have no {', '.join(DRIFT_OUTPUTS)} after the sensors")
+    if "n_sensors" in meta and int(meta["n_sensors"]) != ns:
+        raise OutputLayoutError(f"{model}: field 'n_sensors' is {meta['n_sensors']}, but {ns} outputs precede "
+                                f"{', '.join(DRIFT_OUTPUTS)}")
+    index = {n: i for i, n in enumerate(outputs)}
+    if len(index) != len(outputs):
+        twice = next(n for n in outputs if outputs.count(n) > 1)
+        raise OutputLayoutError(f"{model}: output {twice!r} appears more than once")
+    claimed = set(range(ns + 3))
+
+    def find(names: Sequence[str], what: str) -> tuple[int, ...]:
+        missing = [n for n in names if n not in index]
+        if missing:
+            raise OutputLayoutError(f"{model}: output {missing[0]!r} of {what} is missing")
+        rows = tuple(index[n] for n in names)
+        if claimed.intersection(rows):
+            raise OutputLayoutError(f"{model}: output {outputs[min(claimed.intersection(rows))]!r} of {what} "
+                                    "belongs to another group as well")
+        claimed.update(rows)
+        return rows
+
+    poses = meta.get("poses") or {}
+    n_poses = len(poses.get("poses", ()))
+    pose_rows = tuple(find(pose_output_names(k), f"support pose {k}") for k in range(1, n_poses))
+    feedback = []
+    for axis, fb in (meta.get("feedback") or {}).items():
+        names, positions = tuple(fb["outputs"]), tuple(float(p) for p in fb["positions_mm"])
+        if len(names) != len(positions):
+            raise OutputLayoutError(f"{model}: field 'feedback.{axis}' has {len(names)} outputs at "
+                                    f"{len(positions)} positions")
+        feedback.append(FeedbackOutputs(str(axis), str(fb.get("feedback", "")), positions, names,
+                                        find(names, f"axis {axis}'s positioning error"), int(fb["direction"]),
+                                        float(fb["sign"])))
+    bodies = []
+    for i, name in enumerate(outputs):
+        if i in claimed:
+            continue
+        body = name.partition("@")[2]
+        if not body or name != body_output_names(body)[0]:
+            raise OutputLayoutError(f"{model}: output {name!r} belongs to no group (sensors, {', '.join(DRIFT_OUTPUTS)}, "
+                                    "support poses, feedback, bodies)")
+        bodies.append((body, find(body_output_names(body), f"body {body!r}")))
+    return OutputLayout(outputs, outputs[:ns], tuple(range(ns)), (ns, ns + 1, ns + 2), pose_rows, tuple(feedback),
+                        tuple(bodies))

@@ -162,13 +162,36 @@ def write_loads(path: str | Path, loads: Loads) -> None:
 
 def write_outputs(path: str | Path, time_s: np.ndarray, sensor_names, sensors_degC: np.ndarray, drift_um: np.ndarray) -> None:
     """Write the outputs CSV contract: time_s, <sensor>_degC..., dx_um, dy_um, dz_um."""
+    nt, ns = len(time_s), len(sensor_names)
+    sensors_degC, drift_um = np.asarray(sensors_degC, float), np.asarray(drift_um, float)
+    if sensors_degC.shape != (nt, ns) or drift_um.shape != (nt, len(DRIFT_COLUMNS)):
+        raise ValueError(f"{path}: {ns} sensors and {nt} times for sensor values of shape {sensors_degC.shape} and "
+                         f"drift of shape {drift_um.shape}")
+    write_columns(path, time_s, [*(temperature_column(s) for s in sensor_names), *DRIFT_COLUMNS],
+                  np.hstack([sensors_degC, drift_um]))
+
+
+def write_columns(path: str | Path, time_s: np.ndarray, columns, values: np.ndarray) -> None:
+    """Write a time series CSV: ``time_s`` then ``columns`` (their units in their names), one row per time.
+
+    Times with 12 significant digits, values with 6 decimals (the outputs CSV's format).
+
+    Raises
+    ------
+    ValueError
+        ``values`` is not (times × columns): a header that does not match its rows is never written
+    """
+    columns = list(columns)
+    values = np.asarray(values, float)
+    if values.shape != (len(time_s), len(columns)):
+        raise ValueError(f"{path}: {len(columns)} columns and {len(time_s)} times for values of shape {values.shape}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["time_s", *(temperature_column(s) for s in sensor_names), *DRIFT_COLUMNS])
+        w.writerow(["time_s", *columns])
         for k in range(len(time_s)):
-            w.writerow([f"{time_s[k]:.12g}", *(f"{v:.6f}" for v in sensors_degC[k]), *(f"{v:.6f}" for v in drift_um[k])])
+            w.writerow([f"{time_s[k]:.12g}", *(f"{v:.6f}" for v in values[k])])
 
 
 def example_loads(machine: Machine, duration_h: float = 16.0, dt_s: float = 60.0, seed: int = 0) -> Loads:

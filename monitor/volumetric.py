@@ -29,8 +29,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hybridcomp.models.layout import DRIFT_OUTPUTS
-
 
 @dataclass(frozen=True)
 class PoseModel:
@@ -61,8 +59,7 @@ def pose_model(prom, points: int = 3) -> PoseModel:
     from hybridcomp.rom.poses import model_pose_block
     from hybridcomp.rom.volumetric import default_grid, table_operator
 
-    names = list(prom.output_names)
-    tcp = tuple(names.index(n) for n in DRIFT_OUTPUTS)
+    tcp = tuple(prom.output_layout().indices("drift"))
     return PoseModel(prom, model_pose_block(prom), table_operator(prom, default_grid(prom, points)), tcp)
 
 

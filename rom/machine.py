@@ -70,9 +70,8 @@ def to_reduced(system: ThermalSystem, red: Reduction, meta: dict, keep_basis: bo
 
 def split_outputs(rom: ReducedModel, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Machine ROM outputs (nt × q) → sensor temperatures [°C] and drift [µm]."""
-    layout = rom.layout()
-    ns = len(layout.sensors)
-    return Y[:, :ns] + layout.reference_temperature_degC, Y[:, ns:ns + 3] * 1e6
+    outputs = rom.output_layout()
+    return outputs.take(Y, "sensors") + rom.layout().reference_temperature_degC, outputs.take(Y, "drift") * 1e6
 
 
 def inputs_from_columns(rom: ReducedModel, names, values: np.ndarray, source: str = "loads") -> np.ndarray:

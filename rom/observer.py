@@ -41,9 +41,11 @@ import scipy.linalg as la
 
 from hybridcomp.errors import HybridcompError
 from hybridcomp.fem.blas import single_blas_thread
+from hybridcomp.models.layout import DRIFT_OUTPUTS
 from hybridcomp.models.toml import nonnegative_number
 
-DRIFT_OUTPUTS = 3
+#: drift directions dx, dy, dz: the probed values and the bias states
+N_DRIFT = len(DRIFT_OUTPUTS)
 
 
 class ObserverError(HybridcompError, ValueError):
@@ -191,7 +193,7 @@ class Observer:
     @property
     def sizes(self) -> dict[str, int]:
         return {"z": self.r, "air": len(self.zone_names), "scale": len(self.source_names),
-                "heat": len(self.disturbance_names), "bias": DRIFT_OUTPUTS}
+                "heat": len(self.disturbance_names), "bias": N_DRIFT}
 
     def slices(self) -> dict[str, slice]:
         out, k = {}, 0
@@ -314,8 +316,8 @@ class Observer:
     def update_probe(self, state: ObserverState, drift_um: Sequence[float], sigma_um: float | None = None) -> ObserverState:
         """Correct the estimate with a measured drift dx, dy, dz [µm] (NaN: a direction not probed)."""
         d = np.asarray(drift_um, float)
-        if d.shape != (DRIFT_OUTPUTS,):
-            raise ObserverError(f"a probed drift has {DRIFT_OUTPUTS} values (dx, dy, dz), got shape {d.shape}")
+        if d.shape != (N_DRIFT,):
+            raise ObserverError(f"a probed drift has {N_DRIFT} values (dx, dy, dz), got shape {d.shape}")
         use = np.isfinite(d)
         if not use.any():
             return state
@@ -351,9 +353,9 @@ class Observer:
     def _drift_rows(self) -> np.ndarray:
         """The drift dx, dy, dz as rows on the state: the model's drift outputs plus the bias only probes see."""
         sl = self.slices()
-        H = np.zeros((DRIFT_OUTPUTS, self.n))
+        H = np.zeros((N_DRIFT, self.n))
         H[:, sl["z"]] = self.Cd
-        H[:, sl["bias"]] = np.eye(DRIFT_OUTPUTS)
+        H[:, sl["bias"]] = np.eye(N_DRIFT)
         return H
 
     def reduced_state(self, state: ObserverState) -> np.ndarray:
@@ -386,7 +388,7 @@ class Observer:
         Wh = self.W[:, :self.n_heat] * (1.0 + self.S @ scale)[None, :]
         z = state.x[sl["z"]].copy()
         T = np.empty((len(U), len(self.sensor_names)))
-        D = np.empty((len(U), DRIFT_OUTPUTS))
+        D = np.empty((len(U), N_DRIFT))
         bias = state.x[sl["bias"]]
         for k, u in enumerate(U):
             z = a * z + g0 * (Wh @ u[:self.n_heat] + self.W[:, self.n_heat:] @ u[self.n_heat:]) + const
@@ -415,11 +417,14 @@ def build_observer(rom, machine, settings: ObserverSettings = ObserverSettings()
         raise ObserverError(f"the reduced model's inputs ({len(rom.input_names)}) are not machine "
                             f"{machine.name!r}'s ({len(layout.columns)}): reduce its model again")
     lam, Phi = rom._modes()
-    ns = len(layout.sensors)
+    try:
+        outputs = rom.output_layout()
+    except HybridcompError as exc:
+        raise ObserverError(f"the observer needs the reduced model's sensors and drift: {exc}") from None
+    if outputs.sensors != layout.sensors:
+        raise ObserverError(f"the reduced model's sensors ({', '.join(outputs.sensors)}) are not machine "
+                            f"{machine.name!r}'s ({', '.join(layout.sensors)}): reduce its model again")
     Cz = rom.C @ Phi
-    if rom.C.shape[0] < ns + DRIFT_OUTPUTS:
-        raise ObserverError(f"the reduced model has {rom.C.shape[0]} outputs; the observer needs the {ns} sensors "
-                            f"and the {DRIFT_OUTPUTS} drift directions")
     W = Phi.T @ rom.input_matrix()
     keep = [j for j, n in enumerate(rom.disturbance_names) if ":" not in n]  # "<body>" uniform, "<body>:x" linear
     WD = Phi.T @ rom.D[:, keep] if rom.D is not None else np.zeros((rom.order, 0))
@@ -435,5 +440,5 @@ def build_observer(rom, machine, settings: ObserverSettings = ObserverSettings()
         sensor_names=tuple(layout.sensors), zone_names=tuple(layout.zones), source_names=sources,
         disturbance_names=tuple(rom.disturbance_names[j] for j in keep), lam=lam, Phi=Phi, PhiTM=Phi.T @ rom.M,
         W=W, WD=WD,
-        Cs=Cz[:ns], Cd=Cz[ns:ns + DRIFT_OUTPUTS] * 1e6, S=S, rated=rated, n_heat=n_heat,
+        Cs=Cz[list(outputs.sensor_indices)], Cd=Cz[list(outputs.drift_indices)] * 1e6, S=S, rated=rated, n_heat=n_heat,
     )

@@ -37,7 +37,7 @@ from hybridcomp.fem.drives import drive_error
 from hybridcomp.fem.iso230 import axis_sign
 from hybridcomp.fem.operators import ThermalOperators
 from hybridcomp.fem.poses import PoseGrid, carry_field, pose_grid
-from hybridcomp.models.layout import DRIFT_OUTPUTS
+from hybridcomp.models.layout import feedback_output_names, output_layout, pose_output_names
 from hybridcomp.rom.krylov import Reductor, orthonormal_extension, project
 from hybridcomp.rom.reduced import ReducedModel, RomInputError
 
@@ -45,11 +45,6 @@ from hybridcomp.rom.reduced import ReducedModel, RomInputError
 DEFAULT_ENRICH = 20
 #: positions over each axis' travel at which a drive's positioning error is an output (linear between them)
 FEEDBACK_POINTS = 17
-
-
-def pose_output_names(k: int) -> tuple[str, ...]:
-    """Output names of the drift at support pose ``k`` (k ≥ 1)."""
-    return tuple(f"{d}@{k}" for d in DRIFT_OUTPUTS)
 
 
 def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int = DEFAULT_ENRICH,
@@ -92,14 +87,14 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     blocks, names, orders = [], [], [rom.order]
     mid_C, mid_names, feedback, spans = rom.C, (), {}, []
     h_range = tuple(rom.meta.get("h_range", (0.5, 2.0)))
-    jobs = [(model, rom.V, grid.pose_mm(k), enrich, tol, scale, h_range, ns) for k in range(1, len(grid.poses))]
+    jobs = [(model, rom.V, grid.pose_mm(k), enrich, tol, scale, h_range) for k in range(1, len(grid.poses))]
     for k, block in enumerate(_run_jobs(jobs, workers, scheduler, progress), start=1):
         blocks.append(block)
         names += pose_output_names(k)
         orders.append(block[0].shape[0])
     for drive in machine.drives if drives else ():
         positions = np.linspace(*machine.axis(drive.axis).travel_mm, FEEDBACK_POINTS)
-        out = tuple(f"e{drive.axis}@{p:g}" for p in positions)
+        out = feedback_output_names(drive.axis, positions)
         feedback[drive.axis] = {"feedback": drive.feedback, "positions_mm": positions.tolist(), "outputs": list(out),
                                 "direction": machine.axis(drive.axis).direction,
                                 "sign": axis_sign(machine, drive.axis)}
@@ -150,17 +145,18 @@ def model_pose_block(prom: ReducedModel) -> ReducedModel:
     """
     grid_of(prom)
     r = int(prom.meta["poses"]["orders"][0])
-    q = int(prom.meta["n_sensors"]) + 3
+    layout = prom.output_layout()
+    rows = list(layout.indices("sensors")) + list(layout.indices("drift"))
     meta = {k: v for k, v in prom.meta.items() if k not in ("poses", "feedback")}
     ops = ThermalOperators(M=prom.M[:r, :r], K=prom.K[:r, :r], H=prom.H[:, :r, :r], h_W_m2K=prom.h_W_m2K,
-                           B=prom.B[:r], Hb=prom.Hb[:r], C=prom.C[:q, :r], input_names=prom.input_names,
-                           output_names=tuple(prom.output_names[:q]))
+                           B=prom.B[:r], Hb=prom.Hb[:r], C=prom.C[rows, :r], input_names=prom.input_names,
+                           output_names=tuple(prom.output_names[i] for i in rows))
     D = None if prom.D is None else prom.D[:r]
     return ReducedModel(ops, D=D, disturbance_names=tuple(prom.disturbance_names) if D is not None else (), meta=meta)
 
 
 def pose_block(model, V_mid: np.ndarray, pose_mm: dict, enrich: int, tol: np.ndarray, scale: np.ndarray,
-               h_range: tuple[float, float], n_sensors: int) -> tuple[np.ndarray, ...]:
+               h_range: tuple[float, float]) -> tuple[np.ndarray, ...]:
     """The reduced operators (M, K, H, B, Hb, drift rows C) of one support pose (a job of :func:`reduce_at_poses`).
 
     Builds the FE model at ``pose_mm``, carries the model pose's basis ``V_mid`` onto its mesh, extends it by
@@ -177,7 +173,8 @@ def pose_block(model, V_mid: np.ndarray, pose_mm: dict, enrich: int, tol: np.nda
         own = Reductor(system, tol, scale, h_samples(fe.h_W_m2K, h_range))
         V = np.hstack([V, orthonormal_extension(V, own.reduce(order=enrich).V)])
     P = project(system, V)
-    return P["M"], P["K"], P["H"], P["B"], P["Hb"], P["C"][n_sensors:n_sensors + 3]
+    drift = list(output_layout(system.output_names, model="the support pose's FE model").drift_indices)
+    return P["M"], P["K"], P["H"], P["B"], P["Hb"], P["C"][drift]
 
 
 def _run_jobs(jobs: list[tuple], workers: int, scheduler: str, progress: bool):
@@ -238,10 +235,8 @@ def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray, feed
     feedback : add the drives' added positioning errors
     """
     grid = grid_of(rom)
-    ns = int(rom.meta["n_sensors"])
-    idx = [list(range(ns, ns + 3))] + [[rom.output_names.index(n) for n in pose_output_names(k)]
-                                       for k in range(1, len(grid.poses))]
-    D = np.stack([Y[:, i] for i in idx], axis=1) * 1e6  # nt × poses × 3
+    outputs = rom.output_layout()
+    D = np.stack([Y[:, list(outputs.pose_indices(k))] for k in range(len(grid.poses))], axis=1) * 1e6  # nt × poses × 3
     W = grid.weights_along(positions_mm)
     if W.shape[0] == 1:
         W = np.repeat(W, Y.shape[0], axis=0)
@@ -251,10 +246,9 @@ def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray, feed
     if feedback:
         P = np.atleast_2d(np.asarray(positions_mm, float))
         P = np.repeat(P, Y.shape[0], axis=0) if P.shape[0] == 1 else P
-        for axis, fb in rom.meta.get("feedback", {}).items():
-            cols = [rom.output_names.index(n) for n in fb["outputs"]]
-            x = P[:, grid.axes.index(axis)]
-            E = Y[:, cols] * 1e6
-            e = np.array([np.interp(x[t], fb["positions_mm"], E[t]) for t in range(Y.shape[0])])
-            drift[:, fb["direction"]] += fb["sign"] * e
+        for fb in outputs.feedback:
+            x = P[:, grid.axes.index(fb.axis)]
+            E = Y[:, list(fb.indices)] * 1e6
+            e = np.array([np.interp(x[t], fb.positions_mm, E[t]) for t in range(Y.shape[0])])
+            drift[:, fb.direction] += fb.sign * e
     return drift

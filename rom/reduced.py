@@ -32,7 +32,15 @@ import scipy.linalg as la
 from hybridcomp.errors import HybridcompError
 from hybridcomp.fem.operators import HasOperators, ThermalOperators
 from hybridcomp.models import jsonio
-from hybridcomp.models.layout import InputLayout, Loads, LoadsColumnError, layout_from_names
+from hybridcomp.models.layout import (
+    InputLayout,
+    Loads,
+    LoadsColumnError,
+    OutputLayout,
+    OutputLayoutError,
+    layout_from_names,
+    output_layout,
+)
 from hybridcomp.models.simulation import SimulationResult, initial_state
 from hybridcomp.models.toml import open_regular_file, read_text
 
@@ -272,6 +280,23 @@ class ReducedModel(HasOperators):
         except LoadsColumnError as exc:
             raise RomInputError(f"not a machine ROM: {exc}") from None
 
+    def output_layout(self) -> OutputLayout:
+        """The outputs by typed group (:class:`~hybridcomp.models.layout.OutputLayout`).
+
+        Sensors, drift at the model's pose and, as the model has them, drift per support pose, the drives'
+        positioning errors, per-body drift; built from the output names and ``meta`` (``poses``, ``feedback``),
+        as every saved model carries them.
+
+        Raises
+        ------
+        RomInputError
+            the names and metadata do not form the groups (an external system's outputs ``y1`` … have none)
+        """
+        try:
+            return output_layout(self.output_names, self.meta, "the reduced model")
+        except OutputLayoutError as exc:
+            raise RomInputError(str(exc)) from None
+
     def simulate(self, loads: Loads, initial: str | np.ndarray = "steady", *, scheme: str = "exact",
                  hold: str = "linear") -> SimulationResult:
         """Run a machine ROM on a loads time series: sensor temperatures [°C] and drift [µm].
@@ -290,12 +315,12 @@ class ReducedModel(HasOperators):
         """
         if scheme not in SCHEMES:
             raise RomInputError(f"unknown time scheme {scheme!r} of a reduced model (schemes: {', '.join(SCHEMES)})")
-        layout = self.layout()
+        layout, outputs = self.layout(), self.output_layout()
         U = layout.inputs(loads.names, loads.values, "loads")
         Y, x = self.integrate(loads.time_s, U, initial, hold=hold)
-        ns = len(layout.sensors)
-        return SimulationResult(np.asarray(loads.time_s, float), Y[:, :ns] + layout.reference_temperature_degC,
-                                Y[:, ns:ns + 3] * 1e6, sensor_names=layout.sensors, final_state=x)
+        return SimulationResult(np.asarray(loads.time_s, float),
+                                outputs.take(Y, "sensors") + layout.reference_temperature_degC,
+                                outputs.take(Y, "drift") * 1e6, sensor_names=outputs.sensors, final_state=x)
 
     def integrate(self, time_s: np.ndarray, inputs: np.ndarray, initial: str | np.ndarray = "steady",
                   chunk: int = 65536, hold: str = "linear") -> tuple[np.ndarray, np.ndarray]:

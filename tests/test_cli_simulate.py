@@ -158,3 +158,64 @@ def test_xdmf_time_series_round_trip(machine, tmp_path):
             np.testing.assert_allclose(pdata["temperature_degC"], res.fields_K[step] + 20.0, rtol=1e-12)
     np.testing.assert_allclose(times, res.time_s[[0, 3, 6]])
     assert len(points) == model.n
+
+
+@pytest.mark.slow
+def test_simulate_rom_writes_every_output_group_of_a_pose_aware_model_under_its_own_header(machine, tmp_path, capsys):
+    """``reduce --poses star`` on the coarse model, then ``simulate --rom``: each table's header matches its rows,
+    and its values are the model's outputs in µm (a support pose's drift is what drift_along gives there)."""
+    from hybridcomp.rom.poses import drift_along, grid_of
+    from hybridcomp.rom.reduced import load_rom
+
+    loads = example_loads(machine, duration_h=2.0, dt_s=300.0)
+    write_loads(tmp_path / "loads.csv", loads)
+    assert main(["reduce", "--machine", "vmc800", "--element-size-mm", "200", "--order", "20", "--poses", "star",
+                 "--pose-enrich", "5", "--out", str(tmp_path / "pose.npz")]) == 0
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "poses.csv").write_text("an earlier run's\n")
+    args = ["simulate", "--machine", "vmc800", "--loads", str(tmp_path / "loads.csv"), "--rom", str(tmp_path / "pose.npz"),
+            "--out", str(out)]
+    capsys.readouterr()
+    assert main(args) == 2  # a group table of an earlier run is kept without --force, and nothing is written
+    assert "poses.csv" in capsys.readouterr().err and not (out / "outputs.csv").exists()
+    assert main([*args, "--force"]) == 0
+
+    rom = load_rom(tmp_path / "pose.npz")
+    grid = grid_of(rom)
+    loads = read_loads(tmp_path / "loads.csv", machine)  # as the command read them
+    Y, _ = rom.integrate(loads.time_s, rom.layout().inputs(loads))
+    info = json.loads((out / "run.json").read_text())
+    assert info["files"] == ["outputs.csv", "poses.csv", "feedback.csv"]
+    tables = {}
+    for name in info["files"]:
+        with (out / name).open(newline="") as fh:
+            rows = list(csv.reader(fh))
+        assert all(len(row) == len(rows[0]) for row in rows), name  # every row has a field per header name
+        assert len(rows) - 1 == loads.time_s.size and rows[0][0] == "time_s"
+        tables[name] = (rows[0][1:], np.array(rows[1:], float)[:, 1:])
+
+    header, data = tables["outputs.csv"]
+    assert header == [*(f"T{i}_degC" for i in range(1, 9)), "dx_um", "dy_um", "dz_um"]
+    at = lambda k: np.array([[grid.pose_mm(k)[a] for a in grid.axes]])  # noqa: E731
+    np.testing.assert_allclose(data[:, 8:], drift_along(rom, Y, at(0), feedback=False), rtol=0, atol=6e-7)
+    np.testing.assert_allclose(data[:, :8], rom.simulate(loads).sensors_degC, rtol=0, atol=6e-7)
+
+    header, data = tables["poses.csv"]
+    assert header == [f"pose{k}_{d}_um" for k in range(1, len(grid.poses)) for d in ("dx", "dy", "dz")]
+    assert info["support_poses_mm"] == {f"pose{k}": grid.pose_mm(k) for k in range(1, len(grid.poses))}
+    for k in range(1, len(grid.poses)):
+        np.testing.assert_allclose(data[:, 3 * (k - 1):3 * k], drift_along(rom, Y, at(k), feedback=False),
+                                   rtol=0, atol=6e-7)
+
+    header, data = tables["feedback.csv"]
+    fb = rom.meta["feedback"]
+    assert len(header) == sum(len(f["positions_mm"]) for f in fb.values())
+    for axis, f in fb.items():  # at a feedback position the drive adds its error there, signed by the side it moves
+        p = f["positions_mm"][3]
+        j = header.index(f"{axis}_feedback_um@{p:g}")
+        pos = at(0)
+        pos[0, grid.axes.index(axis)] = p
+        added = drift_along(rom, Y, pos) - drift_along(rom, Y, pos, feedback=False)
+        np.testing.assert_allclose(f["sign"] * data[:, j], added[:, f["direction"]], rtol=0, atol=6e-7)
+        assert np.abs(data[:, j]).max() > 1e-3  # the drive's error is not zero
