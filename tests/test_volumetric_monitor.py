@@ -1,0 +1,134 @@
+"""The daemon at the tool's position: the drives' gains from probes at several positions, the model pose's block of a
+pose-aware model, and a replay with a pose-aware structure model (tables every cycle, offsets at the commanded
+position, rate limit per table entry, a restart that continues the pose-aware state)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from hybridcomp.monitor import volumetric
+from hybridcomp.rom.volumetric import FeedbackTable, SupportGrid, VolumetricTable, interpolate_one
+
+AXES = ("X", "Y", "Z")
+
+
+def _table(gx: float = 0.0, gy: float = 0.0) -> VolumetricTable:
+    """A table with no structure drift and two drives: X (−1, x) and Y (−1, y), errors linear from their fixed ends."""
+    grid = SupportGrid(AXES, ((-400.0, 0.0, 400.0), (-325.0, 0.0, 325.0), (-275.0, 0.0, 275.0)))
+    x = np.linspace(-400.0, 400.0, 17)
+    y = np.linspace(-325.0, 325.0, 17)
+    fb = (FeedbackTable("X", x, (1 + gx) * 20.0 * (x + 430.0) / 860.0, 0, -1.0),
+          FeedbackTable("Y", y, (1 + gy) * 15.0 * (y + 340.0) / 680.0, 1, -1.0))
+    return VolumetricTable(grid, 0.0, np.zeros((3, 3, 3, 3)), fb)
+
+
+def _star() -> np.ndarray:
+    base = np.zeros(3)
+    out = [base]
+    for i, (lo, hi) in enumerate(((-400.0, 400.0), (-325.0, 325.0), (-275.0, 275.0))):
+        for v in (0.9 * lo, 0.9 * hi):
+            p = base.copy()
+            p[i] = v
+            out.append(p)
+    return np.array(out)
+
+
+def test_probes_at_several_positions_recover_each_drives_gain_and_a_uniform_offset():
+    raw = _table()
+    truth = _table(gx=1.5, gy=-0.4)  # a nut putting 2.5 x its heat in, a screw running cooler
+    offset = np.array([3.0, -2.0, 1.0])  # what the one-pose observer has not taken out yet
+    rng = np.random.default_rng(1)
+    gains = volumetric.initial_gains(("X", "Y"))
+    for cycle in range(4):
+        for p in _star():
+            probe = np.asarray(interpolate_one(truth, p)) + offset + rng.normal(0.0, 0.3, 3)
+            gains = volumetric.update_gains(gains, raw, p, probe, 3600.0 * cycle + 1.0)
+    assert gains.g == pytest.approx([1.5, -0.4], abs=0.05)
+    assert gains.b == pytest.approx(offset, abs=0.3)
+    corrected = volumetric.with_gains(raw, gains)
+    for p in _star():
+        assert np.asarray(interpolate_one(corrected, p)) == pytest.approx(np.asarray(interpolate_one(truth, p)),
+                                                                            abs=0.5)
+
+
+def test_probes_at_the_model_pose_alone_leave_the_gains_at_their_prior():
+    """One pose cannot tell a gain from an offset: the gains must not move much on the uniform offset."""
+    raw = _table()
+    gains = volumetric.initial_gains(("X", "Y"))
+    for cycle in range(4):
+        gains = volumetric.update_gains(gains, raw, np.zeros(3), np.array([5.0, 5.0, 5.0]), 3600.0 * cycle)
+    # the fit is shared between the offset and the gains by their priors; never the whole 5 µm to the gains
+    assert np.all(np.abs(gains.g) < 0.5)
+
+
+def test_a_probe_with_directions_not_probed_updates_the_rest():
+    raw = _table()
+    gains = volumetric.initial_gains(("X", "Y"))
+    p = np.array([360.0, 0.0, 0.0])
+    probe = np.array(interpolate_one(_table(gx=1.0), p), float)
+    probe[1:] = np.nan
+    after = volumetric.update_gains(gains, raw, p, probe, 0.0)
+    assert after.g[0] > 0.3 and np.isfinite(after.P).all()
+
+
+@pytest.mark.slow
+def test_the_model_pose_block_of_a_pose_aware_model_is_the_model_it_was_built_from(pose_roms_200mm):
+    from hybridcomp.rom.poses import model_pose_block
+
+    rom, prom = pose_roms_200mm
+    block = model_pose_block(prom)
+    assert block.rom_id == rom.rom_id
+    assert block.output_names == rom.output_names
+    assert np.array_equal(block.D, rom.D) and block.disturbance_names == rom.disturbance_names
+    assert "poses" not in block.meta and "feedback" not in block.meta
+
+
+@pytest.mark.slow
+def test_a_replay_with_a_pose_aware_model_writes_tables_and_offsets_at_the_commanded_position(
+        machine, pose_roms_200mm, tmp_path):
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.config import parse_config
+    from hybridcomp.monitor.daemon import Monitor, run_monitor
+    from hybridcomp.monitor.example import write_example_trace
+    from hybridcomp.monitor.sinks import MemorySink
+    from hybridcomp.monitor.sources import ReplaySource
+    from hybridcomp.rom import save_rom
+    from hybridcomp.rom.volumetric import interpolate
+
+    rom, prom = pose_roms_200mm
+    path = save_rom(tmp_path / "poses.rom.npz", prom)
+    trace = write_example_trace(tmp_path / "trace.csv", machine, rom, hours=1.0, rate_hz=0.2)
+    data = {"monitor": {"machine": "vmc800", "database": "cd.db", "rom": str(path), "increment_s": 60.0},
+            "compensation": {"strategy": "observer", "max_step_um": 0.2},
+            "source": {"kind": "replay", "path": str(trace), "speed": 0},
+            "sink": {"kind": "none"}, "regeneration": {"enabled": False}}
+    cfg = parse_config(data, "test.toml", tmp_path)
+    db = CDDatabase(tmp_path / "cd.db")
+    try:
+        mon = Monitor(cfg, machine, prom, db, "X=0,Y=0,Z=0")
+        sink = MemorySink()
+        asyncio.run(run_monitor(cfg, mon, ReplaySource(trace, machine, speed=0), sink))
+    finally:
+        db.close()
+    rows = [r for r in sink.rows if r.table is not None]
+    assert len(rows) >= 0.9 * len(sink.rows) > 100
+    for r in rows[::25]:  # the offsets written are the table at the commanded position
+        assert (r.dx_um, r.dy_um, r.dz_um) == pytest.approx(interpolate(r.table, np.array([r.position_mm]))[0],
+                                                            abs=1e-9)
+        assert r.table.grid.shape == (3, 3, 3)
+    # every entry moves by at most the rate limit per cycle; the position part is really there (not a uniform shift)
+    E = np.array([np.concatenate([r.table.structure_um.ravel()] + [f.error_um for f in r.table.feedback_um])
+                  for r in rows])
+    assert np.abs(np.diff(E, axis=0)).max() <= 0.2 + 1e-9
+    last = rows[-1].table
+    corners = interpolate(last, np.array([[-400.0, -325.0, -275.0], [400.0, 325.0, 275.0]]))
+    assert np.abs(corners[0] - corners[1]).max() > 0.5
+    # the offsets at the model's pose are the one-pose offsets plus the drives' error there
+    at_pose = interpolate(last, np.zeros((1, 3)))[0]
+    fb = np.zeros(3)
+    for f in last.feedback_um:
+        fb[f.direction] += f.sign * np.interp(0.0, f.positions_mm, f.error_um)
+    assert at_pose == pytest.approx(np.asarray(rows[-1].pose_um) + fb, abs=0.25)
