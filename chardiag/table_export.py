@@ -174,9 +174,10 @@ def k3_offsets(table: VolumetricTable, directions: Mapping[str, int] | None = No
     Returns :class:`~hybridcomp.chardiag.export.AxisOffset` per axis: ``compensation_um`` K0 at ``reference_mm`` P0
     (the model's pose), ``slope`` tan β of the compensation [-], ``drift_um`` = −K0.
 
-    Raises :class:`~hybridcomp.chardiag.guard.OffsetGuardError` when a compensation along an axis is not finite
-    or beyond ±``clamp_um``.
+    Raises :class:`~hybridcomp.chardiag.guard.OffsetGuardError` when a compensation of the table (at a grid point,
+    a drive's point or along an axis) is not finite or beyond ±``clamp_um``.
     """
+    _guard_grid(table, clamp_um, "CNC export (K3 of a volumetric table)")  # the whole table, not only the lines
     dirs = axis_directions(table, directions)
     ref = table.grid.reference_mm()
     out = []
