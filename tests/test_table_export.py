@@ -164,3 +164,40 @@ def test_a_control_character_in_a_name_is_refused():
         tx.siemens_cec(table, header="a\nM30")
     with pytest.raises(ValueError, match="control character"):
         tx.siemens_k3(table, axis_names={"X": "X1\n"})
+
+
+@pytest.mark.slow
+def test_table_command_writes_each_form_of_the_models_table_and_refuses_to_overwrite(pose_rom_200mm, tmp_path, capsys):
+    from hybridcomp.cli import main
+    from hybridcomp.fem.loads import example_loads
+    from hybridcomp.models import load_machine
+    from hybridcomp.models.loads import read_loads, write_loads
+    from hybridcomp.rom.reduced import save_rom
+    from hybridcomp.rom.volumetric import table_of, table_operator
+
+    rom = pose_rom_200mm
+    loads = example_loads(load_machine("vmc800"), 4.0, 300.0)
+    rom_file = save_rom(tmp_path / "pose.npz", rom)
+    loads_file = tmp_path / "loads.csv"
+    write_loads(loads_file, loads)
+    loads = read_loads(loads_file, load_machine("vmc800"))  # what the command reads (the CSV rounds)
+    base = ["table", "--rom", str(rom_file), "--loads", str(loads_file)]
+    assert main([*base, "--at-hours", "2", "--form", "csv", "--out", str(tmp_path / "t.csv")]) == 0
+    # independently: the model run over the loads, its outputs at 2 h (a row of the loads) through the table's map
+    Y, _ = rom.integrate(loads.time_s, rom.layout().inputs(loads.names, loads.values))
+    k = int(np.flatnonzero(loads.time_s == 7200.0)[0])
+    table = table_of(table_operator(rom), Y[k], 7200.0)
+    axes, P, comp = tx.read_table_csv((tmp_path / "t.csv").read_text())
+    np.testing.assert_allclose(comp, -interpolate(table, P), rtol=1e-9, atol=1e-9)
+    assert main([*base, "--at-hours", "2", "--form", "csv", "--out", str(tmp_path / "t.csv")]) == 2
+    assert "exists; pass --force" in capsys.readouterr().err
+    for form in ("json", "840d", "840d-cec"):
+        names = [] if form == "json" else ["--axis-names", "X=X1"]
+        assert main([*base, "--at-hours", "2.05", "--form", form, *names, "--out", str(tmp_path / f"t.{form}")]) == 0
+    assert set(tx.read_k3((tmp_path / "t.840d").read_text())) == {"X1", "Y1", "Z1"}
+    assert len(tx.read_cec((tmp_path / "t.840d-cec").read_text())) == 9
+    assert table_from_dict(json.loads((tmp_path / "t.json").read_text())).time_s == 2.05 * 3600
+    assert main([*base, "--at-hours", "5", "--form", "csv", "--out", str(tmp_path / "u.csv")]) == 2
+    assert "outside the loads' time span" in capsys.readouterr().err
+    assert main([*base, "--at-hours", "1", "--form", "csv", "--axis-names", "X=X1", "--out", str(tmp_path / "u.csv")]) == 2
+    assert not (tmp_path / "u.csv").exists()
