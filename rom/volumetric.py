@@ -172,7 +172,7 @@ class FeedbackRows(NamedTuple):
     sign: float
 
 
-class FeedbackError(NamedTuple):
+class FeedbackTable(NamedTuple):
     """One drive's part of a :class:`VolumetricTable`.
 
     Its positioning error ``error_um`` at ``positions_mm``, linear between them, is added to the drift in
@@ -300,13 +300,13 @@ class VolumetricTable:
     grid : the support grid
     time_s : the time of the model state it comes from [s]
     structure_um : (n_1, …, n_k, 3) the structure's drift dx, dy, dz at the grid points [µm]
-    feedback_um : per drive its :class:`FeedbackError` [µm]
+    feedback_um : per drive its :class:`FeedbackTable` [µm]
     """
 
     grid: SupportGrid
     time_s: float
     structure_um: np.ndarray
-    feedback_um: tuple[FeedbackError, ...] = ()
+    feedback_um: tuple[FeedbackTable, ...] = ()
     _fast: _Fast | None = field(init=False, repr=False, default=None)
 
     def __post_init__(self):
@@ -352,7 +352,7 @@ class VolumetricTable:
                                       "0..2 / ±1")
             pos.setflags(write=False)
             err.setflags(write=False)
-            fbs.append(FeedbackError(str(axis), pos, err, int(d), float(sign)))
+            fbs.append(FeedbackTable(str(axis), pos, err, int(d), float(sign)))
         object.__setattr__(self, "feedback_um", tuple(fbs))
         k = len(g.axes)
         strides = tuple(math.prod(g.shape[i + 1:]) for i in range(k))
@@ -370,7 +370,7 @@ def table_of(op: TableOperator, y: np.ndarray, time_s: float) -> VolumetricTable
     """The table of the model outputs ``y`` (q,) [K, m] at ``time_s`` [s]: one matrix–vector product."""
     y = _finite_vector(y, op.n_outputs, "table_of: the model outputs y", op.output_names or None)
     S = (op.structure @ y).reshape(op.grid.shape + (3,))
-    fb = tuple(FeedbackError(f.axis, f.positions_mm, f.rows @ y, f.direction, f.sign) for f in op.feedback)
+    fb = tuple(FeedbackTable(f.axis, f.positions_mm, f.rows @ y, f.direction, f.sign) for f in op.feedback)
     return VolumetricTable(op.grid, time_s, S, fb)
 
 
@@ -564,7 +564,7 @@ def table_from_dict(d: Mapping) -> VolumetricTable:
     if d.get("version") != TABLE_VERSION:
         raise VolumetricError(f"volumetric table version {d.get('version')!r}, this program reads {TABLE_VERSION}")
     try:
-        fbs = tuple(FeedbackError(f["axis"], f["positions_mm"], f["error_um"], f["direction"], f["sign"])
+        fbs = tuple(FeedbackTable(f["axis"], f["positions_mm"], f["error_um"], f["direction"], f["sign"])
                     for f in d["feedback_um"])
         return VolumetricTable(SupportGrid.from_dict(d["grid"]), d["time_s"], d["structure_um"], fbs)
     except (KeyError, TypeError) as exc:
@@ -575,6 +575,6 @@ def table_from_dict(d: Mapping) -> VolumetricTable:
         raise VolumetricError(f"volumetric table: {exc}") from None
 
 
-__all__ = ["FeedbackError", "FeedbackRows", "SupportGrid", "TABLE_FORMAT", "TableOperator", "VolumetricError",
+__all__ = ["FeedbackTable", "FeedbackRows", "SupportGrid", "TABLE_FORMAT", "TableOperator", "VolumetricError",
            "VolumetricTable", "default_grid", "interpolate", "interpolate_one", "limit_table", "shifted",
            "table_from_dict", "table_of", "table_operator", "table_to_dict"]

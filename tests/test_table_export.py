@@ -10,7 +10,7 @@ import pytest
 
 from hybridcomp.chardiag import table_export as tx
 from hybridcomp.chardiag.guard import OffsetGuardError
-from hybridcomp.rom.volumetric import FeedbackError, SupportGrid, VolumetricTable, interpolate, table_from_dict
+from hybridcomp.rom.volumetric import FeedbackTable, SupportGrid, VolumetricTable, interpolate, table_from_dict
 
 AXES = ("X", "Y", "Z")
 POS = ((-400.0, -100.0, 0.0, 400.0), (-325.0, 50.0, 325.0), (-275.0, 0.0, 275.0))
@@ -25,7 +25,7 @@ def make_table(rng, scale: float = 10.0, separable: bool = False) -> VolumetricT
         S = parts[0][:, None, None] + parts[1][None, :, None] + parts[2][None, None, :]
     else:
         S = rng.normal(size=grid.shape + (3,)) * scale
-    fb = tuple(FeedbackError(a, np.linspace(p[0], p[-1], 9), rng.normal(size=9) * 2, d, s)
+    fb = tuple(FeedbackTable(a, np.linspace(p[0], p[-1], 9), rng.normal(size=9) * 2, d, s)
                for (a, d, s), p in zip(DRIVES, POS))
     return VolumetricTable(grid, 3600.0, S, fb)
 

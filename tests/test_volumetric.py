@@ -14,7 +14,7 @@ from hybridcomp.fem.poses import PoseGrid, support_poses
 from hybridcomp.rom import volumetric as vol
 from hybridcomp.rom.poses import drift_along, pose_output_names
 from hybridcomp.rom.volumetric import (
-    FeedbackError,
+    FeedbackTable,
     SupportGrid,
     VolumetricError,
     VolumetricTable,
@@ -55,7 +55,7 @@ def random_table(rng, feedback: bool = True, grid: SupportGrid | None = None) ->
                                                  (-275.0, 0.0, 275.0)), (0.0, 50.0, 0.0))
     fb = ()
     if feedback:
-        fb = tuple(FeedbackError(a, np.linspace(lo, hi, 7), rng.normal(size=7) * 3, d, s)
+        fb = tuple(FeedbackTable(a, np.linspace(lo, hi, 7), rng.normal(size=7) * 3, d, s)
                    for (a, (d, s)), (lo, _, hi) in zip(DRIVES.items(), LEVELS))
     return VolumetricTable(grid, 60.0, rng.normal(size=grid.shape + (3,)) * 10, fb)
 
@@ -180,7 +180,7 @@ def test_a_drives_error_enters_its_direction_only_with_its_sign():
     Q = inside(rng, 50)
     for axis, d, s, col in (("X", 0, -1.0, 0), ("Z", 1, 1.0, 0), ("Y", 2, -1.0, 1)):
         p = pos if axis == "X" else np.linspace(LEVELS[col][0], LEVELS[col][2], 9)
-        table = VolumetricTable(grid, 0.0, zero, (FeedbackError(axis, p, err, d, s),))
+        table = VolumetricTable(grid, 0.0, zero, (FeedbackTable(axis, p, err, d, s),))
         got = interpolate(table, Q)
         want = s * np.interp(Q[:, grid.axes.index(axis)], p, err)
         np.testing.assert_allclose(got[:, d], want, rtol=1e-13, atol=1e-13)
@@ -213,9 +213,9 @@ def test_a_table_refuses_non_finite_values_and_wrong_shapes():
     with pytest.raises(VolumetricError, match=r"shape \(2, 2, 3\)"):
         VolumetricTable(grid, 0.0, np.zeros((2, 2, 3)))
     with pytest.raises(VolumetricError, match="feedback of axis Y at 1 mm = nan"):
-        VolumetricTable(grid, 0.0, np.zeros((2, 3, 3)), (FeedbackError("Y", [0.0, 1.0], [0.0, np.nan], 1, 1.0),))
+        VolumetricTable(grid, 0.0, np.zeros((2, 3, 3)), (FeedbackTable("Y", [0.0, 1.0], [0.0, np.nan], 1, 1.0),))
     with pytest.raises(VolumetricError, match="not a grid axis"):
-        VolumetricTable(grid, 0.0, np.zeros((2, 3, 3)), (FeedbackError("Z", [0.0, 1.0], [0.0, 0.0], 2, 1.0),))
+        VolumetricTable(grid, 0.0, np.zeros((2, 3, 3)), (FeedbackTable("Z", [0.0, 1.0], [0.0, 0.0], 2, 1.0),))
     with pytest.raises(VolumetricError, match="time_s"):
         VolumetricTable(grid, np.nan, np.zeros((2, 3, 3)))
 
