@@ -21,6 +21,8 @@ SUBCOMMANDS = {
     "scenario": ("hybridcomp.histogram.cli_scenario",
                  "write a bundled scenario (basic load cases, job-shop day): G-code, trace, loads"),
     "cd": ("hybridcomp.chardiag.cli", "characteristic diagrams: training data, fit, evaluation, CNC export, database"),
+    "table": ("hybridcomp.chardiag.cli_table",
+              "the volumetric table of a pose-aware reduced model at one time: CSV, JSON, Siemens 840D K3 or CEC"),
     "reduce": ("hybridcomp.rom.cli_reduce", "reduce a machine's FE model (or exported matrices) to a real-time ROM.npz"),
     "diagnose": ("hybridcomp.diagnose.cli",
                  "diagnose measured data: residuals, named physical causes, extended machine file, gain"),
