@@ -167,9 +167,11 @@ class DriveGains:
     The pose-aware model's drives (a screw's elongation, a scale's expansion) are known only as well as their
     heat inputs and coefficients: a nut that runs warmer than its machine file says, or a scale of another
     material, scales the error along the axis.  A probing cycle that touches several positions along the axes
-    sees it: the probe less the table without gains is ``b + Σ_a g_a · sign_a · e_a(p_a)`` in the drive's direction
-    (``b`` a uniform offset the observer at the model's pose takes care of, here a nuisance), and a Kalman filter
-    on ``(g, b)`` (random walks) estimates the gains; the table's drive entries are scaled by ``1 + g``.
+    sees it: the probe less the table without gains is ``b + Σ_a g_a · sign_a · (e_a(p_a) − e_a(p0_a))`` in the
+    drive's direction (``p0`` the model's pose; ``b`` a uniform offset — the gain's share at the model's pose
+    included — that the observer at the model's pose takes care of, here a nuisance), and a Kalman filter on
+    ``(g, b)`` (random walks) estimates the gains.  The table's drive entries become ``e + g (e − e(p0))``: at the
+    model's pose nothing changes (the one-pose observer owns it), and probes there alone leave the gains alone.
     """
 
     axes: tuple[str, ...]
@@ -196,13 +198,15 @@ def initial_gains(axes, settings: GainSettings = GainSettings()) -> DriveGains:
 
 
 def _drive_rows(table, position_mm, axes) -> np.ndarray:
-    """(3 × n): each drive's error at ``position_mm`` (sign applied) in its direction's row [µm]."""
+    """(3 × n): each drive's error at ``position_mm`` less at the model's pose (sign applied), in its direction [µm]."""
     H = np.zeros((3, len(axes)))
     grid_axes = list(table.grid.axes)
+    ref = table.grid.reference_mm()
     for axis, positions, error, direction, sign in table.feedback_um:
         if axis in axes:
-            p = float(position_mm[grid_axes.index(axis)])
-            H[direction, list(axes).index(axis)] = sign * float(np.interp(p, positions, error))
+            i = grid_axes.index(axis)
+            at, at0 = (float(np.interp(float(x), positions, error)) for x in (position_mm[i], ref[i]))
+            H[direction, list(axes).index(axis)] = sign * (at - at0)
     return H
 
 
@@ -232,12 +236,17 @@ def update_gains(gains: DriveGains, raw_table, position_mm, probe_um, time_s: fl
 
 
 def with_gains(table, gains: DriveGains | None):
-    """The table with each drive's entries scaled by ``1 + g`` of its axis."""
+    """The table with each drive's entries ``e + g (e − e(p0))`` (``p0`` the model's pose, :class:`DriveGains`)."""
     if gains is None or not len(gains.axes):
         return table
     import dataclasses
 
     g = dict(zip(gains.axes, gains.g))
-    fb = tuple(f._replace(error_um=np.asarray(f.error_um, float) * (1.0 + g.get(f.axis, 0.0)))
-               for f in table.feedback_um)
+    ref = dict(zip(table.grid.axes, table.grid.reference_mm()))
+    fb = []
+    for f in table.feedback_um:
+        e = np.asarray(f.error_um, float)
+        e0 = float(np.interp(ref[f.axis], f.positions_mm, e))
+        fb.append(f._replace(error_um=e + g.get(f.axis, 0.0) * (e - e0)))
+    fb = tuple(fb)
     return dataclasses.replace(table, feedback_um=fb)

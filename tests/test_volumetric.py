@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from hybridcomp.fem.poses import PoseGrid, support_poses
+from hybridcomp.models.layout import output_layout
 from hybridcomp.rom import volumetric as vol
 from hybridcomp.rom.poses import drift_along, pose_output_names
 from hybridcomp.rom.volumetric import (
@@ -46,8 +47,9 @@ def stand_in_rom(scheme: str = "star", points: int = 5) -> SimpleNamespace:
         names += out
         feedback[axis] = {"feedback": "rotary_encoder", "positions_mm": pos.tolist(), "outputs": out,
                           "direction": d, "sign": s}
-    return SimpleNamespace(output_names=tuple(names), rom_id="stand-in",
-                           meta={"poses": grid.as_dict(), "n_sensors": 2, "feedback": feedback})
+    meta = {"poses": grid.as_dict(), "n_sensors": 2, "feedback": feedback}
+    return SimpleNamespace(output_names=tuple(names), rom_id="stand-in", meta=meta,
+                           output_layout=lambda: output_layout(tuple(names), meta))
 
 
 def random_table(rng, feedback: bool = True, grid: SupportGrid | None = None) -> VolumetricTable:
