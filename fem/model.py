@@ -26,6 +26,7 @@ from hybridcomp.fem.mesh import MM, MachineMesh, mesh_machine
 from hybridcomp.fem.operators import HasOperators, ThermalOperators
 from hybridcomp.fem.solvers import solve_spd_few
 from hybridcomp.fem.stepping import DEFAULT_SCHEME, TimeTolerance, integrate_inputs
+from hybridcomp.models.geometry import table_point
 from hybridcomp.models.layout import (
     DRIFT_OUTPUTS,
     InputLayout,
@@ -54,7 +55,7 @@ class ThermoElasticModel(HasOperators):
         [m^2], ``h_W_m2K`` [W/(m^2 K)], ``B`` heat distribution per input (n × m, columns sum to 1) [-], ``Hb``
         ``H_i 1`` per zone [m^2], ``C`` sensor interpolation rows (s × n, sparse) [-], ``input_names`` the loads
         columns in input order, ``output_names`` the sensors
-    G : drift rows dx, dy, dz of TCP minus table reference (3 × n) [m/K]
+    G : drift rows dx, dy, dz of TCP minus table point (the table reference, or the point under the tool) (3 × n) [m/K]
     reference_temperature_degC : the state x = 0 [°C]
     """
 
@@ -319,11 +320,15 @@ def solve_supported(Ku: sp.spmatrix, rhs: np.ndarray, fixed: np.ndarray, points_
 
 
 def drift_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.ndarray]) -> tuple[np.ndarray, str]:
-    """Rows g_x, g_y, g_z [m/K] with drift = G (T - T_ref), by three adjoint solves."""
+    """Rows g_x, g_y, g_z [m/K] with drift = G (T - T_ref), by three adjoint solves.
+
+    The drift is TCP minus the table point of the mesh's pose (:func:`~hybridcomp.models.geometry.table_point`:
+    the table reference, or the table point under the tool).
+    """
     Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
     Fth = assembly.thermal_load_matrix(basis, mats["E"], mats["nu"], mats["alpha"])
     n = basis.N
-    P = _point_rows(machine, mm, basis, [machine.tcp, machine.table_reference])  # (2 × n)
+    P = _point_rows(machine, mm, basis, [machine.tcp, table_point(machine, mm.pose_mm)])  # (2 × n)
     E = np.zeros((3 * n, 3))
     for d in range(3):
         E[d::3, d] = (P[0] - P[1]).toarray().ravel()

@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import logging
 import math
 import os
 
 import numpy as np
 
 from hybridcomp.models.machine import Body, HeatSource, Machine, MachineFileError, Point, Support, Vec3
+
+log = logging.getLogger(__name__)
 
 GEOMETRY_TOLERANCE_MM = 1e-6
 #: default limit of the number of elements of a box-body mesh (its tensor grid, before empty cells are dropped)
@@ -257,6 +260,39 @@ def _locate(machine: Machine, where: str, p: Point | Support | HeatSource, box_o
         if box_ok(b, pos):
             return b.name
     raise MachineFileError(f"{machine.source}: field {where + '.position_mm'!r} = {list(pos)} mm is outside every body")
+
+
+def table_point(machine: Machine, pose_mm: dict[str, float]) -> Point:
+    """The table point the drift (TCP minus table) is taken at, at a pose.
+
+    The table reference, or with ``[table_reference] under_tool = true`` the point of its body at its height whose
+    global x and y at ``pose_mm`` are the TCP's: the table point under the tool.  When the tool is beyond the table
+    the point is clipped into the body's box, onto the nearest edge of its top face, and a log message (INFO) says
+    so.
+
+    Parameters
+    ----------
+    machine : the machine (box bodies with ``under_tool``)
+    pose_mm : axis positions [mm]; missing axes at mid travel
+
+    Returns
+    -------
+    Point
+        on the table reference's body, its position at the reference pose [mm]
+    """
+    ref = machine.table_reference
+    if not machine.table_under_tool:
+        return ref
+    pose = machine.check_pose(pose_mm)
+    tcp = np.asarray(machine.tcp.position_mm, float) + machine.body_offset_mm(machine.tcp.body, pose)
+    off = machine.body_offset_mm(ref.body, pose)
+    lo, hi = (np.asarray(c, float) for c in machine.body(ref.body).box_mm)
+    xy = np.clip(tcp[:2] - off[:2], lo[:2], hi[:2])
+    if not np.allclose(xy, tcp[:2] - off[:2], rtol=0.0, atol=GEOMETRY_TOLERANCE_MM):
+        log.info("%s: at pose %s the tool (x, y) = (%g, %g) mm is beyond the table body %r; the drift is taken at the "
+                 "nearest point of its top face, (%g, %g) mm", machine.source, pose, tcp[0], tcp[1], ref.body,
+                 xy[0] + off[0], xy[1] + off[1])
+    return Point("table point under the tool", ref.body, (float(xy[0]), float(xy[1]), float(ref.position_mm[2])))
 
 
 def validate_geometry(machine: Machine) -> Machine:

@@ -107,6 +107,7 @@ KEYS = {
     "surface": ("body", "faces", "region_mm", "group"),
     "point": ("name", "body", "position_mm"),
     "anchor": ("body", "position_mm"),
+    "table_reference": ("body", "position_mm", "under_tool"),
     "support": ("name", "body", "position_mm", "directions"),
     "box": ("lo", "hi"),
     "drive": ("axis", "feedback", "screw_diameter_mm", "screw_lead_mm", "screw_material", "mounting", "prestretch_um",
@@ -199,7 +200,9 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
     sensors = tuple(_read_point(source, w, t, bodies) for w, t in top.tables("sensors", required=False))
     _unique(source, "sensors", [s.name for s in sensors])
     tcp = _read_point(source, "tcp", top.get("tcp", kind=dict), bodies, named=False)
-    table_ref = _read_point(source, "table_reference", top.get("table_reference", kind=dict), bodies, named=False)
+    table_ref, under_tool = _read_table_reference(_Reader(source, "table_reference",
+                                                          top.get("table_reference", kind=dict), "table_reference"),
+                                                  bodies, mesh)
     supports = _read_supports(top, bodies)
 
     machine = Machine(
@@ -219,6 +222,7 @@ def parse_machine(data: dict, source: str = "<machine>", sha256: str = "", base_
         table_reference=table_ref,
         supports=supports,
         mesh=mesh,
+        table_under_tool=under_tool,
     )
     machine = validate_geometry(machine)  # the drives build on checked sources and bodies
     return dataclasses.replace(machine, drives=_read_drives(top, machine))
@@ -518,6 +522,16 @@ def _read_point(source: str, where: str, t: Any, bodies: tuple[Body, ...], named
         raise r.err("body", f"names an unknown body {body!r}")
     pos = r.vec3("position_mm")
     return Point(pname, body or "", pos)
+
+
+def _read_table_reference(r: _Reader, bodies: tuple[Body, ...], mesh: MeshSettings) -> tuple[Point, bool]:
+    """``[table_reference]``: the point and ``under_tool`` (the drift at the table point under the tool)."""
+    under_tool = r.get("under_tool", False, bool)
+    if under_tool and mesh.file is not None:
+        raise r.err("under_tool", "needs box bodies: an imported [mesh] file is drawn at one pose, so the table "
+                                  "point under the tool at other poses is not known; remove under_tool")
+    t = {k: v for k, v in r.t.items() if k != "under_tool"}
+    return _read_point(r.src, r.where, t, bodies, named=False), under_tool
 
 
 def _read_supports(top: _Reader, bodies: tuple[Body, ...]) -> tuple[Support, ...]:

@@ -243,6 +243,9 @@ class Machine:
     supports: tuple[Support, ...]
     mesh: MeshSettings
     drives: tuple[Drive, ...] = ()
+    #: ``[table_reference] under_tool``: the drift is taken at the table point under the tool, not at the table
+    #: reference (:func:`hybridcomp.models.geometry.table_point`)
+    table_under_tool: bool = False
 
     def body(self, name: str) -> Body:
         for b in self.bodies:

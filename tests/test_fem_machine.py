@@ -17,6 +17,7 @@ from hybridcomp.fem.export import displacement_fields
 from hybridcomp.fem.loads import full_power_inputs, input_columns
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.stepping import integrate_inputs, steady_state
+from hybridcomp.models.geometry import table_point
 
 # every test builds the demonstrator's FE model (at two poses, or the module's own)
 pytestmark = pytest.mark.slow
@@ -56,7 +57,8 @@ def test_uniform_air_rise_gives_uniform_temperature_and_free_expansion(machine, 
     np.testing.assert_allclose(x, 1.0, atol=1e-9)
     full = m.check_pose(pose)
     tcp = (np.asarray(m.tcp.position_mm) + m.body_offset_mm(m.tcp.body, full)) * 1e-3
-    tab = (np.asarray(m.table_reference.position_mm) + m.body_offset_mm(m.table_reference.body, full)) * 1e-3
+    pt = table_point(m, full)  # the table point under the tool (vmc800 sets under_tool)
+    tab = (np.asarray(pt.position_mm) + m.body_offset_mm(pt.body, full)) * 1e-3
     expected_um = m.materials["cast_iron"].expansion_1_K * 1.0 * (tcp - tab) * 1e6
     np.testing.assert_allclose(mod.G @ x * 1e6, expected_um, rtol=1e-9, atol=1e-9)
     assert np.abs(expected_um).max() > 1.0  # the check is not vacuous
@@ -67,7 +69,7 @@ def test_mixed_alpha_breaks_free_expansion(model):
     m = model.machine
     x = steady_state(model, air_rise(model, 1.0))
     tcp = np.asarray(m.tcp.position_mm) * 1e-3
-    tab = np.asarray(m.table_reference.position_mm) * 1e-3
+    tab = np.asarray(table_point(m, model.mesh.pose_mm).position_mm) * 1e-3
     ci = m.materials["cast_iron"].expansion_1_K * (tcp - tab) * 1e6
     assert abs((model.G @ x * 1e6)[2] - ci[2]) > 0.05
 
@@ -108,7 +110,8 @@ def test_adjoint_drift_rows_equal_direct_displacement(model):
     from hybridcomp.fem.model import _point_rows
 
     basis = assembly.cell_basis(model.mesh.mesh)
-    P = _point_rows(model.machine, model.mesh, basis, [model.machine.tcp, model.machine.table_reference])
+    m = model.machine
+    P = _point_rows(m, model.mesh, basis, [m.tcp, table_point(m, model.mesh.pose_mm)])
     direct = (P[0] - P[1]) @ u
     np.testing.assert_allclose(model.G @ x, np.asarray(direct).ravel(), rtol=1e-8, atol=1e-12)
     assert np.abs(direct).max() > 1e-6  # micrometres of drift, not round-off

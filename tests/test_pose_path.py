@@ -1,0 +1,42 @@
+"""``benchmarks/pose_path.py`` can fail: a planted error (a support pose's block dropped) fails where the
+prediction passes."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "pose_path.py"
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("pose_path_bench", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_hold_rows_give_the_move_row_to_the_new_hold():
+    import numpy as np
+
+    t = np.arange(0.0, 16 * 3600.0 + 1.0, 1800.0)
+    assert _bench().hold_rows(t, ((8.0, {}), (8.0, {}))) == [(0, 16), (16, 32)]
+    with pytest.raises(ValueError, match="the holds last 12 h, the loads 16 h"):
+        _bench().hold_rows(t, ((4.0, {}), (8.0, {})))
+
+
+@pytest.mark.slow
+def test_planted_support_pose_fails_where_the_prediction_passes(capsys):
+    """200 mm, 5 min steps, no remedy, no off-grid poses: the second path's first hold sits at support pose 5 (the Z
+    axis' lower end), where the pose-aware model is its own block; dropping that block must fail the criterion."""
+    assert _bench().main(["--fast", "--no-remedy", "--poses", "0", "--plant", "5"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["plant"] == 5 and out["element_size_mm"] == 200.0
+    hold = next(c for c in out["cases"] if c["case"] == "8 h Z low, 8 h Z high" and c["hold"].startswith("1:"))
+    assert hold["pose-aware ROM"]["ok"], hold
+    assert not hold["planted: a support pose dropped"]["ok"], hold
+    assert any(e > 2 * lim for e, lim in zip(hold["planted: a support pose dropped"]["max_error_um"], hold["limit_um"]))
+    assert out["within_limit"]["paths_planted"] is False
