@@ -132,10 +132,12 @@ def structure_along_um(model, axis: str, positions_mm, fields: dict[int, np.ndar
     """The structure's drift along an axis [µm] (nt × positions), TCP minus table, at the axis' positions.
 
     The other axes at the model's pose; the model's field at every row (``fields``) carried onto the support poses
-    and the drift interpolated between them (:func:`hybridcomp.fem.poses.drift_rows_at`).
+    and the drift interpolated between them (:func:`hybridcomp.fem.poses.drift_rows_at`).  The table side's point is
+    the table reference at every position, as the standard measures (a reflector fixed on the table), also when
+    the machine file takes the drift under the tool for the compensation.
     """
     d = model.machine.axis(axis).direction
-    R = drift_rows_at(model, [{axis: float(p)} for p in np.atleast_1d(positions_mm)])[:, d, :]
+    R = drift_rows_at(model, [{axis: float(p)} for p in np.atleast_1d(positions_mm)], fixed_target=True)[:, d, :]
     X = np.array([fields[i] for i in range(len(fields))])
     return X @ R.T * 1e6
 

@@ -26,7 +26,7 @@ from hybridcomp.fem.mesh import MM, MachineMesh, mesh_machine
 from hybridcomp.fem.operators import HasOperators, ThermalOperators
 from hybridcomp.fem.solvers import solve_spd_few
 from hybridcomp.fem.stepping import DEFAULT_SCHEME, TimeTolerance, integrate_inputs
-from hybridcomp.models.geometry import table_point
+from hybridcomp.models.geometry import table_point_weights
 from hybridcomp.models.layout import (
     DRIFT_OUTPUTS,
     InputLayout,
@@ -323,15 +323,18 @@ def drift_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.ndar
     """Rows g_x, g_y, g_z [m/K] with drift = G (T - T_ref), by three adjoint solves.
 
     The drift is TCP minus the table point of the mesh's pose (:func:`~hybridcomp.models.geometry.table_point`:
-    the table reference, or the table point under the tool).
+    the table reference, or the table point under the tool, continued past the table's edge by
+    :func:`~hybridcomp.models.geometry.table_point_weights`).
     """
     Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
     Fth = assembly.thermal_load_matrix(basis, mats["E"], mats["nu"], mats["alpha"])
     n = basis.N
-    P = _point_rows(machine, mm, basis, [machine.tcp, table_point(machine, mm.pose_mm)])  # (2 × n)
+    table = table_point_weights(machine, mm.pose_mm)
+    P = _point_rows(machine, mm, basis, [machine.tcp] + [p for p, _ in table])  # (1 + points) × n
+    row = P[0] - sum(w * P[1 + i] for i, (_, w) in enumerate(table))
     E = np.zeros((3 * n, 3))
     for d in range(3):
-        E[d::3, d] = (P[0] - P[1]).toarray().ravel()
+        E[d::3, d] = row.toarray().ravel()
     lam, backend = solve_supported(Ku, E, _support_dofs(machine, mm), mm.mesh.p)
     return np.asarray(Fth.T @ lam).T, backend
 

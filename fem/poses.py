@@ -194,28 +194,44 @@ def pose_drift(model, scheme: str = "star", progress: bool = False) -> PoseDrift
     return PoseDrift(grid, rows)
 
 
-def support_rows(model, grid: PoseGrid, k: int) -> np.ndarray:
-    """The drift rows (3 × n) [m/K] at support pose ``k`` of ``grid`` for the model's state (the carried field)."""
+def support_rows(model, grid: PoseGrid, k: int, fixed_target: bool = False) -> np.ndarray:
+    """The drift rows (3 × n) [m/K] at support pose ``k`` of ``grid`` for the model's state (the carried field).
+
+    ``fixed_target``: TCP minus the table reference at every pose, a target that stays where it is on the table (an
+    interferometer's reflector, as ISO 230-3 measures), even when the machine file takes the drift under the tool.
+    """
+    import dataclasses
+
     from hybridcomp.fem import assembly
     from hybridcomp.fem.mesh import mesh_machine
     from hybridcomp.fem.model import _material_arrays, drift_rows
 
-    if k == 0:
-        return np.asarray(model.G)
     machine: Machine = model.machine
+    fixed = fixed_target and machine.table_under_tool
+    if fixed:
+        machine = dataclasses.replace(machine, table_under_tool=False)
+    if k == 0:
+        if not fixed:
+            return np.asarray(model.G)
+        mm = model.mesh
+        G, _ = drift_rows(machine, mm, assembly.cell_basis(mm.mesh), _material_arrays(machine, mm))
+        return np.asarray(G)
     mm = mesh_machine(machine, grid.pose_mm(k), machine.mesh.element_size_mm)
     G, _ = drift_rows(machine, mm, assembly.cell_basis(mm.mesh), _material_arrays(machine, mm))
     return np.asarray((carry_field(model, mm).T @ G.T).T)
 
 
-def drift_rows_at(model, poses_mm: list[dict[str, float]], scheme: str = "star") -> np.ndarray:
+def drift_rows_at(model, poses_mm: list[dict[str, float]], scheme: str = "star",
+                  fixed_target: bool = False) -> np.ndarray:
     """The drift rows (poses × 3 × n) [m/K] at each pose for the model's state, as :class:`PoseDrift` gives them.
 
     Only the support poses with a weight at one of the poses are meshed (an axis moved alone: two).
+    ``fixed_target``: at the table reference at every pose (:func:`support_rows`).
     """
     grid = pose_grid(model, scheme)
     W = np.array([grid.weights(p) for p in poses_mm])
-    rows = {k: support_rows(model, grid, k) for k in range(len(grid.poses)) if np.any(np.abs(W[:, k]) > 1e-14)}
+    rows = {k: support_rows(model, grid, k, fixed_target) for k in range(len(grid.poses))
+            if np.any(np.abs(W[:, k]) > 1e-14)}
     return np.array([sum(w[k] * r for k, r in rows.items()) for w in W])
 
 

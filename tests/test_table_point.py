@@ -95,6 +95,18 @@ def test_table_point_is_under_the_tool(vmc, pose, local, caplog):
     assert "beyond the table" not in caplog.text
 
 
+def test_beyond_the_table_the_point_is_continued_past_its_edge(vmc):
+    """The clipped edge point and the tool's point mirrored into the table, weights that extrapolate linearly."""
+    from hybridcomp.models.geometry import table_point_weights
+
+    (q, wq), (m, wm) = table_point_weights(vmc, {"X": 100.0, "Y": -325.0})
+    assert q.position_mm == (-100.0, 100.0, 350.0) and m.position_mm == (-100.0, -125.0, 350.0)
+    assert (wq, wm) == pytest.approx((1.0 + 225.0 / 225.0, -225.0 / 225.0))
+    # a linear function of the point is continued exactly to the tool's own y (325 in table coordinates)
+    assert wq * q.position_mm[1] + wm * m.position_mm[1] == pytest.approx(325.0)
+    assert table_point_weights(vmc, {"X": 100.0, "Y": 0.0}) == ((table_point(vmc, {"X": 100.0, "Y": 0.0}), 1.0),)
+
+
 def test_tool_beyond_the_table_is_clipped_to_its_edge_and_logged(vmc, caplog):
     with caplog.at_level(logging.INFO, logger="hybridcomp.models.geometry"):
         p = table_point(vmc, {"X": 100.0, "Y": -325.0})
@@ -119,9 +131,10 @@ def test_tool_over_the_table_centre_gives_the_old_rows(vmc):
 def test_uniform_rise_table_points_differ_by_free_expansion(vmc, pose):
     """Uniform ΔT, one α: u(reference) − u(point under the tool) = α ΔT (reference − point) on the table top.
 
-    The second pose has the tool behind the table (clipped to its edge).  So the drift under the tool minus the drift
-    at the reference is that hand formula, and under a uniform rise the drift under the tool has no x or y at all,
-    whereas the reference's drift changes by α ΔT ΔX between two X positions.
+    The second pose has the tool behind the table: the table's displacement is continued past its edge, which is
+    exact for this linear expansion, so the hand formula holds at the tool's own x, y there too.  So the drift under
+    the tool minus the drift at the reference is that formula, and under a uniform rise the drift under the tool
+    has no x or y at all, whereas the reference's drift changes by α ΔT ΔX between two X positions.
     """
     dT = 2.0
     new = _one_alpha(vmc)
@@ -130,14 +143,13 @@ def test_uniform_rise_table_points_differ_by_free_expansion(vmc, pose):
     G_new, G_old = _rows(new, pose), _rows(old, pose)
     d_new, d_old = G_new @ np.full(G_new.shape[1], dT), G_old @ np.full(G_old.shape[1], dT)
     ref = np.asarray(vmc.table_reference.position_mm)
-    pt = np.asarray(table_point(vmc, pose).position_mm)
+    full = vmc.check_pose(pose)
+    tcp = np.asarray(vmc.tcp.position_mm) + vmc.body_offset_mm("spindle", full)
+    pt = np.r_[(tcp - vmc.body_offset_mm("table", full))[:2], ref[2]]  # under the tool, on or beyond the table
     expected = alpha * dT * (ref - pt) * MM
     assert abs(expected[0]) > 4e-6  # 200 mm or more off the centre: micrometres
     np.testing.assert_allclose(d_new - d_old, expected, rtol=0, atol=1e-12)
-    full = vmc.check_pose(pose)
-    tcp = np.asarray(vmc.tcp.position_mm) + vmc.body_offset_mm("spindle", full)
-    under = pt + vmc.body_offset_mm("table", full)  # the tool's x, y; behind the table: its edge
-    np.testing.assert_allclose(d_new[:2], alpha * dT * (tcp - under)[:2] * MM, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(d_new[:2], 0.0, rtol=0, atol=1e-12)  # no x, y under a uniform rise, anywhere
 
 
 def test_uniform_rise_reference_drift_moves_with_x_but_not_under_the_tool(vmc):
