@@ -252,7 +252,7 @@ def _path_summary(along: dict | None) -> dict | None:
     return {"rms_3d_um": {k: v["3d"]["rms_um"] for k, v in m.items()},
             "p95_3d_um": {k: {w: v["3d"]["p95_range_um"][s] for w, s in WINDOWS.items()} for k, v in m.items()},
             "position_dependent_um": along["position_dependent_um"], "truth": along["truth"],
-            "largest_table_step_um": along["largest_table_step_um"]}
+            "largest_table_step_um": along["largest_table_step_um"], "drive_gains": along.get("drive_gains")}
 
 
 def planted_cause(disturbance, causes, element_size_mm: float) -> tuple[str, bool, bool]:

@@ -735,6 +735,7 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
         "truth": "the real machine's own pose-aware model" if path.own else "the models' pose-aware model (the "
                  "real machine is the model)",
         "largest_table_step_um": {NAMES[s]: r["table_largest_step_um"] for s, r in runs.items() if r.get("tables")},
+        "drive_gains": {NAMES[s]: r["drive_gains"] for s, r in runs.items() if r.get("drive_gains") is not None},
         "metrics": m,
     }
 
@@ -815,6 +816,7 @@ def _replay(strategy, machine_name, db_path, rom_path, trace, pose, pkey, machin
             "activations": sum(1 for e in ev if e["kind"] == "activation"),
             "generations": sum(1 for e in ev if e["kind"] == "generation" and e.get("status") == "finished"),
             "largest_step_um": largest_step_um(off), "tables": tables,
+            "drive_gains": None if mon.gains is None else {a: float(g) for a, g in zip(mon.gains.axes, mon.gains.g)},
             "table_largest_step_um": table_largest_step_um(tables) if tables else None}
 
 
@@ -887,12 +889,18 @@ def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, 
                 P[k] = D[k] + rng.normal(0.0, probe_noise_um, 3)
                 continue
             poses, truth, columns = probe_cycle
-            ks = np.arange(k, min(k + len(poses), len(times)))
-            for kk, pose in zip(ks, poses):
-                f = rows[kk][1]
-                for c, v in zip(columns, pose):
-                    f[header.index(c)] = f"{v:g}"
-                P[kk] = truth(times[kk], np.asarray(pose, float)[None, :])[0] + rng.normal(0.0, probe_noise_um, 3)
+            kk = k
+            for j, pose in enumerate(probing_path(poses)):
+                for _ in range(PROBE_HOLD_SAMPLES):  # the axes stand at the pose for a few samples
+                    if kk >= len(times):
+                        break
+                    f = rows[kk][1]
+                    for c, v in zip(columns, pose):
+                        f[header.index(c)] = f"{v:g}"
+                    kk += 1
+                if (j == 0 or j % 2 == 1) and kk - 1 < len(times):  # a touch at each pose of the star, not the returns
+                    P[kk - 1] = truth(times[kk - 1], np.asarray(pose, float)[None, :])[0] + rng.normal(
+                        0.0, probe_noise_um, 3)
     names = [temperature_column(n) for n in sensor_names] + (list(PROBE_COLUMNS) if probe_every_h else [])
     with dst.open("w") as fo:
         fo.write(",".join(header + names) + "\n")
@@ -902,6 +910,22 @@ def _write_trace(src: Path, dst: Path, rate_hz: float, t_end: float = math.inf, 
     from hybridcomp.monitor.config import MonitorConfig
 
     return {"time_s": times, "degC": M, "filtered_degC": low_pass(times, M, MonitorConfig.sensor_filter_s)}
+
+
+#: samples the axes stand at each pose of a probing cycle (at 1 Hz: the moves between poses stay within the feeds)
+PROBE_HOLD_SAMPLES = 3
+
+
+def probing_path(poses: np.ndarray) -> list:
+    """The poses a probing cycle visits: the star's first pose, then each other pose and back to the first.
+
+    Every move goes between the model's pose and one axis near a travel end, half the travel at most.  The first
+    entry and the odd ones are the star's poses (each touched once); the other even ones are the returns.
+    """
+    out = [poses[0]]
+    for p in poses[1:]:
+        out += [p, poses[0]]
+    return out
 
 
 def probe_poses(machine, pose_mm: dict) -> np.ndarray:

@@ -524,9 +524,13 @@ class Monitor:
         if s.probe_um is not None:
             s.observer = self.observer.update_probe(s.observer, s.probe_um)
             self.counters.probes += 1
-            self.event("probe", end_s, {"measured_um": dict(zip(DRIFT_COLUMNS, s.probe_um)),
-                                        "estimate_um": dict(zip(DRIFT_COLUMNS, map(float, self.observer.drift_um(s.observer))))},
-                       _t(end_s))
+            payload = {"measured_um": dict(zip(DRIFT_COLUMNS, s.probe_um)), "probes": s.probe_n,
+                       "estimate_um": dict(zip(DRIFT_COLUMNS, map(float, self.observer.drift_um(s.observer))))}
+            if self.gains is not None and len(self.gains.axes):  # what the probes at several positions taught
+                payload["drive_gains"] = {a: float(g) for a, g in zip(self.gains.axes, self.gains.g)}
+                payload["message"] = "drives' errors over the model's: " + ", ".join(
+                    f"{a} {1 + g:.2f} x" for a, g in zip(self.gains.axes, self.gains.g))
+            self.event("probe", end_s, payload, _t(end_s))
             s.probe_um, s.probe_n = None, 0
         self._after_update(end_s, u)
         if sig is not None:

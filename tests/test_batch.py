@@ -58,7 +58,9 @@ def reference(tmp_path_factory):
             arrays[name + "/time"] = r.time_s
         np.savez({str(out)!r}, **arrays)
     """)
-    env = {**os.environ, **WORKER_ENVIRONMENT, "PYTHONPATH": str(Path(__file__).parent)}
+    # this test folder (make_cases) and what the root conftest put first: this checkout, installed or not
+    env = {**os.environ, **WORKER_ENVIRONMENT,
+           "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
     subprocess.run([sys.executable, "-c", code], check=True, env=env, cwd=Path(__file__).parent, timeout=120)
     data = np.load(out)
     return {n: (data[n + "/sensors"], data[n + "/drift"], data[n + "/time"]) for n in make_cases_names()}
