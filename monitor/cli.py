@@ -53,6 +53,10 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse._SubParsersAction:
                        "it (write it with 'hybridcomp monitor example-trace') as fast as the daemon can ([source] "
                        "speed = 0; speed = 1 is real time), with the structure model vmc800.rom.npz and the CD "
                        "database cds.sqlite beside it.")
+    e.add_argument("--rom", default="vmc800.rom.npz",
+                   help="the structure model the configuration reads (default vmc800.rom.npz); a pose-aware one "
+                   "(reduce --poses star) makes the daemon compensate where the tool is, writing a support-point "
+                   "table every cycle ([sink] table_path writes them to a file)")
     e.add_argument("--out", type=Path, default=None, help="file to write (default: print)")
     e.add_argument("--force", action="store_true", help=FORCE_HELP)
     t = sub.add_parser("example-trace", help="write the example replay trace: the job-shop day with sensor columns",
@@ -91,9 +95,9 @@ def run(args: argparse.Namespace) -> int:
             if args.out is None:
                 if args.force:
                     raise ValueError("--force applies with --out only")
-                print(example_config(), end="")
+                print(example_config(args.rom), end="")
             else:
-                write_text_atomic(check_output_path(args.out, force=args.force), example_config())
+                write_text_atomic(check_output_path(args.out, force=args.force), example_config(args.rom))
             return 0
         if args.monitor_command == "example-trace":
             return _example_trace(args)
@@ -132,6 +136,9 @@ def open_everything(cfg):
 
     machine = load_machine(cfg.machine)
     rom = load_rom(cfg.rom, machine)  # a pose-aware one: the daemon compensates where the tool is
+    if cfg.sink.table_path is not None and not rom.meta.get("poses"):
+        raise ConfigError(f"{cfg.source_file}: sink.table_path {cfg.sink.table_path} needs a pose-aware monitor.rom "
+                          f"(reduce --poses star); {cfg.rom} compensates at one pose and writes no tables")
     rom_pose = {k: float(v) for k, v in (rom.meta.get("pose_mm") or {}).items()}
     pose = machine.check_pose(dict(cfg.pose_mm or rom_pose))
     if rom_pose and any(abs(pose[k] - rom_pose.get(k, math.nan)) > 1e-9 for k in pose):

@@ -466,6 +466,8 @@ jitter = 0.1
 """
 
 
-def example_config() -> str:
-    """An annotated example configuration (TOML text)."""
-    return EXAMPLE
+def example_config(rom: str = "vmc800.rom.npz") -> str:
+    """An annotated example configuration (TOML text) reading the structure model ``rom``."""
+    if any(c in rom for c in '"\\\n'):
+        raise ValueError(f"--rom {rom!r}: a file name without quotes, backslashes or line breaks, please")
+    return EXAMPLE.replace('rom = "vmc800.rom.npz" ', f'rom = "{rom}" '.ljust(len('rom = "vmc800.rom.npz" ')), 1)

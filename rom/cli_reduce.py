@@ -67,8 +67,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--poses", choices=("star", "grid"),
                    help="also give the drift at every pose: a reduced model per support pose (star: every axis at its "
                    "travel ends with the others at --pose, 2n+1 poses; grid: all 3^n), each on its own FE model, "
-                   "outputs dx@k, dy@k, dz@k beside the model pose's; interpolated by hybridcomp.rom.poses.drift_along. "
-                   "The written model keeps no basis")
+                   "its drift an output group beside the model pose's (simulate --rom writes it to poses.csv, the drives' "
+                   "errors to feedback.csv); interpolated by hybridcomp.rom.poses.drift_along; as the daemon's "
+                   "monitor.rom it compensates where the tool is. The written model keeps no basis")
     p.add_argument("--pose-enrich", type=int, metavar="N",
                    help="with --poses: Krylov directions of each support pose's own system added to the carried basis "
                    "(default 20)")
