@@ -88,6 +88,14 @@ class _FileSink:
     _n = 0
     flush_every = 1
 
+    def _open(self, path: str | Path, flush_every: int) -> None:
+        """Open ``path`` to append lines (its folder made)."""
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = self.path.open("a")
+        self._n = 0
+        self.flush_every = flush_every
+
     def _wrote(self) -> None:
         self._n += 1
         if self._n % self.flush_every == 0:
@@ -104,11 +112,7 @@ class JsonlSink(_FileSink):
     """
 
     def __init__(self, path: str | Path, flush_every: int = 1):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = self.path.open("a")
-        self._n = 0
-        self.flush_every = flush_every
+        self._open(path, flush_every)
 
     async def write(self, offset: Offset) -> None:
         self._fh.write(json.dumps(offset.record(), allow_nan=False) + "\n")
@@ -146,11 +150,7 @@ class TableSink(_FileSink):
     """
 
     def __init__(self, path: str | Path, flush_every: int = 1):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = self.path.open("a")
-        self._n = 0
-        self.flush_every = flush_every
+        self._open(path, flush_every)
 
     async def write(self, offset: Offset) -> None:
         if offset.table is None:

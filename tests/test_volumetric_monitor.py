@@ -136,3 +136,29 @@ def test_a_replay_with_a_pose_aware_model_writes_tables_and_offsets_at_the_comma
     for f in last.feedback_um:
         fb[f.direction] += f.sign * np.interp(0.0, f.positions_mm, f.error_um)
     assert at_pose == pytest.approx(np.asarray(rows[-1].pose_um) + fb, abs=0.25)
+
+
+def test_the_table_sink_writes_each_cycles_table_and_the_offsets_sink_leaves_it_out(tmp_path):
+    import json
+
+    from hybridcomp.monitor.config import SinkConfig
+    from hybridcomp.monitor.sinks import Offset, make_sink
+    from hybridcomp.rom.volumetric import table_from_dict
+
+    table = _table(gx=0.5)
+    sink = make_sink(SinkConfig(kind="jsonl", path=tmp_path / "offsets.jsonl", table_path=tmp_path / "tables.jsonl"))
+
+    async def write():
+        await sink.write(Offset(5.0, 1.0, 2.0, 3.0, position_mm=(100.0, 0.0, 0.0), pose_um=(0.5, 0.5, 0.5),
+                                table=table))
+        await sink.write(Offset(10.0, 1.0, 2.0, 3.0))  # a cycle without a table: nothing in the table file
+        await sink.close()
+
+    asyncio.run(write())
+    rows = [json.loads(x) for x in (tmp_path / "offsets.jsonl").read_text().splitlines()]
+    assert [r["time_s"] for r in rows] == [5.0, 10.0] and "table" not in rows[0]
+    assert rows[0]["position_mm"] == [100.0, 0.0, 0.0] and rows[0]["pose_um"] == [0.5, 0.5, 0.5]
+    tables = [table_from_dict(json.loads(x)) for x in (tmp_path / "tables.jsonl").read_text().splitlines()]
+    assert len(tables) == 1
+    p = np.array([[360.0, -200.0, 100.0]])
+    assert interpolate_one(tables[0], p[0]) == pytest.approx(interpolate_one(table, p[0]), abs=1e-12)
