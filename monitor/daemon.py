@@ -286,12 +286,16 @@ class Monitor:
         self._filter(r.time_s)
         if r.probe_um is not None:
             probe = [float(v) for v in r.probe_um]
+            at_pose = True
             if self.pose is not None and self.raw_table is not None:
                 self.gains = volumetric.update_gains(self.gains, self.raw_table, r.position_mm, probe, r.time_s,
                                                      self.gain_settings)
                 s.gains = self.gains.as_dict()
-                probe = self._probe_at_model_pose(r, probe)
-            s.probe_um, s.probe_n = _mean_probe(s.probe_um, s.probe_n, probe)
+                # the observer owns the model's pose: a probe elsewhere teaches the drives' gains only (taken to
+                # the pose through the table, the table's errors there would reach the one-pose estimate)
+                at_pose = volumetric.at_model_pose(self.raw_table, r.position_mm)
+            if at_pose:
+                s.probe_um, s.probe_n = _mean_probe(s.probe_um, s.probe_n, probe)
         if first:
             self._first_estimate(r.time_s)
         out = []
@@ -607,11 +611,12 @@ class Monitor:
         s.step_inputs = [float(v) for v in u]
         s.drift_um = [float(v) for v in self.observer.drift_um(s.observer)]
         s.drift_next_um = [float(v) for v in self.observer.forecast(s.observer, u[None, :], self.cfg.increment_s)[1][0]]
-        if self.pose is not None:  # the pose-aware model on the same inputs (a rewind's earlier steps leave it)
+        if self.pose is not None:  # the pose-aware model on the inputs as corrected (a rewind's earlier steps leave it)
+            uc = self.observer.corrected_inputs(s.observer, u)
             if self.track is None:
-                self.track = volumetric.start(self.pose, u, t, self.cfg.increment_s)
+                self.track = volumetric.start(self.pose, uc, t, self.cfg.increment_s)
             elif t > self.track.time_s:
-                self.track = volumetric.advance(self.pose, self.track, u, t, self.cfg.increment_s)
+                self.track = volumetric.advance(self.pose, self.track, uc, t, self.cfg.increment_s)
             s.pose_track = volumetric.state_out(self.track)
         est = self._estimate_degC()
         for n, v in self.measured.items():
@@ -634,16 +639,6 @@ class Monitor:
             keep = t - self.cfg.regeneration.history_s
             s.history = [h for h in s.history if h[0] >= keep]
             s.loads = [h for h in s.loads if h[0] >= keep]
-
-    def _probe_at_model_pose(self, r: Reading, probe: list[float]) -> list[float]:
-        """A drift probed at the reading's commanded position, taken to the model's pose for the observer.
-
-        Less what the last table adds at that position over the model's pose (the pose-aware model's position
-        part and the drives' errors there): the observer keeps the model pose's block on the machine.
-        """
-        table = volumetric.with_gains(self.raw_table, self.gains)
-        at = volumetric.position_part_um(table, r.position_mm, self.s.offsets_um)
-        return [p - a for p, a in zip(probe, at)]
 
     # ------------------------------------------------------------------ compensation
     def _model_drift_now(self, t: float) -> dict[str, float] | None:

@@ -115,12 +115,13 @@ def table_step(new, old, max_step_um: float):
     return limit_table(new, old, max_step_um)
 
 
-def position_part_um(table, position_mm, offsets_um) -> tuple[float, float, float]:
-    """What ``table`` adds at ``position_mm`` over the one-pose ``offsets_um`` it was built from [µm]."""
-    from hybridcomp.rom.volumetric import interpolate_one
+#: a probe within this of the model's pose on every axis is a probe at the model's pose [mm]
+AT_POSE_MM = 1.0
 
-    at = interpolate_one(table, position_mm)
-    return tuple(float(a - offsets_um[c]) for a, c in zip(at, ("dx_um", "dy_um", "dz_um")))
+
+def at_model_pose(table, position_mm) -> bool:
+    """Whether ``position_mm`` is the model's pose of the table's grid (within :data:`AT_POSE_MM` on every axis)."""
+    return all(abs(float(p) - r) <= AT_POSE_MM for p, r in zip(position_mm, table.grid.reference_mm()))
 
 
 def state_out(track: PoseTrack | None) -> dict | None:

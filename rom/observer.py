@@ -362,6 +362,19 @@ class Observer:
         """The reduced model's coordinates ``x_r = Φ z`` [K]."""
         return self.Phi @ state.x[self.slices()["z"]]
 
+    def corrected_inputs(self, state: ObserverState, u) -> np.ndarray:
+        """The inputs as the estimate has them: each source's powers scaled by ``1 + scale``, each zone's air offset.
+
+        What a model on the same inputs (the pose-aware model beside the daemon's observer) needs to follow the
+        air and power corrections; the unknown heat per body is a state of this model's own shapes and stays here.
+        """
+        u = self._check_u(u)
+        sl = self.slices()
+        out = u.copy()
+        out[:self.n_heat] += u[:self.n_heat] * (self.S @ state.x[sl["scale"]])
+        out[self.n_heat:] += state.x[sl["air"]]
+        return out
+
     def disturbances(self, state: ObserverState) -> dict[str, dict[str, float]]:
         """The estimated disturbances by kind and name (air [K], scale [-], heat [W], bias [µm])."""
         sl = self.slices()

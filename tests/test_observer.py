@@ -92,6 +92,19 @@ def test_planted_air_and_power_are_recovered_and_the_drift_follows(machine, rom)
     scale = obs.disturbances(s)["scale"]
     assert scale["spindle_bearing_front"] == pytest.approx(0.6, abs=0.12)
     assert max(scale, key=lambda k: abs(scale[k])) == "spindle_bearing_front"
+    # the inputs as the estimate has them (what the pose-aware model beside the daemon runs on): each source's
+    # columns scaled by 1 + its scale, each zone's air column offset by its air estimate
+    layout, d = machine.layout(), obs.disturbances(s)
+    uc = obs.corrected_inputs(s, U[-1])
+    want = U[-1].copy()
+    for name, cols in layout.source_inputs:
+        for c in cols:
+            want[c] *= 1.0 + d["scale"][name]
+    for z in machine.zones:
+        want[layout.columns.index(f"{z.name}_degC")] += d["air_K"][z.name]
+    np.testing.assert_allclose(uc, want, rtol=1e-12, atol=1e-12)
+    j = layout.columns.index("spindle_bearing_front_W")
+    assert uc[j] == pytest.approx(Ut[-1, j], rel=0.1)
 
 
 def rom_day(machine, rom, hours: float):
