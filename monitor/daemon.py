@@ -292,8 +292,12 @@ class Monitor:
                                                      self.gain_settings)
                 s.gains = self.gains.as_dict()
                 # the observer owns the model's pose: a probe elsewhere teaches the drives' gains only (taken to
-                # the pose through the table, the table's errors there would reach the one-pose estimate)
+                # the pose through the table, the table's errors there would reach the one-pose estimate); one at
+                # the pose less the drives' errors there, which the one-pose model does not hold
                 at_pose = volumetric.at_model_pose(self.raw_table, r.position_mm)
+                if at_pose:
+                    probe = volumetric.without_drives_um(volumetric.with_gains(self.raw_table, self.gains),
+                                                         r.position_mm, probe)
             if at_pose:
                 s.probe_um, s.probe_n = _mean_probe(s.probe_um, s.probe_n, probe)
         if first:

@@ -11,9 +11,13 @@ daemon writes the table of the drift at the support points of a workspace grid
 
 What the monitor knows at the model's pose (CDs fitted on the machine's history, the observer's corrections,
 the probes) carries over to every pose unchanged; what the pose adds (lever arms, heat paths per pose, the
-screws' elongation and the scales' expansion at the axis positions) comes from the pose-aware model.  Its first
-block is the model pose's reduced model itself, so the bracket is zero at the model's pose: at that pose the
-table gives the one-pose offsets plus the drives' error at the model's axis positions.
+screws' elongation and the scales' expansion at the axis positions) comes from the pose-aware model, run on
+the inputs as the observer corrects them (its air offsets and power scales).  Its first block is the model
+pose's reduced model itself, so the bracket is zero at the model's pose: at that pose the table gives the
+one-pose offsets plus the drives' error at the model's axis positions.
+
+Probes: one at the model's pose goes to the observer less the drives' errors there (the one-pose model holds
+none); one elsewhere teaches the drives' gains (:class:`DriveGains`) and nothing else.
 
 Each entry of the table moves at most ``max_step_um`` per cycle (the rate limit of the one-pose offsets,
 per support point); the offsets at the commanded position are the table interpolated there, as the control
@@ -122,6 +126,16 @@ AT_POSE_MM = 1.0
 def at_model_pose(table, position_mm) -> bool:
     """Whether ``position_mm`` is the model's pose of the table's grid (within :data:`AT_POSE_MM` on every axis)."""
     return all(abs(float(p) - r) <= AT_POSE_MM for p, r in zip(position_mm, table.grid.reference_mm()))
+
+
+def without_drives_um(table, position_mm, probe_um) -> list[float]:
+    """A drift probed at ``position_mm`` less the drives' errors the table has there (sign and direction applied)."""
+    out = [float(v) for v in probe_um]
+    grid_axes = list(table.grid.axes)
+    for f in table.feedback_um:
+        out[f.direction] -= f.sign * float(np.interp(float(position_mm[grid_axes.index(f.axis)]), f.positions_mm,
+                                                     f.error_um))
+    return out
 
 
 def state_out(track: PoseTrack | None) -> dict | None:

@@ -162,3 +162,13 @@ def test_the_table_sink_writes_each_cycles_table_and_the_offsets_sink_leaves_it_
     assert len(tables) == 1
     p = np.array([[360.0, -200.0, 100.0]])
     assert interpolate_one(tables[0], p[0]) == pytest.approx(interpolate_one(table, p[0]), abs=1e-12)
+
+
+def test_a_probe_at_the_model_pose_reaches_the_observer_without_the_drives_errors():
+    table = _table(gx=0.5)
+    assert volumetric.at_model_pose(table, (0.0, 0.4, -0.3)) and not volumetric.at_model_pose(table, (2.0, 0.0, 0.0))
+    probe = [1.0, 2.0, 3.0]
+    out = volumetric.without_drives_um(table, (0.0, 0.0, 0.0), probe)
+    ex = 1.5 * 20.0 * 430.0 / 860.0  # X's error at x = 0, entering x with the table side's sign −1
+    ey = 15.0 * 340.0 / 680.0
+    assert out == pytest.approx([1.0 + ex, 2.0 + ey, 3.0], abs=1e-12)
