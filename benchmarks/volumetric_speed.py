@@ -11,7 +11,8 @@ at ``--element-size`` mm and cached in the temporary folder, or read from ``--ro
   (:meth:`~hybridcomp.rom.reduced.ReducedModel.step`, its first-order-hold discretisation cached per step size as
   in the daemon; the one-time discretisation is reported apart), plus the outputs ``C x``; beside it the same
   step through :meth:`~hybridcomp.rom.reduced.ReducedModel.integrate` (held inputs, what a batch run does) and the
-  daemon's observer predict (:meth:`~hybridcomp.rom.observer.Observer.predict`: state and covariance);
+  daemon's observer predict on the model pose's block (:meth:`~hybridcomp.rom.observer.Observer.predict`: state
+  and covariance; the pose-aware rest runs beside it without one);
 * the table update: :func:`~hybridcomp.rom.volumetric.table_of` for the grid's support points (27 with
   ``--points 3``);
 * the interpolation of 100,000 positions (:func:`~hybridcomp.rom.volumetric.interpolate`) and of one position
@@ -105,8 +106,9 @@ def measure(a: argparse.Namespace) -> int:
             lambda dt=dt: rom.integrate(np.array([0.0, dt]), np.vstack([u1, u1]), initial=x, hold="step"), a.repeats)
     try:
         from hybridcomp.rom.observer import build_observer
+        from hybridcomp.rom.poses import model_pose_block
 
-        obs = build_observer(rom, m)
+        obs = build_observer(model_pose_block(rom), m)  # the daemon's observer: the model pose's block only
         s0 = obs.initial(U[0])
         obs.predict(s0, u1, 5.0)
         times["observer predict 5 s"] = median_s(lambda: obs.predict(s0, u1, 5.0), max(3, a.repeats // 3))
