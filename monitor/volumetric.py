@@ -3,8 +3,8 @@
 The observer keeps the model pose's reduced model on the machine with the sensors and the probes; the CDs and
 the complementary filter give the offsets at the model's pose (:mod:`hybridcomp.monitor.daemon`).  Beside
 them the pose-aware structure model (``hybridcomp reduce --poses``, :mod:`hybridcomp.rom.poses`: a reduced
-model per support pose and the feed drives' screws) runs on the same inputs, and every compensation cycle the
-daemon writes the table of the drift at the support points of a workspace grid
+model per support pose and the feed drives' screws) runs on the inputs as the observer corrects them, and every
+compensation cycle the daemon writes the table of the drift at the support points of a workspace grid
 (:mod:`hybridcomp.rom.volumetric`)::
 
     table(p) = offsets at the model's pose + [pose-aware model at p − pose-aware model at the model's pose]
