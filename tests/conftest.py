@@ -22,6 +22,12 @@ def machine():
 
 
 @pytest.fixture(scope="session")
+def vmc(machine):
+    """:func:`machine` under the name the machine-file, drive and pose tests give it."""
+    return machine
+
+
+@pytest.fixture(scope="session")
 def model_150mm(machine):
     """The demonstrator's FE model at mid travel on 150 mm elements (about 4,100 nodes)."""
     return hc.build_model(machine, None, 150.0)

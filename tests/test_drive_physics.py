@@ -36,11 +36,6 @@ STRUCTURE_TOL_UM_PER_M = 0.02
 
 
 @pytest.fixture(scope="module")
-def vmc():
-    return load_machine("vmc800")
-
-
-@pytest.fixture(scope="module")
 def model(model_200mm):
     assert model_200mm.machine.mesh.element_size_mm == H_MM
     return model_200mm

@@ -22,11 +22,6 @@ ALPHA_STEEL = 11.5e-6
 
 
 @pytest.fixture(scope="module")
-def vmc():
-    return load_machine("vmc800")
-
-
-@pytest.fixture(scope="module")
 def model(model_200mm):
     assert model_200mm.machine.mesh.element_size_mm == H_MM
     return model_200mm

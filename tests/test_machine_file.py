@@ -59,11 +59,6 @@ def readme_example() -> str:
 # --------------------------------------------------------------------------- the bundled machine
 
 
-@pytest.fixture(scope="module")
-def vmc():
-    return load_machine("vmc800")
-
-
 def test_vmc800_is_bundled():
     assert "vmc800" in bundled_machines()
     assert VMC800_PATH.name == "vmc800.toml"

@@ -12,18 +12,12 @@ from hybridcomp.fem.loads import example_loads
 from hybridcomp.fem.mesh import mesh_machine
 from hybridcomp.fem.model import build_model
 from hybridcomp.fem.poses import PoseGrid, carry_field, pose_drift, support_poses
-from hybridcomp.models import load_machine
 from hybridcomp.rom.machine import reduce_model
 from hybridcomp.rom.poses import FEEDBACK_POINTS, drift_along, grid_of, reduce_at_poses
 from hybridcomp.rom.reduced import load_rom, save_rom
 
 H_MM = 200.0
 LEVELS = ((-400.0, 0.0, 400.0), (-325.0, 50.0, 325.0), (-275.0, 0.0, 275.0))
-
-
-@pytest.fixture(scope="module")
-def vmc():
-    return load_machine("vmc800")
 
 
 @pytest.fixture(scope="module")

@@ -27,11 +27,6 @@ H_MM = 200.0
 MM = 1e-3
 
 
-@pytest.fixture(scope="module")
-def vmc():
-    return load_machine("vmc800")
-
-
 def _rows(machine, pose_mm):
     """Drift rows (3 × n) [m/K] of ``machine`` at a pose on the H_MM mesh."""
     mm = mesh_machine(machine, pose_mm, H_MM)
