@@ -189,12 +189,13 @@ class Monitor:
         self._invalid_after: float | None = -math.inf  # last_time_s of the last invalid-stamp event
         self._snap: dict | None = None
         self.rewind: deque[StepRecord] = deque()  # the recent model steps (not persisted: a restart cannot rewind)
-        self.track: volumetric.PoseTrack | None = None  # the pose-aware model (persisted as s.pose_track)
-        self.table = None  # the support-point table written last (persisted as s.table)
-        self.raw_table = None  # ... before the drives' gains and the rate limit
+        # the pose-aware model, the table written last and the drives' gains (into s at each boundary: persisted)
+        self.track: volumetric.PoseTrack | None = None
+        self.table = None
+        self.raw_table = None  # the table before the drives' gains and the rate limit
         self.gain_settings = volumetric.GainSettings(probe_sigma_um=cfg.observer.probe_sigma_um)
         self.gains = (volumetric.initial_gains(tuple(rom.meta.get("feedback", {})), self.gain_settings)
-                      if self.pose is not None else None)  # persisted as s.gains
+                      if self.pose is not None else None)
         self.restore()
         self.reload_active()
 
@@ -290,7 +291,6 @@ class Monitor:
             if self.pose is not None and self.raw_table is not None:
                 self.gains = volumetric.update_gains(self.gains, self.raw_table, r.position_mm, probe, r.time_s,
                                                      self.gain_settings)
-                s.gains = self.gains.as_dict()
                 # the observer owns the model's pose: a probe elsewhere teaches the drives' gains only (taken to
                 # the pose through the table, the table's errors there would reach the one-pose estimate); one at
                 # the pose less the drives' errors there, which the one-pose model does not hold
@@ -621,7 +621,6 @@ class Monitor:
                 self.track = volumetric.start(self.pose, uc, t, self.cfg.increment_s)
             elif t > self.track.time_s:
                 self.track = volumetric.advance(self.pose, self.track, uc, t, self.cfg.increment_s)
-            s.pose_track = volumetric.state_out(self.track)
         est = self._estimate_degC()
         for n, v in self.measured.items():
             if math.isfinite(v) and s.sensors[n].status == "ok":
@@ -731,7 +730,7 @@ class Monitor:
 
         The one-pose offsets carried to every pose, each entry rate limited against the last table.
         """
-        from hybridcomp.rom.volumetric import VolumetricError, interpolate_one, table_to_dict
+        from hybridcomp.rom.volumetric import VolumetricError, interpolate_one
 
         try:
             self.raw_table = volumetric.table_now(self.pose, self.track, r.time_s, self.cfg.increment_s, at_pose)
@@ -744,7 +743,6 @@ class Monitor:
                                                  "offsets at the model's pose are written"}, f"table@{_t(r.time_s)}")
             return Offset(r.time_s, *at_pose, active, clamped, limited, outside, degraded, by)
         self.table = table
-        self.s.table = table_to_dict(table)
         dx, dy, dz = interpolate_one(table, r.position_mm)
         return Offset(r.time_s, dx, dy, dz, active, clamped, limited or moved, outside, degraded, by,
                       position_mm=tuple(float(v) for v in r.position_mm), pose_um=at_pose, table=table)
@@ -768,8 +766,20 @@ class Monitor:
             dt = time.perf_counter() - t0
             self.counters.last_decision_s = dt
             self.counters.max_decision_s = max(self.counters.max_decision_s, dt)
+            self._sync_pose_state()
             self._snap = s.to_dict()
             self.persist()
+
+    def _sync_pose_state(self) -> None:
+        """The pose-aware model's state, the last table and the drives' gains into the state a boundary persists."""
+        if self.pose is None:
+            return
+        from hybridcomp.rom.volumetric import table_to_dict
+
+        s = self.s
+        s.pose_track = volumetric.state_out(self.track)
+        s.table = table_to_dict(self.table) if self.table is not None else None
+        s.gains = self.gains.as_dict()
 
     def _forecasts(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Sensors and drift over the forecast horizon: the last hour's load continued, and a cool-down."""

@@ -28,7 +28,6 @@ Everything here is pure: :class:`PoseTrack` is the pose-aware model's state, eac
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,7 +113,7 @@ def table_step(new, old, max_step_um: float):
     """
     from hybridcomp.rom.volumetric import limit_table
 
-    if old is None or not math.isfinite(max_step_um):
+    if old is None:
         return new, False
     return limit_table(new, old, max_step_um)
 
@@ -128,13 +127,16 @@ def at_model_pose(table, position_mm) -> bool:
     return all(abs(float(p) - r) <= AT_POSE_MM for p, r in zip(position_mm, table.grid.reference_mm()))
 
 
+def _drive_at(table, f, position_mm) -> float:
+    """Drive ``f``'s error [µm] at its axis' position in ``position_mm`` (grid order), as the table has it."""
+    return float(np.interp(float(position_mm[table.grid.axes.index(f.axis)]), f.positions_mm, f.error_um))
+
+
 def without_drives_um(table, position_mm, probe_um) -> list[float]:
     """A drift probed at ``position_mm`` less the drives' errors the table has there (sign and direction applied)."""
     out = [float(v) for v in probe_um]
-    grid_axes = list(table.grid.axes)
     for f in table.feedback_um:
-        out[f.direction] -= f.sign * float(np.interp(float(position_mm[grid_axes.index(f.axis)]), f.positions_mm,
-                                                     f.error_um))
+        out[f.direction] -= f.sign * _drive_at(table, f, position_mm)
     return out
 
 
@@ -215,13 +217,11 @@ def initial_gains(axes, settings: GainSettings = GainSettings()) -> DriveGains:
 def _drive_rows(table, position_mm, axes) -> np.ndarray:
     """(3 × n): each drive's error at ``position_mm`` less at the model's pose (sign applied), in its direction [µm]."""
     H = np.zeros((3, len(axes)))
-    grid_axes = list(table.grid.axes)
     ref = table.grid.reference_mm()
-    for axis, positions, error, direction, sign in table.feedback_um:
-        if axis in axes:
-            i = grid_axes.index(axis)
-            at, at0 = (float(np.interp(float(x), positions, error)) for x in (position_mm[i], ref[i]))
-            H[direction, list(axes).index(axis)] = sign * (at - at0)
+    for f in table.feedback_um:
+        if f.axis in axes:
+            H[f.direction, list(axes).index(f.axis)] = f.sign * (_drive_at(table, f, position_mm)
+                                                                 - _drive_at(table, f, ref))
     return H
 
 
@@ -257,11 +257,7 @@ def with_gains(table, gains: DriveGains | None):
     import dataclasses
 
     g = dict(zip(gains.axes, gains.g))
-    ref = dict(zip(table.grid.axes, table.grid.reference_mm()))
-    fb = []
-    for f in table.feedback_um:
-        e = np.asarray(f.error_um, float)
-        e0 = float(np.interp(ref[f.axis], f.positions_mm, e))
-        fb.append(f._replace(error_um=e + g.get(f.axis, 0.0) * (e - e0)))
-    fb = tuple(fb)
+    ref = table.grid.reference_mm()
+    fb = tuple(f._replace(error_um=f.error_um + g.get(f.axis, 0.0) * (f.error_um - _drive_at(table, f, ref)))
+               for f in table.feedback_um)
     return dataclasses.replace(table, feedback_um=fb)

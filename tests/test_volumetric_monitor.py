@@ -115,6 +115,17 @@ def test_a_replay_with_a_pose_aware_model_writes_tables_and_offsets_at_the_comma
         mon = Monitor(cfg, machine, prom, db, "X=0,Y=0,Z=0")
         sink = MemorySink()
         asyncio.run(run_monitor(cfg, mon, ReplaySource(trace, machine, speed=0), sink))
+        # the last boundary's state holds the pose-aware model's state, the table and the gains; a restart reads them
+        import json
+
+        from hybridcomp.monitor.store import MonitorStore
+
+        saved = json.loads(MonitorStore(db).get_state(mon.key))
+        assert len(saved["pose_track"]["x"]) == prom.order and saved["table"] is not None
+        assert saved["gains"]["axes"] == ["X", "Y", "Z"]
+        again = Monitor(cfg, machine, prom, db, "X=0,Y=0,Z=0")
+        assert again.track is not None and again.track.time_s == saved["pose_track"]["time_s"]
+        assert again.table is not None and again.table.grid.shape == (3, 3, 3)
     finally:
         db.close()
     rows = [r for r in sink.rows if r.table is not None]
