@@ -1,35 +1,35 @@
-"""Benchmark: the pose-aware structure model against FE carried along a path with moves, and at off-grid poses.
+"""Benchmark: the pose-aware structure model against FE carried along paths with moves, and at off-grid poses.
 
     python benchmarks/pose_path.py [--element-size-mm 80] [--fast] [--dt-s 60] [--poses 5] [--plant K]
-                                   [--no-remedy] [--at-table-reference]
+                                   [--at-table-reference]
 
 Truth: FE models built at the poses a path visits (one per distinct pose), stepped with Crank–Nicolson on the
 loads' times (the 16 h example day, ``hybridcomp.fem.loads.example_loads``) from the steady state of its first row
 at the first pose; at every move the temperature field is carried with the bodies onto the next pose's mesh
 (:func:`hybridcomp.fem.poses.carry_field`) and stepping goes on with that pose's model; the drift of each row is
-that pose's FE drift.  Two paths: four 4 h holds at off-grid poses, and 8 h at the Z axis' lower end then 8 h at
-its upper end (support poses: no interpolation error, so what is left is the pose history).  Besides, five
-off-grid poses held all day (``benchmarks/pose_drift.py``'s poses), each against an FE model built there.
+that pose's FE drift.  Three paths: four 4 h holds at off-grid poses; 8 h at the Z axis' lower end then 8 h at
+its upper end (support poses: no interpolation error, so what is left is the pose history); four off-grid poses
+visited in turn for 15 min each all day (64 moves, a job shop's pattern).  Besides, five off-grid poses held all
+day (``benchmarks/pose_drift.py``'s poses), each against an FE model built there.
 
-Prediction: the pose-aware reduced model (:func:`hybridcomp.rom.poses.reduce_at_poses`, star) run on the same
-loads, ``drift_along(..., feedback=False)`` at the path's positions.  It runs every support pose's block as if
-the machine stood there all day: along a path it ignores the pose history.  Beside it on the paths:
+Prediction: the pose-aware reduced model (:func:`hybridcomp.rom.poses.reduce_at_poses`, star) along the path
+with its pose history (:func:`hybridcomp.rom.poses.integrate_along`, ``history="moves"``: the support poses'
+blocks blended at every move with the weights of the pose left, :func:`~hybridcomp.rom.poses.blend_history`),
+``drift_along(..., feedback=False)`` at the path's positions.  Beside it on the paths:
 
-* ``FE at the pose all day``: the truth's own FE model of each hold run all day at that pose (what "history
-  ignored" costs without any reduction or interpolation);
-* ``remedy: reset at moves`` (unless ``--no-remedy``): offline here, not part of the library.  At every move each
-  support pose's reduced state is set to the Galerkin projection (mass-weighted) of the field the blocks gave at
-  the old pose (their fields, carried to the model's pose and weighted by the old pose's interpolation weights),
-  carried onto that support pose's mesh; between moves the blocks run as before.  Its cost: the support poses'
-  bases (rebuilt here as :func:`hybridcomp.rom.poses.pose_block` builds them, and checked against the model's
-  blocks) and one (r_k × r_j) transfer matrix per pair of support poses, applied at a move.
+* ``blended every step`` (``history="steps"``): the blocks blended at every step, holds too;
+* ``history ignored`` (``history="none"``): every support pose's block as if the machine stood there all day,
+  what the model did before it followed the poses; the planted error of the history: it must fail;
+* ``FE at the pose all day``: the truth's own FE model of each pose run all day there (what "history ignored"
+  costs without any reduction or interpolation).
 
 Criterion per case and direction: the largest error ≤ max(0.3 µm, 5 % of the local range of the truth's drift),
-the local range being the range within the hold (a path) or over the day (a pose held all day).  ``--plant K``
-adds a planted error beside the prediction: support pose K's drift replaced by the model pose's (its block dropped),
-judged alike (``within_limit``: ``*_planted``); at support pose K itself (K = 5: the Z axis' lower end, the first
-hold of the second path) it must fail where the prediction passes.  ``--at-table-reference`` takes the drift at the
-table reference instead of the table point under the tool.  Prints a table and a final JSON line.
+the local range being the range within the hold (the hold paths), over the rows at that pose (the 15 min path) or
+over the day (a pose held all day).  ``--plant K`` adds a planted error beside the prediction: support pose K's
+drift replaced by the model pose's (its block dropped), judged alike (``within_limit``: ``*_planted``); at support
+pose K itself (K = 5: the Z axis' lower end, the first hold of the second path) it must fail where the prediction
+passes.  ``--at-table-reference`` takes the drift at the table reference instead of the table point under the
+tool.  Prints a table and a final JSON line.
 """
 
 from __future__ import annotations
@@ -41,7 +41,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import scipy.linalg as la
 
 sys.path.insert(0, str(Path(__file__).parent))
 from pose_drift import random_poses
@@ -51,9 +50,8 @@ from hybridcomp.fem.model import build_model
 from hybridcomp.fem.poses import carry_field
 from hybridcomp.models import jsonio, load_machine
 from hybridcomp.models.layout import Loads
-from hybridcomp.rom.krylov import Reductor, orthonormal_extension, project
-from hybridcomp.rom.machine import h_samples, reduce_model, system_from_model
-from hybridcomp.rom.poses import drift_along, grid_of, pose_output_names, reduce_at_poses
+from hybridcomp.rom.machine import reduce_model
+from hybridcomp.rom.poses import drift_along, grid_of, integrate_along, pose_output_names, reduce_at_poses
 
 from _table import table
 
@@ -63,6 +61,11 @@ PATHS = {
                          (4.0, {"X": 120.0, "Y": 200.0, "Z": 180.0}), (4.0, {"X": -180.0, "Y": -90.0, "Z": -200.0})),
     "8 h Z low, 8 h Z high": ((8.0, {"X": 0.0, "Y": 0.0, "Z": -275.0}), (8.0, {"X": 0.0, "Y": 0.0, "Z": 275.0})),
 }
+#: four off-grid poses visited in turn, 15 min each, all day (judged per pose, not per hold)
+CYCLE = "4 poses in turn, 15 min each"
+PATHS[CYCLE] = tuple((0.25, PATHS["4 x 4 h off-grid"][i % 4][1]) for i in range(64))
+#: the candidates along the paths: label → history of :func:`hybridcomp.rom.poses.integrate_along`
+HISTORY = {"pose-aware ROM": "moves", "blended every step": "steps", "history ignored": "none"}
 FLOOR_UM, SHARE = 0.3, 0.05
 PLANTED = "planted: a support pose dropped"
 
@@ -88,11 +91,13 @@ def _slice(loads: Loads, i0: int, i1: int) -> Loads:
 def fe_path(machine, loads: Loads, holds, rows, fe_at) -> np.ndarray:
     """The truth along a path (nt × 3) [µm]: FE at each hold's pose, the field carried at every move."""
     out = np.empty((loads.time_s.size, 3))
-    x, prev = "steady", None
+    x, prev, carry = "steady", None, {}
     for (_, pose), (i0, i1) in zip(holds, rows):
         fe = fe_at(pose)
         if prev is not None:
-            x = carry_field(prev, fe.mesh) @ x
+            if (id(prev), id(fe)) not in carry:
+                carry[id(prev), id(fe)] = carry_field(prev, fe.mesh)
+            x = carry[id(prev), id(fe)] @ x
         res = fe.simulate(_slice(loads, i0, i1), initial=x, scheme="theta", theta=0.5, store_steps=(i1 - i0,))
         out[i0:i1 + 1] = res.drift_um
         x, prev = res.fields_K[i1 - i0], fe
@@ -106,66 +111,6 @@ def planted(prom, Y: np.ndarray, k: int | None) -> np.ndarray:
     Y = Y.copy()
     ns = int(prom.meta["n_sensors"])
     Y[:, [prom.output_names.index(n) for n in pose_output_names(k)]] = Y[:, ns:ns + 3]
-    return Y
-
-
-class ResetAtMoves:
-    """The offline remedy (module docstring): each support pose's reduced state reset at a move.
-
-    ``T[k][j]`` (r_k × r_j) maps block j's state to block k's: block j's field carried to the model's pose, then to
-    support pose k's mesh, projected there with the mass matrix.
-    """
-
-    def __init__(self, model, rom, prom, input_scale: np.ndarray):
-        t0 = time.perf_counter()
-        machine, grid = model.machine, grid_of(prom)
-        orders = prom.meta["poses"]["orders"]
-        self.offsets = np.cumsum([0] + orders)
-        ns = int(prom.meta["n_sensors"])
-        tol = np.r_[np.full(ns, rom.meta.get("tol_K", 0.05)), np.full(3, rom.meta.get("tol_um", 0.2) * 1e-6)]
-        scale = np.where(input_scale > 0, input_scale, 1.0)
-        h_range = tuple(rom.meta.get("h_range", (0.5, 2.0)))
-        to_mid, to_k = [rom.V], [np.empty(0)]
-        self.mismatch = 0.0
-        for k in range(1, len(grid.poses)):  # as rom.poses.pose_block builds each support pose's basis
-            fe = build_model(machine, grid.pose_mm(k), machine.mesh.element_size_mm)
-            system = system_from_model(fe)
-            V = la.qr(carry_field(model, fe.mesh) @ rom.V, mode="economic")[0]
-            enrich = int(prom.meta["poses"]["enrich"])
-            if enrich > 0:
-                own = Reductor(system, tol, scale, h_samples(fe.h_W_m2K, h_range))
-                V = np.hstack([V, orthonormal_extension(V, own.reduce(order=enrich).V)])
-            sl = slice(self.offsets[k], self.offsets[k + 1])
-            Mr = project(system, V)["M"]
-            self.mismatch = max(self.mismatch, float(np.abs(Mr - prom.M[sl, sl]).max() / np.abs(Mr).max()))
-            to_mid.append(carry_field(fe, model.mesh) @ V)
-            MV = fe.M @ V
-            to_k.append(np.linalg.solve(V.T @ MV, (carry_field(model, fe.mesh).T @ MV).T))
-        M0V = model.M @ rom.V  # block 0's basis is the model's own: the mass-weighted projection onto it
-        to_k[0] = np.linalg.solve(rom.V.T @ M0V, M0V.T)
-        self.T = [[to_k[k] @ to_mid[j] for j in range(len(to_mid))] for k in range(len(to_mid))]
-        self.grid = grid
-        self.build_s = time.perf_counter() - t0
-
-    def reset(self, x: np.ndarray, old_pose: dict) -> np.ndarray:
-        """The state after a move from ``old_pose``: every support pose's block from the blended field."""
-        w = self.grid.weights(old_pose)
-        o = self.offsets
-        blocks = [x[o[j]:o[j + 1]] for j in range(len(w))]
-        y = x.copy()
-        for k in range(len(w)):
-            y[o[k]:o[k + 1]] = sum(w[j] * (self.T[k][j] @ blocks[j]) for j in range(len(w)) if w[j] != 0.0)
-        return y
-
-
-def rom_path(prom, U: np.ndarray, time_s: np.ndarray, holds, rows, remedy: ResetAtMoves | None) -> np.ndarray:
-    """The pose-aware model's outputs along a path, integrated hold by hold (reset at moves with ``remedy``)."""
-    Y = np.empty((time_s.size, prom.C.shape[0]))
-    x = "steady"
-    for h, (i0, i1) in enumerate(rows):
-        if h > 0 and remedy is not None:
-            x = remedy.reset(x, holds[h - 1][1])
-        Y[i0:i1 + 1], x = prom.integrate(time_s[i0:i1 + 1], U[i0:i1 + 1], initial=x)
     return Y
 
 
@@ -185,7 +130,6 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=16)
     p.add_argument("--plant", type=int, default=None, metavar="K",
                    help="plant an error: support pose K's drift replaced by the model pose's")
-    p.add_argument("--no-remedy", action="store_true", help="skip the offline reset-at-moves remedy")
     p.add_argument("--at-table-reference", action="store_true",
                    help="the drift at the table reference, not at the table point under the tool (under_tool off)")
     a = p.parse_args(argv)
@@ -207,12 +151,7 @@ def main(argv=None) -> int:
     cost["pose_rom_order"] = prom.order
     grid = grid_of(prom)
     U = prom.layout().inputs(loads.names, loads.values)
-    remedy = None
-    if not a.no_remedy:
-        remedy = ResetAtMoves(model, rom, prom, scale)
-        cost["remedy_build_s"] = remedy.build_s
-        cost["remedy_transfer_floats"] = int(sum(T.size for row in remedy.T for T in row))
-        cost["remedy_basis_mismatch"] = remedy.mismatch
+    cost["pose_transfer_floats"] = int(prom.pose_transfer.size)
     cache = {}
 
     def fe_at(pose):
@@ -233,9 +172,7 @@ def main(argv=None) -> int:
     Y_day, _ = prom.integrate(loads.time_s, U)
     cost["rom_day_s"] = time.perf_counter() - t0
     rows_out, records = [], []
-    ok = {"paths": True, "poses": True}
-    if remedy is not None:
-        ok["paths_remedy"] = True
+    ok = {"paths": True, "poses": True, "paths_blended_every_step": True, "paths_history_ignored": True}
     if a.plant is not None:
         ok |= {"paths_planted": True, "poses_planted": True}
 
@@ -258,25 +195,33 @@ def main(argv=None) -> int:
         rows = hold_rows(loads.time_s, holds)
         truth = fe_path(m, loads, holds, rows, fe_at)
         P = positions(grid, holds, rows, nt)
-        cand = {"pose-aware ROM": drift_along(prom, Y_day, P, feedback=False)}
-        if a.plant is not None:
-            cand[PLANTED] = drift_along(prom, planted(prom, Y_day, a.plant), P, feedback=False)
+        cand = {}
+        for label, history in HISTORY.items():
+            t1 = time.perf_counter()
+            Y, _ = integrate_along(prom, loads.time_s, U, P, history=history)
+            cost[f"rom_path_s[{history}]"] = max(cost.get(f"rom_path_s[{history}]", 0.0), time.perf_counter() - t1)
+            cand[label] = drift_along(prom, Y, P, feedback=False)
+            if label == "pose-aware ROM" and a.plant is not None:
+                cand[PLANTED] = drift_along(prom, planted(prom, Y, a.plant), P, feedback=False)
         allday = np.empty((nt, 3))
         for (_, pose), (i0, i1) in zip(holds, rows):
             allday[i0:i1 + 1] = all_day(pose)[i0:i1 + 1]
         cand["FE at the pose all day"] = allday
-        if remedy is not None:
-            Yr = rom_path(prom, U, loads.time_s, holds, rows, remedy)
-            cand["remedy: reset at moves"] = drift_along(prom, Yr, P, feedback=False)
-        for h, ((_, pose), (i0, i1)) in enumerate(zip(holds, rows)):
-            s = slice(i0, i1 + (h == len(rows) - 1))  # a move's row belongs to the new hold
-            label = f"{h + 1}: " + " ".join(f"{k}={v:g}" for k, v in pose.items())
-            rec = judge(name, label, truth[s], {k: v[s] for k, v in cand.items()})
+        if name == CYCLE:  # judged per pose: every row at that pose (a move's row belongs to the new pose)
+            groups = {}
+            for (_, pose), (i0, i1) in zip(holds, rows):
+                groups.setdefault(" ".join(f"{k}={v:g}" for k, v in pose.items()), []).extend(range(i0, i1))
+            groups = {k: np.array(v) for k, v in groups.items()}
+        else:
+            groups = {f"{h + 1}: " + " ".join(f"{k}={v:g}" for k, v in pose.items()):
+                      np.arange(i0, i1 + (h == len(rows) - 1)) for h, ((_, pose), (i0, i1)) in enumerate(zip(holds, rows))}
+        for label, s_ in groups.items():
+            rec = judge(name, label, truth[s_], {k: v[s_] for k, v in cand.items()})
             ok["paths"] &= rec["pose-aware ROM"]["ok"]
+            ok["paths_blended_every_step"] &= rec["blended every step"]["ok"]
+            ok["paths_history_ignored"] &= rec["history ignored"]["ok"]
             if a.plant is not None:
                 ok["paths_planted"] &= rec[PLANTED]["ok"]
-            if remedy is not None:
-                ok["paths_remedy"] &= rec["remedy: reset at moves"]["ok"]
     for pose in random_poses(m, a.poses, a.seed):
         truth = all_day(pose)
         at = np.array([[pose[n] for n in grid.axes]])

@@ -45,12 +45,17 @@ class PoseModel:
 
 @dataclass(frozen=True)
 class PoseTrack:
-    """The pose-aware model's state at the end of the last model step, its outputs then and one step ahead."""
+    """The pose-aware model's state at the end of the last model step, its outputs then and one step ahead.
+
+    ``weights``: the support poses' interpolation weights of the last step (where the machine was, weighted by
+    the time it spent there), for the pose history (:func:`advance`); None: not known.
+    """
 
     time_s: float
     x: np.ndarray
     y_now: np.ndarray
     y_next: np.ndarray
+    weights: np.ndarray | None = None
 
 
 def pose_model(prom, points: int = 3) -> PoseModel:
@@ -76,16 +81,45 @@ def start(pm: PoseModel, u: np.ndarray, time_s: float, horizon_s: float) -> Pose
     return _track(pm, time_s, x, u, horizon_s)
 
 
-def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizon_s: float) -> PoseTrack:
-    """One model step to ``end_s`` with the inputs ``u`` held over it (as the observer steps), and the forecast."""
+def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizon_s: float,
+            weights: np.ndarray | None = None) -> PoseTrack:
+    """One model step to ``end_s`` with the inputs ``u`` held over it (as the observer steps), and the forecast.
+
+    ``weights``: the support poses' interpolation weights over this step (time-weighted where the machine moved,
+    :func:`step_weights`).  Where they differ from the last step's, the machine moved: the support poses' blocks
+    are first blended with the last step's weights (the pose history, :func:`hybridcomp.rom.poses.blend_history`,
+    as :func:`~hybridcomp.rom.poses.integrate_along` does at a move); a model without a pose transfer, or no
+    weights, runs every block as if the machine stood at its pose.
+    """
+    from hybridcomp.rom.poses import blend_history
+
     dt = end_s - track.time_s
-    x = track.x if dt <= 0 else np.asarray(pm.rom.step(track.x, u, u, dt), float)
-    return _track(pm, end_s, x, u, horizon_s)
+    x = track.x
+    w = None if weights is None else np.asarray(weights, float)
+    if (w is not None and track.weights is not None and pm.rom.pose_transfer is not None
+            and not np.array_equal(w, track.weights)):
+        x = blend_history(pm.rom, x, track.weights)
+    x = x if dt <= 0 else np.asarray(pm.rom.step(x, u, u, dt), float)
+    return _track(pm, end_s, x, u, horizon_s, track.weights if w is None else w)
 
 
-def _track(pm: PoseModel, time_s: float, x: np.ndarray, u: np.ndarray, horizon_s: float) -> PoseTrack:
+def step_weights(pm: PoseModel, positions_mm: np.ndarray, dt_s: np.ndarray | None = None) -> np.ndarray:
+    """The support poses' weights over a model step, averaged over the time spent at each pose.
+
+    ``positions_mm``: the readings' axis positions (m × axes, machine order) [mm]; ``dt_s``: the time each
+    reading stands for (default: equal).
+    """
+    from hybridcomp.rom.poses import grid_of
+
+    W = grid_of(pm.rom).weights_along(positions_mm)
+    dt = np.ones(W.shape[0]) if dt_s is None else np.asarray(dt_s, float)
+    return dt @ W / dt.sum()
+
+
+def _track(pm: PoseModel, time_s: float, x: np.ndarray, u: np.ndarray, horizon_s: float,
+           weights: np.ndarray | None = None) -> PoseTrack:
     x_next = np.asarray(pm.rom.step(x, u, u, horizon_s), float)
-    return PoseTrack(float(time_s), x, _outputs(pm, x), _outputs(pm, x_next))
+    return PoseTrack(float(time_s), x, _outputs(pm, x), _outputs(pm, x_next), weights)
 
 
 def outputs_at(track: PoseTrack, t: float, horizon_s: float) -> np.ndarray:
@@ -144,7 +178,10 @@ def state_out(track: PoseTrack | None) -> dict | None:
     """JSON-ready (the daemon's persisted state)."""
     if track is None:
         return None
-    return {"time_s": track.time_s, "x": [float(v) for v in track.x]}
+    out = {"time_s": track.time_s, "x": [float(v) for v in track.x]}
+    if track.weights is not None:
+        out["weights"] = [float(v) for v in track.weights]
+    return out
 
 
 def state_in(pm: PoseModel, d: dict | None, u, horizon_s: float) -> PoseTrack | None:
@@ -154,7 +191,9 @@ def state_in(pm: PoseModel, d: dict | None, u, horizon_s: float) -> PoseTrack | 
     x = np.asarray(d["x"], float)
     if x.shape != (pm.rom.order,):
         raise ValueError(f"pose-aware state of {x.size} values for a model of order {pm.rom.order}")
-    return _track(pm, float(d["time_s"]), x, np.asarray(u, float), horizon_s)
+    w = d.get("weights")
+    return _track(pm, float(d["time_s"]), x, np.asarray(u, float), horizon_s,
+                  None if w is None else np.asarray(w, float))
 
 
 # ---------------------------------------------------------------------------------------------- the drives' gains

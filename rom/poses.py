@@ -88,10 +88,16 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     mid_C, mid_names, feedback, spans = rom.C, (), {}, []
     h_range = tuple(rom.meta.get("h_range", (0.5, 2.0)))
     jobs = [(model, rom.V, grid.pose_mm(k), enrich, tol, scale, h_range) for k in range(1, len(grid.poses))]
+    M0V = model.M @ rom.V  # the model pose's own basis: the mass-weighted projection onto it
+    to_block, from_block = [np.linalg.solve(rom.M, M0V.T)], [rom.V]
     for k, block in enumerate(_run_jobs(jobs, workers, scheduler, progress), start=1):
-        blocks.append(block)
+        blocks.append(block[:6])
+        to_block.append(block[6])
+        from_block.append(block[7])
         names += pose_output_names(k)
         orders.append(block[0].shape[0])
+    transfer = pose_transfer(to_block, from_block)
+    del to_block, from_block
     for drive in machine.drives if drives else ():
         positions = np.linspace(*machine.axis(drive.axis).travel_mm, FEEDBACK_POINTS)
         out = feedback_output_names(drive.axis, positions)
@@ -134,7 +140,25 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
     return ReducedModel(ThermalOperators(M=M, K=K, H=H, h_W_m2K=np.asarray(rom.h_W_m2K, float), B=B, Hb=Hb, C=C,
                                          input_names=rom.input_names,
                                          output_names=all_names),
-                        D=D, disturbance_names=tuple(rom.disturbance_names) if rom.D is not None else (), meta=meta)
+                        D=D, disturbance_names=tuple(rom.disturbance_names) if rom.D is not None else (),
+                        pose_transfer=transfer, meta=meta)
+
+
+def pose_transfer(to_block: list[np.ndarray], from_block: list[np.ndarray]) -> np.ndarray:
+    """The support poses' state transfer (R × R): block (k, j) = ``to_block[k] @ from_block[j]``, identity for k = j.
+
+    ``from_block[j]`` (n × r_j) gives the field block j's state stands for on the model's mesh (its basis carried
+    with the bodies), ``to_block[k]`` (r_k × n) projects a field on the model's mesh onto block k (carried to its
+    pose's mesh, then the Galerkin projection weighted with the capacity matrix).  A block's own state maps to
+    itself: the round trip through the model's mesh would add only its interpolation error.
+    """
+    orders = [T.shape[0] for T in to_block]
+    o = np.cumsum([0] + orders)
+    T = np.empty((o[-1], o[-1]))
+    for k, to in enumerate(to_block):
+        for j, frm in enumerate(from_block):
+            T[o[k]:o[k + 1], o[j]:o[j + 1]] = np.eye(orders[k]) if k == j else to @ frm
+    return T
 
 
 def model_pose_block(prom: ReducedModel) -> ReducedModel:
@@ -160,7 +184,9 @@ def pose_block(model, V_mid: np.ndarray, pose_mm: dict, enrich: int, tol: np.nda
     """The reduced operators (M, K, H, B, Hb, drift rows C) of one support pose (a job of :func:`reduce_at_poses`).
 
     Builds the FE model at ``pose_mm``, carries the model pose's basis ``V_mid`` onto its mesh, extends it by
-    ``enrich`` Krylov directions of that pose's system and projects.
+    ``enrich`` Krylov directions of that pose's system and projects.  Also its two halves of the pose transfer
+    (:func:`pose_transfer`): the projection of a field on the model's mesh onto this block (r × n) and this
+    block's field carried to the model's mesh (n × r).
     """
     from hybridcomp.fem.model import build_model
     from hybridcomp.rom.machine import h_samples, system_from_model
@@ -174,7 +200,10 @@ def pose_block(model, V_mid: np.ndarray, pose_mm: dict, enrich: int, tol: np.nda
         V = np.hstack([V, orthonormal_extension(V, own.reduce(order=enrich).V)])
     P = project(system, V)
     drift = list(output_layout(system.output_names, model="the support pose's FE model").drift_indices)
-    return P["M"], P["K"], P["H"], P["B"], P["Hb"], P["C"][drift]
+    MV = fe.M @ V  # the capacity-weighted projection of a field carried here from the model's mesh
+    to_block = np.linalg.solve(P["M"], (carry_field(model, fe.mesh).T @ MV).T)
+    from_block = carry_field(fe, model.mesh) @ V
+    return P["M"], P["K"], P["H"], P["B"], P["Hb"], P["C"][drift], to_block, from_block
 
 
 def _run_jobs(jobs: list[tuple], workers: int, scheduler: str, progress: bool):
@@ -252,3 +281,85 @@ def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray, feed
             e = np.array([np.interp(x[t], fb.positions_mm, E[t]) for t in range(Y.shape[0])])
             drift[:, fb.direction] += fb.sign * e
     return drift
+
+
+#: how :func:`integrate_along` follows the poses the machine visits (module docstring of :func:`blend_history`)
+HISTORIES = ("moves", "steps", "none")
+
+
+def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The state after the machine spent a step at a pose of interpolation weights ``weights``: the pose history.
+
+    Every support pose's block runs as if the machine stood at that pose (its heat paths).  The field the machine
+    has is the one the blocks give where it was: their fields blended with the weights of the pose it held (its
+    time-weighted weights over a step with motion).  Every block ``k`` is set to that field carried onto its pose:
+    ``x_k ← Σ_j w_j T_kj x_j`` (:attr:`ReducedModel.pose_transfer`).  At a support pose (one weight 1) its block
+    is unchanged and every other takes its field; the screws' blocks (after the support poses') are not touched.
+
+    Parameters
+    ----------
+    prom : a pose-aware reduced model with its pose transfer (:func:`reduce_at_poses`)
+    x : its state (order,)
+    weights : the support poses' interpolation weights (:meth:`~hybridcomp.fem.poses.PoseGrid.weights`), sum 1
+    """
+    T = prom.pose_transfer
+    if T is None:
+        raise RomInputError("this pose-aware reduced model has no pose transfer (reduced before the pose history "
+                            "was modelled): reduce it again with --poses")
+    grid = grid_of(prom)
+    w = np.asarray(weights, float)
+    if w.shape != (len(grid.poses),):
+        raise ValueError(f"{w.shape} weights for {len(grid.poses)} support poses")
+    orders = prom.meta["poses"]["orders"][:len(grid.poses)]
+    o = np.cumsum([0] + list(orders))
+    xw = np.repeat(w, orders) * x[:o[-1]]
+    y = np.array(x, float, copy=True)
+    y[:o[-1]] = T @ xw
+    return y
+
+
+def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, positions_mm: np.ndarray,
+                    initial: str | np.ndarray = "steady", history: str = "moves",
+                    hold: str = "linear") -> tuple[np.ndarray, np.ndarray]:
+    """A pose-aware model's outputs along a path, following the poses the machine visits (:func:`blend_history`).
+
+    Parameters
+    ----------
+    prom : a pose-aware reduced model (:func:`reduce_at_poses`)
+    time_s, inputs, initial, hold : as :meth:`~hybridcomp.rom.reduced.ReducedModel.integrate`
+    positions_mm : axis positions per row (nt × axes, machine order) [mm]; row k's pose holds from ``time_s[k]``
+        to the next row (the step into row k ran at row k − 1's pose)
+    history : ``"moves"``: the blocks blended at every change of pose, with the weights of the pose left;
+        ``"steps"``: at every step; ``"none"``: every block as if the machine stood at its pose all along
+
+    Returns
+    -------
+    outputs (nt × q) and the final state, as :meth:`~hybridcomp.rom.reduced.ReducedModel.integrate`
+    """
+    if history not in HISTORIES:
+        raise ValueError(f"history must be one of {HISTORIES}, got {history!r}")
+    t = np.asarray(time_s, float)
+    P = np.atleast_2d(np.asarray(positions_mm, float))
+    if P.shape[0] != t.size:
+        raise ValueError(f"{P.shape[0]} rows of positions for {t.size} times")
+    if history == "none":
+        return prom.integrate(t, inputs, initial, hold=hold)
+    grid = grid_of(prom)
+    W = grid.weights_along(P)
+    U = np.asarray(inputs, float)
+    Y = np.empty((t.size, prom.C.shape[0]))
+    if history == "steps":
+        Y[:1], x = prom.integrate(t[:1], U[:1], initial, hold=hold)
+        for k in range(1, t.size):
+            x = prom.step(x, U[k] if hold == "step" else U[k - 1], U[k], t[k] - t[k - 1])
+            x = blend_history(prom, x, W[k - 1])
+            Y[k] = prom.outputs(x)
+        return Y, x
+    x, i0 = initial, 0
+    for k in (k for k in range(1, t.size) if np.any(P[k] != P[k - 1])):  # the moves
+        Y[i0:k + 1], x = prom.integrate(t[i0:k + 1], U[i0:k + 1], x, hold=hold)
+        x = blend_history(prom, x, W[k - 1])
+        Y[k], i0 = prom.outputs(x), k
+    if i0 < t.size - 1 or t.size == 1:
+        Y[i0:], x = prom.integrate(t[i0:], U[i0:], x, hold=hold)
+    return Y, x

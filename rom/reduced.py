@@ -136,6 +136,10 @@ class ReducedModel(HasOperators):
     D : reduced disturbance heat columns (r × d): heat the model does not know, as shapes for a state observer
         (:meth:`hybridcomp.fem.model.ThermoElasticModel.disturbance_columns`), [-] per W; None: none
     disturbance_names : name per column of ``D``
+    pose_transfer : a pose-aware model's state transfer between its support poses' blocks (R × R over the first R
+        states, R the blocks' total order; block (k, j) maps block j's state to the field it stands for, carried
+        onto support pose k's mesh and projected there; identity on the diagonal), for the pose history
+        (:func:`hybridcomp.rom.poses.blend_history`); None: none
     meta : provenance (machine, hash, pose, expansion points, achieved errors)
     """
 
@@ -143,6 +147,7 @@ class ReducedModel(HasOperators):
     V: np.ndarray | None = None
     D: np.ndarray | None = None
     disturbance_names: tuple[str, ...] = ()
+    pose_transfer: np.ndarray | None = None
     meta: dict = field(default_factory=dict, compare=False)
     _cache: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -158,6 +163,10 @@ class ReducedModel(HasOperators):
         if (self.D is not None and self.D.shape[0] != r) or len(self.disturbance_names) != d:
             raise RomInputError(f"reduced model field 'D' has shape {None if self.D is None else self.D.shape} for "
                                 f"{len(self.disturbance_names)} disturbance names and order {r}")
+        T = self.pose_transfer
+        if T is not None and (np.ndim(T) != 2 or T.shape[0] != T.shape[1] or T.shape[0] > r):
+            raise RomInputError(f"reduced model field 'pose_transfer' has shape {np.shape(T)}, expected (R, R) with "
+                                f"R at most the order {r}")
 
     # -- sizes and variants ----------------------------------------------------------------------
     @property
@@ -175,6 +184,8 @@ class ReducedModel(HasOperators):
             hsh = hashlib.sha256()
             for a in (self.M, self.K, self.H, self.B, self.Hb, self.C):
                 hsh.update(np.ascontiguousarray(a, dtype=float).tobytes())
+            if self.pose_transfer is not None:  # (a model without one keeps its identity)
+                hsh.update(np.ascontiguousarray(self.pose_transfer, dtype=float).tobytes())
             self._cache["rom_id"] = hsh.hexdigest()[:16]
         return self._cache["rom_id"]
 
@@ -409,6 +420,8 @@ def save_rom(path: str | Path, rom: ReducedModel) -> Path:
         arrays["V"] = rom.V
     if rom.D is not None:
         arrays["D"] = rom.D
+    if rom.pose_transfer is not None:
+        arrays["pose_transfer"] = rom.pose_transfer
     with path.open("wb") as fh:
         np.savez_compressed(fh, **arrays)
     return path
@@ -452,7 +465,8 @@ def load_rom(path: str | Path, machine=None) -> ReducedModel:
         ThermalOperators(M=data["M"], K=data["K"], H=data["H"], h_W_m2K=data["h_W_m2K"], B=data["B"], Hb=data["Hb"],
                          C=data["C"], input_names=tuple(meta["input_names"]), output_names=tuple(meta["output_names"])),
         V=data.get("V"),
-        D=data.get("D"), disturbance_names=tuple(meta.get("disturbance_names", ())) if "D" in data else (), meta=meta,
+        D=data.get("D"), disturbance_names=tuple(meta.get("disturbance_names", ())) if "D" in data else (),
+        pose_transfer=data.get("pose_transfer"), meta=meta,
     )
     if rom.rom_id != meta.get("rom_id"):
         raise RomFileError(f"{path}: field 'rom_id' is {meta.get('rom_id')!r} but the arrays hash to {rom.rom_id!r}: "

@@ -1,5 +1,5 @@
-"""``benchmarks/pose_path.py`` can fail: a planted error (a support pose's block dropped) fails where the
-prediction passes."""
+"""``benchmarks/pose_path.py`` can fail: planted errors (a support pose's block dropped, the pose history ignored)
+fail where the prediction passes."""
 
 from __future__ import annotations
 
@@ -29,10 +29,11 @@ def test_hold_rows_give_the_move_row_to_the_new_hold():
 
 
 @pytest.mark.slow
-def test_planted_support_pose_fails_where_the_prediction_passes(capsys):
-    """200 mm, 5 min steps, no remedy, no off-grid poses: the second path's first hold sits at support pose 5 (the Z
-    axis' lower end), where the pose-aware model is its own block; dropping that block must fail the criterion."""
-    assert _bench().main(["--fast", "--no-remedy", "--poses", "0", "--plant", "5"]) == 0
+def test_planted_errors_fail_where_the_prediction_passes(capsys):
+    """200 mm, 5 min steps, no off-grid poses held all day: the second path's first hold sits at support pose 5 (the
+    Z axis' lower end), where the pose-aware model is its own block; dropping that block must fail the criterion.
+    After the move to the Z axis' upper end, the model that ignores the pose history must fail too."""
+    assert _bench().main(["--fast", "--poses", "0", "--plant", "5"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["plant"] == 5 and out["element_size_mm"] == 200.0
     hold = next(c for c in out["cases"] if c["case"] == "8 h Z low, 8 h Z high" and c["hold"].startswith("1:"))
@@ -40,3 +41,7 @@ def test_planted_support_pose_fails_where_the_prediction_passes(capsys):
     assert not hold["planted: a support pose dropped"]["ok"], hold
     assert any(e > 2 * lim for e, lim in zip(hold["planted: a support pose dropped"]["max_error_um"], hold["limit_um"]))
     assert out["within_limit"]["paths_planted"] is False
+    after = next(c for c in out["cases"] if c["case"] == "8 h Z low, 8 h Z high" and c["hold"].startswith("2:"))
+    assert after["pose-aware ROM"]["ok"], after
+    assert not after["history ignored"]["ok"], after
+    assert max(after["history ignored"]["max_error_um"]) > 3 * max(after["pose-aware ROM"]["max_error_um"]), after

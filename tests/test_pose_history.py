@@ -1,0 +1,113 @@
+"""The pose history of the pose-aware model: the support poses' blocks blended where the machine was
+(:func:`hybridcomp.rom.poses.blend_history`, :func:`~hybridcomp.rom.poses.integrate_along`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hybridcomp.rom.poses import blend_history, grid_of, integrate_along
+from hybridcomp.rom.reduced import RomInputError, load_rom, save_rom
+
+pytestmark = pytest.mark.slow  # the pose-aware model of the 200 mm mesh (about 10 s, shared)
+
+
+def _blocks(prom):
+    n = len(grid_of(prom).poses)
+    o = np.cumsum([0] + list(prom.meta["poses"]["orders"][:n]))
+    return [slice(o[k], o[k + 1]) for k in range(n)], o[-1]
+
+
+def test_transfer_shape_identity_diagonal_and_round_trip(pose_rom_200mm, tmp_path):
+    prom = pose_rom_200mm
+    blocks, R = _blocks(prom)
+    T = prom.pose_transfer
+    assert T.shape == (R, R) and R < prom.order  # the screws' blocks are not in it
+    for b in blocks:
+        assert np.array_equal(T[b, b], np.eye(b.stop - b.start))
+    back = load_rom(save_rom(tmp_path / "p.npz", prom))
+    assert np.array_equal(back.pose_transfer, T) and back.rom_id == prom.rom_id
+    changed = type(prom)(prom.operators, V=prom.V, D=prom.D, disturbance_names=prom.disturbance_names,
+                         pose_transfer=T * 1.001, meta=prom.meta)
+    assert changed.rom_id != prom.rom_id
+
+
+def test_a_uniform_rise_is_the_same_field_in_every_block(pose_rom_200mm):
+    """Every air temperature +1 K, steady: the field is 1 K everywhere at every pose, so carrying it from any blend of
+    blocks to any other changes nothing (the outputs stay 1 K at every sensor and α·1 K·(TCP − table) drift)."""
+    prom = pose_rom_200mm
+    u = np.zeros(prom.n_inputs)
+    u[[i for i, n in enumerate(prom.input_names) if n.endswith("_degC")]] = 1.0
+    x = prom.steady_state(u)
+    y = prom.outputs(x)
+    grid = grid_of(prom)
+    for pose in ({"X": -250.0, "Y": 150.0, "Z": -150.0}, {"X": 0.0, "Y": 0.0, "Z": 275.0}):
+        z = blend_history(prom, x, grid.weights(pose))
+        assert np.allclose(prom.outputs(z), y, rtol=0, atol=1e-6 * np.abs(y).max())
+
+
+def test_at_a_support_pose_its_block_is_kept_and_the_others_take_its_field(pose_rom_200mm):
+    prom = pose_rom_200mm
+    blocks, R = _blocks(prom)
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal(prom.order)
+    w = np.zeros(len(blocks))
+    w[4] = 1.0
+    z = blend_history(prom, x, w)
+    assert np.array_equal(z[blocks[4]], x[blocks[4]])
+    assert np.array_equal(z[R:], x[R:])  # the screws' blocks
+    for b in blocks:
+        assert np.allclose(z[b], prom.pose_transfer[b, blocks[4]] @ x[blocks[4]], rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="weights for 7 support poses"):
+        blend_history(prom, x, w[:3])
+
+
+def test_without_moves_the_path_is_the_plain_integration(pose_rom_200mm, machine):
+    from hybridcomp.fem.loads import example_loads
+
+    prom = pose_rom_200mm
+    loads = example_loads(machine, 4.0, 300.0)
+    U = prom.layout().inputs(loads.names, loads.values)
+    P = np.tile([100.0, -50.0, 20.0], (loads.time_s.size, 1))
+    Y0, x0 = prom.integrate(loads.time_s, U)
+    for history in ("moves", "none"):
+        Y, x = integrate_along(prom, loads.time_s, U, P, history=history)
+        assert np.array_equal(Y, Y0) and np.array_equal(x, x0)
+    with pytest.raises(ValueError, match="history must be one of"):
+        integrate_along(prom, loads.time_s, U, P, history="sometimes")
+
+
+def test_a_model_without_transfer_is_refused(pose_rom_200mm):
+    prom = pose_rom_200mm
+    old = type(prom)(prom.operators, V=prom.V, D=prom.D, disturbance_names=prom.disturbance_names, meta=prom.meta)
+    with pytest.raises(RomInputError, match="no pose transfer"):
+        blend_history(old, np.zeros(prom.order), grid_of(prom).weights({}))
+
+
+def test_the_monitors_steps_follow_the_poses_as_the_path_integration_does(pose_rom_200mm):
+    """The daemon's model steps (:func:`hybridcomp.monitor.volumetric.advance` with each step's weights) blend the
+    blocks at the moves exactly as :func:`integrate_along` does over the same steps, and the state round-trips with
+    its weights."""
+    from hybridcomp.monitor import volumetric
+
+    prom = pose_rom_200mm
+    pm = volumetric.pose_model(prom, points=2)
+    rng = np.random.default_rng(5)
+    n, dt = 24, 300.0
+    t = np.arange(n + 1) * dt
+    U = np.abs(rng.standard_normal((n + 1, prom.n_inputs))) * np.where(
+        [name.endswith("_W") for name in prom.input_names], 50.0, 0.5)
+    stops = [[-250.0, 150.0, -150.0], [280.0, -220.0, 120.0], [0.0, 0.0, 275.0]]
+    P = np.array([stops[(k // 5) % 3] for k in range(n + 1)])  # row k: the pose of the step from t[k] on
+    Y, x = integrate_along(prom, t, U, P, initial=prom.steady_state(U[0]), history="moves", hold="step")
+    track = volumetric.start(pm, U[0], 0.0, dt)
+    for k in range(1, n + 1):  # the step ending at t[k] ran at row k − 1's pose, with the inputs of row k
+        track = volumetric.advance(pm, track, U[k], t[k], dt, weights=volumetric.step_weights(pm, P[k - 1:k]))
+    assert np.allclose(track.x, x, rtol=1e-9, atol=1e-12 * np.abs(x).max())
+    ignored, _ = integrate_along(prom, t, U, P, initial=prom.steady_state(U[0]), history="none", hold="step")
+    assert not np.allclose(ignored[-1], Y[-1], rtol=1e-3)  # the moves did change the state
+    back = volumetric.state_in(pm, volumetric.state_out(track), U[-1], dt)
+    assert np.array_equal(back.weights, track.weights) and np.array_equal(back.x, track.x)
+    w = volumetric.step_weights(pm, np.array(stops[:2]), dt_s=np.array([1.0, 3.0]))
+    assert np.allclose(w, 0.25 * grid_of(prom).weights(dict(zip("XYZ", stops[0])))
+                       + 0.75 * grid_of(prom).weights(dict(zip("XYZ", stops[1]))))
