@@ -656,7 +656,8 @@ class PathTruth:
     The real machine's FE drift at the model's pose plus what the pose adds on the real machine: the real
     machine's OWN pose-aware structure model (its machine file, disturbance and all, reduced at the support
     poses like the models' one; the models' own when the real machine is the model) driven by the real machine's
-    loads, at the pose less at the model's pose.  ``positions`` and ``added`` are at the day's times ``t``.
+    loads along the poses it visits (its pose history, :func:`hybridcomp.rom.poses.integrate_along`), at the pose
+    less at the model's pose.  ``positions`` and ``added`` are at the day's times ``t``.
     """
 
     pose_mm: dict
@@ -681,7 +682,7 @@ class PathTruth:
 
 def _path_truth(models: Models, real_machine, day: _Day) -> PathTruth:
     """The real machine's drift along the day's path and at any pose (:class:`PathTruth`)."""
-    from hybridcomp.rom.poses import drift_along
+    from hybridcomp.rom.poses import drift_along, integrate_along
 
     prom, machine, t = models.pose_rom, models.machine, day.t
     positions = trace_positions(machine, day.controller, t)
@@ -689,7 +690,8 @@ def _path_truth(models: Models, real_machine, day: _Day) -> PathTruth:
     real_prom = real_pose_model(day.real_model, models.rom.order) if own else prom
     values = np.column_stack([np.interp(t, day.real_loads.time_s, day.real_loads.values[:, j])
                               for j in range(len(day.real_loads.names))])
-    Y_real, _ = real_prom.integrate(t, real_prom.layout().inputs(list(day.real_loads.names), values, "real machine"))
+    U_real = real_prom.layout().inputs(list(day.real_loads.names), values, "real machine")
+    Y_real, _ = integrate_along(real_prom, t, U_real, positions)  # the poses it visits: its pose history
     added = drift_along(real_prom, Y_real, positions) - _tcp_um(real_prom, Y_real)
     log.info("real machine along the path: its %s pose-aware model, position-dependent part up to %.1f µm",
              "own" if own else "models'", np.abs(added).max())
@@ -704,11 +706,11 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
     offsets at the model's pose (``<strategy> at one pose``); ``ROM direct along the path`` is the models'
     pose-aware model on the models' loads at the path's pose.
     """
-    from hybridcomp.rom.poses import drift_along
+    from hybridcomp.rom.poses import drift_along, integrate_along
 
     prom, machine, t, positions = models.pose_rom, models.machine, day.t, path.positions
     truth_path = day.truth + path.added
-    Y, _ = prom.integrate(t, prom.layout().inputs(day.loads.names, day.loads.values, "loads"))
+    Y, _ = integrate_along(prom, t, prom.layout().inputs(day.loads.names, day.loads.values, "loads"), positions)
     path_preds = {}
     for k, p in preds.items():
         if k == BOUND:

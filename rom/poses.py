@@ -145,19 +145,19 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
 
 
 def pose_transfer(to_block: list[np.ndarray], from_block: list[np.ndarray]) -> np.ndarray:
-    """The support poses' state transfer (R × R): block (k, j) = ``to_block[k] @ from_block[j]``, identity for k = j.
+    """The support poses' state transfer (R × R): block (k, j) = ``to_block[k] @ from_block[j]``.
 
     ``from_block[j]`` (n × r_j) gives the field block j's state stands for on the model's mesh (its basis carried
     with the bodies), ``to_block[k]`` (r_k × n) projects a field on the model's mesh onto block k (carried to its
-    pose's mesh, then the Galerkin projection weighted with the capacity matrix).  A block's own state maps to
-    itself: the round trip through the model's mesh would add only its interpolation error.
+    pose's mesh, then the Galerkin projection weighted with the capacity matrix).  A diagonal block is that
+    block's own round trip: :func:`blend_history` moves a block by the difference its round trip sees, so what
+    the trip loses (interpolation between the meshes, the part outside the other bases) is kept, not lost.
     """
-    orders = [T.shape[0] for T in to_block]
-    o = np.cumsum([0] + orders)
+    o = np.cumsum([0] + [T.shape[0] for T in to_block])
     T = np.empty((o[-1], o[-1]))
     for k, to in enumerate(to_block):
         for j, frm in enumerate(from_block):
-            T[o[k]:o[k + 1], o[j]:o[j + 1]] = np.eye(orders[k]) if k == j else to @ frm
+            T[o[k]:o[k + 1], o[j]:o[j + 1]] = to @ frm
     return T
 
 
@@ -291,10 +291,13 @@ def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.
     """The state after the machine spent a step at a pose of interpolation weights ``weights``: the pose history.
 
     Every support pose's block runs as if the machine stood at that pose (its heat paths).  The field the machine
-    has is the one the blocks give where it was: their fields blended with the weights of the pose it held (its
-    time-weighted weights over a step with motion).  Every block ``k`` is set to that field carried onto its pose:
-    ``x_k ← Σ_j w_j T_kj x_j`` (:attr:`ReducedModel.pose_transfer`).  At a support pose (one weight 1) its block
-    is unchanged and every other takes its field; the screws' blocks (after the support poses') are not touched.
+    has is the one the blocks give where it was: their fields ``F_j`` (carried to the model's mesh) blended with the
+    weights ``w_j`` of the pose it held (time-weighted over a step with motion).  Every block ``k`` takes the
+    difference between that field and its own, carried onto its pose: ``x_k ← x_k + P_k (Σ_j w_j F_j − F_k)``,
+    with ``T_kj = P_k F_j`` (:attr:`ReducedModel.pose_transfer`).  At a support pose (one weight 1) its block is
+    unchanged and every other takes its field; blocks that agree are left as they are (a uniform rise, any
+    weights); what a block holds beyond the trip between the meshes is kept.  The screws' blocks (after the
+    support poses') are not touched.
 
     Parameters
     ----------
@@ -312,9 +315,12 @@ def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.
         raise ValueError(f"{w.shape} weights for {len(grid.poses)} support poses")
     orders = prom.meta["poses"]["orders"][:len(grid.poses)]
     o = np.cumsum([0] + list(orders))
-    xw = np.repeat(w, orders) * x[:o[-1]]
+    xs = np.asarray(x[:o[-1]], float)
     y = np.array(x, float, copy=True)
-    y[:o[-1]] = T @ xw
+    y[:o[-1]] += T @ (np.repeat(w, orders) * xs)
+    for k in range(len(orders)):
+        b = slice(o[k], o[k + 1])
+        y[b] -= T[b, b] @ xs[b]
     return y
 
 

@@ -138,8 +138,8 @@ class ReducedModel(HasOperators):
     disturbance_names : name per column of ``D``
     pose_transfer : a pose-aware model's state transfer between its support poses' blocks (R × R over the first R
         states, R the blocks' total order; block (k, j) maps block j's state to the field it stands for, carried
-        onto support pose k's mesh and projected there; identity on the diagonal), for the pose history
-        (:func:`hybridcomp.rom.poses.blend_history`); None: none
+        onto support pose k's mesh and projected there; on the diagonal a block's own round trip), for the pose
+        history (:func:`hybridcomp.rom.poses.blend_history`); None: none
     meta : provenance (machine, hash, pose, expansion points, achieved errors)
     """
 
