@@ -490,7 +490,7 @@ def diagnose_drives(probes: Probes, candidates: list[DriveCandidate], predicted_
             raise ValueError(f"candidate {c.label!r}: sensitivity of shape {np.shape(c.sensitivity_um)} for "
                              f"{probes.n} probes")
     resid = probes.measured_um - pred
-    named, fits, rms, others = [], [], {}, []
+    named, fits, rms, others, unexplained = [], [], {}, [], []
     n_cycles = int(np.unique(probes.cycle).size)
     for d, dname in enumerate(DIRS):
         ok = np.isfinite(resid[:, d])
@@ -530,6 +530,8 @@ def diagnose_drives(probes: Probes, candidates: list[DriveCandidate], predicted_
             c = best.candidate
             inside = c.lower - 3 * best.sigma <= best.value <= c.upper + 3 * best.sigma
             if best.validation_gain < min_gain or not inside:
+                if not inside and best.validation_gain >= min_gain:  # the best shape, at an impossible value
+                    unexplained.append(f"{dname}: its best fit is out of the physical range, {best.describe()}")
                 break
             alts = tuple(f.candidate.label for s, f, _ in trial[1:] if s <= ALTERNATIVE_RATIO ** 2 * sse
                          and f.validation_gain >= min_gain
@@ -544,10 +546,12 @@ def diagnose_drives(probes: Probes, candidates: list[DriveCandidate], predicted_
             rms[dname]["after"] = float(np.sqrt(np.mean((r - S @ _solve(S, r)) ** 2)))
     if named:
         message = "drive effects named: " + "; ".join(f.describe() for f in named)
-    elif not others:
+    elif not others and not unexplained:
         message = "no drive effect named: the probes' drift between poses is within what the nominal drives explain"
     else:
         message = "no drive effect named"
+    if unexplained:
+        message += "; not explained by the drive candidates: " + "; ".join(unexplained)
     if others:
         message += ("; the drift between poses in " + ", ".join(DIRS[f.candidate.direction] for f in others)
                     + " fits an effect that is not a drive's better (" + "; ".join(f.describe() for f in others) + ")")

@@ -236,8 +236,10 @@ def test_planted_effect_missed_with_a_wrong_sensitivity(vmc, day):
     edits = {"X": {"nut_screw_W": 37.5}}
     right = _named(_diagnose(vmc, day, edits))
     assert right["nut_heat", "X"].value == pytest.approx(2.5, rel=0.2)
-    missed = _named(_diagnose(vmc, day, edits, swap=swap))
-    assert ("nut_heat", "X") not in missed
+    d = _diagnose(vmc, day, edits, swap=swap)
+    assert ("nut_heat", "X") not in _named(d)
+    # the mirrored shape fits best at a negative factor: no nut does that, and the report says what is left
+    assert "dx_um: its best fit is out of the physical range" in d.message
 
 
 @pytest.mark.slow
@@ -276,3 +278,15 @@ def test_cli_names_the_drive_effect_in_the_report_and_the_extended_machine(vmc, 
     ext = hc.load_machine(out / "machine_extended.toml")
     nut = {d.axis: d.nut_screw_W for d in ext.drives}
     assert nut["X"] == pytest.approx(15.0 * named[0]["value"], rel=1e-4) and nut["Y"] == 15.0
+
+
+def test_synthetic_candidates_not_told_apart_are_alternatives():
+    probes, cands = _synthetic(1.5)
+    twin = DriveCandidate("screw_expansion", "X", "X screw alpha", "alpha [um/(m K)]", 11.5, 0.0, 30.0, 0,
+                          cands[0].sensitivity_um * 0.1 + 0.002 * np.sin(np.arange(probes.n)))
+    d = diagnose_drives(probes, cands + [twin])
+    (f,) = d.named
+    assert f.alternatives == ((twin.label,) if f.candidate is cands[0] else (cands[0].label,))
+    # the twin's shape is the planted one to 0.2 %: its fit is 15 µm/(m K) off its nominal, ten times the factor's
+    fits = {c.candidate.kind: c for c in d.fits}
+    assert fits["screw_expansion"].value == pytest.approx(11.5 + 15.0, abs=0.5)
