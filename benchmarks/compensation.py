@@ -29,9 +29,10 @@ met or not:
   model and write a support-point table every cycle, the truth is the real machine's own pose-aware model):
   the hybrid ≤ the pose-aware model used directly in RMS and E_P95 at 15 min, 1 h and 4 h, ≤ 5 % of the
   uncompensated RMS and ≤ 1.5 × its own RMS at the model's pose + 0.2 µm; no table entry moves by more than
-  0.2 µm per 5 s cycle.  Two disturbances act along the path only (``POSITION_DEPENDENT``: the nuts' heat into
-  their screws, a scale's expansion coefficient): the daemon's probing cycles touch a star of poses over the
-  workspace and it learns each drive's gain from them.
+  0.2 µm per 5 s cycle.  Three disturbances act along the path only (``POSITION_DEPENDENT``: the nuts' heat into
+  their screws, a scale's expansion coefficient, a screw's seized floating bearing): the daemon's probing cycles
+  touch a star of poses over the workspace and it learns each drive's gain from them; the feed drives' diagnosis
+  (``hybridcomp.diagnose.drives``, the scenario summary's ``along_path.drives``) names the drive effect from them.
 
     python benchmarks/compensation.py [--element-size-mm 150] [--cases all] [--out DIR] [--no-diagnosis]
                                       [--diagnose CASES] [--campaign-noise-um 0.3]

@@ -69,6 +69,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "repeatability [µm] (default 0.5)")
     p.add_argument("--no-selection-check", action="store_true", help="--data-only --selection assisted: skip the check "
                    "that repeats the selection on half the validation part and scores it on the other half")
+    p.add_argument("--probes", type=Path, metavar="PROBES.csv",
+                   help="drift probed at several poses of the same record: time_s, the axis positions x_mm ..., dx_um, "
+                   "dy_um, dz_um (optional cycle, pred_dx_um ...), or a monitor trace with probe_dx_um ... columns; "
+                   "the feed drives' diagnosis (a nut's heat, a screw's or scale's expansion coefficient, a seized "
+                   "floating bearing) names what the drives get wrong, in a section of the report (needs --pose-rom)")
+    p.add_argument("--pose-rom", type=Path, metavar="POSES.npz",
+                   help="--probes: the machine's pose-aware reduced model with its drives (hybridcomp reduce --poses)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 
 
@@ -82,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
     data_only = "applies with --data-only only"
     bad = refuse_unused(args, [
         *((opt, args.data_only, model_only) for opt in ("machine", "increment", "rom", "element_size_mm", "effects",
-                                                         "max_effects")),
+                                                         "max_effects", "probes", "pose_rom")),
+        ("pose_rom", args.probes is None, "applies with --probes only (the feed drives' diagnosis)"),
         *((opt, not args.data_only, data_only) for opt in ("max_terms", "beam", "no_selection_check", "selection",
                                                             "folds", "criterion", "probe_every_hours",
                                                             "probe_sd_um")),
@@ -146,15 +154,43 @@ def run(args: argparse.Namespace) -> int:
             from hybridcomp.rom import load_rom
 
             rom = load_rom(args.rom, machine)
+        probes = _read_probes(args, machine)  # before the long work: a bad file fails at once
         print(f"preparing the reduced model of {machine.name} ...", file=sys.stderr)
         rom = prepare_model(machine, rom=rom, element_size_mm=args.element_size_mm)
         d = diagnose(machine, ds, split, rom=rom, kinds=kinds, max_effects=args.max_effects, progress=True)
-        write_report(d, args.out, dataset_name=args.data[0].name, plots=not args.no_plots)
+        drives = None
+        if probes is not None:
+            from hybridcomp.diagnose.drives import dataset_inputs, diagnose_drives, drive_candidates
+
+            prom, pr = probes
+            cands, predicted = drive_candidates(machine, prom, dataset_inputs(machine, ds), pr)
+            drives = diagnose_drives(pr, cands, predicted)
+        write_report(d, args.out, dataset_name=args.data[0].name, plots=not args.no_plots, drives=drives)
     except (DatasetError, MachineFileError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"verdict: {d.verdict}")
     for f in d.causes:
         print(f"  {f.candidate.describe(f.params)}; validation gain {100 * f.validation_gain:.1f} %")
+    if drives is not None:
+        print(f"feed drives: {drives.message}")
     print(f"report {args.out / 'report.md'} ({time.perf_counter() - t0:.1f} s)")
     return 0
+
+
+def _read_probes(args: argparse.Namespace, machine):
+    """(pose-aware model, probes) of ``--probes`` and ``--pose-rom``, or None without ``--probes``."""
+    if args.probes is None:
+        return None
+    from hybridcomp.diagnose.data import DatasetError
+    from hybridcomp.diagnose.drives import read_probes
+    from hybridcomp.rom import load_rom
+
+    if args.pose_rom is None:
+        raise DatasetError("--probes needs --pose-rom: the machine's pose-aware reduced model with its drives "
+                           "(hybridcomp reduce --poses)")
+    prom = load_rom(args.pose_rom, machine)
+    if not prom.meta.get("poses"):
+        raise DatasetError(f"--pose-rom {args.pose_rom}: a reduced model of one pose; the drives' diagnosis needs "
+                           "the pose-aware one (hybridcomp reduce --poses)")
+    return prom, read_probes(args.probes, machine)

@@ -39,8 +39,13 @@ def not_expressible(causes) -> list[tuple[str, str]]:
     return [(f.candidate.label, NOT_EXPRESSIBLE[f.candidate.kind]) for f in causes if f.candidate.kind in NOT_EXPRESSIBLE]
 
 
-def extended_machine(machine, causes) -> dict:
-    """The machine file's dictionary with every expressible cause applied."""
+def extended_machine(machine, causes, drives=()) -> dict:
+    """The machine file's dictionary with every expressible cause applied.
+
+    ``drives``: the drive effects named from probes at several poses (:class:`hybridcomp.diagnose.drives.DriveFit`):
+    a nut's heat into its screw scaled, a screw's material with the fitted α, a scale's α, a seized floating bearing
+    as ``mounting = "pre-stretched"`` (held at both ends).
+    """
     src = Path(machine.source)
     data, _ = read_toml(src)
     mesh = data.get("mesh", {})
@@ -91,8 +96,36 @@ def extended_machine(machine, causes) -> dict:
             b["material"] = new_mat
             applied.append(f"bodies '{c.target}': material '{new_mat}' with expansion_1_K = {p[0]:.4g}e-6 1/K")
     data["heat_sources"] = sources
+    applied += _apply_drives(data, drives)
     data["_applied"] = applied
     return data
+
+
+def _apply_drives(data: dict, drives) -> list[str]:
+    """Apply the named drive effects to the machine file's ``[[drives]]`` tables; returns what was applied."""
+    applied = []
+    tables = {d["axis"]: d for d in data.get("drives", [])}
+    for f in drives:
+        c, v = f.candidate, float(f.value)
+        d = tables[c.axis]
+        if c.kind == "nut_heat":
+            d["nut_screw_W"] = round(float(d.get("nut_screw_W", 0.0)) * v, 6)
+            applied.append(f"drives '{c.axis}': nut_screw_W × {v:.4g} = {d['nut_screw_W']:.4g} W")
+        elif c.kind == "screw_expansion":
+            mats = data["materials"]
+            new_mat = _clean_name(f"{d['screw_material']}_{c.axis}_screw")
+            mats[new_mat] = dict(mats[d["screw_material"]])
+            mats[new_mat]["expansion_1_K"] = float(f"{v * 1e-6:.6g}")
+            d["screw_material"] = new_mat
+            applied.append(f"drives '{c.axis}': screw material '{new_mat}' with expansion_1_K = {v:.4g}e-6 1/K")
+        elif c.kind == "scale_expansion":
+            d["scale_expansion_1_K"] = float(f"{v * 1e-6:.6g}")
+            applied.append(f"drives '{c.axis}': scale_expansion_1_K = {v:.4g}e-6 1/K")
+        elif c.kind == "bearing_held":
+            d["mounting"] = "pre-stretched"
+            applied.append(f"drives '{c.axis}': mounting = 'pre-stretched' (the seized floating bearing holds the "
+                           f"screw; fitted share {v:.3g} of its elongation held, the file holds all of it)")
+    return applied
 
 
 def located_source_entry(c, p, bodies: dict) -> dict:
@@ -121,9 +154,12 @@ def located_source_entry(c, p, bodies: dict) -> dict:
     return new
 
 
-def write_extended_machine(machine, causes, path: str | Path) -> tuple[Path, list[str], list[tuple[str, str]]]:
-    """Write ``machine_extended.toml``; returns the path, the applied changes and the causes it cannot hold."""
-    data = extended_machine(machine, causes)
+def write_extended_machine(machine, causes, path: str | Path, drives=()) -> tuple[Path, list[str], list[tuple[str, str]]]:
+    """Write ``machine_extended.toml``; returns the path, the applied changes and the causes it cannot hold.
+
+    ``drives``: the named drive effects (:func:`extended_machine`).
+    """
+    data = extended_machine(machine, causes, drives)
     applied = data.pop("_applied")
     missing = not_expressible(causes)
     head = [f"# {machine.name} extended by hybridcomp diagnose from {Path(machine.source).name}",

@@ -145,10 +145,12 @@ def _plots(d: Diagnosis, out: Path, ep: dict, corr: list) -> list[str]:
     return files
 
 
-def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plots: bool = True) -> dict:
+def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plots: bool = True, drives=None) -> dict:
     """Write ``report.md`` (with plots), ``summary.json`` and ``machine_extended.toml`` into ``out_dir``.
 
-    Returns the summary dictionary.
+    ``drives``: the feed drives' diagnosis from probes at several poses
+    (:class:`hybridcomp.diagnose.drives.DriveDiagnosis`), a section of its own; its named effects go into the
+    extended machine file too.  Returns the summary dictionary.
     """
     from hybridcomp.diagnose.machine_file import write_extended_machine
 
@@ -164,7 +166,10 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
                         "element_size_mm": p.rom.meta.get("element_size_mm")}
     summary["ep95_range"] = ep
     summary["residual_correlations_before"] = [c.as_dict() for c in corr_before]
-    mpath, applied, missing = write_extended_machine(p.machine, d.causes, out / "machine_extended.toml")
+    if drives is not None:
+        summary["drives"] = drives.as_dict()
+    mpath, applied, missing = write_extended_machine(p.machine, d.causes, out / "machine_extended.toml",
+                                                     drives.named if drives is not None else ())
     summary["machine_extended"] = {"file": mpath.name, "applied": applied,
                                    "not_expressible": [{"cause": a, "reason": b} for a, b in missing]}
     (out / "summary.json").write_text(jsonio.dumps(summary, indent=2, default=float))
@@ -210,6 +215,10 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
         if worse:
             L += ["", f"Together they make the validation fit worse on {', '.join(worse)} (table below): no improvement "
                   "there."]
+    if drives is not None:
+        from hybridcomp.diagnose.drives import drive_section
+
+        L += [""] + drive_section(drives)
     L += ["", "## Before and after (validation part)", "",
           "| channel | noise σ | RMS before | RMS after | P2P before | P2P after | fit % before | fit % after |",
           "|---|---|---|---|---|---|---|---|"]

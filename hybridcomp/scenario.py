@@ -66,8 +66,8 @@ class Disturbance:
     swing_period_h : ... with this period [h]
     sensor_fault : (sensor, from [h], kind): ``"stuck"`` (the reading freezes) or ``"open"`` (it reads NaN)
     drive_edits : (axis, field, value) edits of the real machine's ``[[drives]]`` tables (a nut that puts more heat
-        into its screw, a scale of another expansion coefficient): position-dependent errors that the drift at the
-        model's pose hardly shows
+        into its screw, a scale of another expansion coefficient, a seized floating bearing: ``mounting`` set to
+        ``"pre-stretched"``): position-dependent errors that the drift at the model's pose hardly shows
     """
 
     name: str
@@ -78,7 +78,7 @@ class Disturbance:
     ambient_swing_K: float = 0.0
     swing_period_h: float = 6.0
     sensor_fault: tuple[str, float, str] | None = None
-    drive_edits: tuple[tuple[str, str, float], ...] = ()
+    drive_edits: tuple[tuple[str, str, float | str], ...] = ()
 
     def machine_edits(self) -> bool:
         return self.source_factor is not None or self.added_source is not None or bool(self.drive_edits)
@@ -108,10 +108,13 @@ DISTURBANCES = {
                     "into their screws", drive_edits=(("X", "nut_screw_W", 37.5), ("Y", "nut_screw_W", 37.5))),
         Disturbance("scale expansion", "the Z scale is a steel scale (11.5e-6 1/K), not the glass scale of the machine "
                     "file (8e-6 1/K)", drive_edits=(("Z", "scale_expansion_1_K", 11.5e-6),)),
+        Disturbance("bearing seized", "the Y screw's floating bearing has seized: its bearings hold the screw at both "
+                    "ends like a pre-stretched one (the machine file says fixed-floating)",
+                    drive_edits=(("Y", "mounting", "pre-stretched"),)),
     )
 }
 #: the disturbances whose effect depends on the pose: judged along the path only (at the model's pose they are small)
-POSITION_DEPENDENT = ("nut heat", "scale expansion")
+POSITION_DEPENDENT = ("nut heat", "scale expansion", "bearing seized")
 
 
 def real_machine_file(machine, disturbance: Disturbance, path: Path) -> Path:
@@ -139,7 +142,7 @@ def real_machine_file(machine, disturbance: Disturbance, path: Path) -> Path:
             raise ValueError(f"disturbance {disturbance.name!r}: machine {machine.name!r} has no drive of axis {axis!r} "
                              f"(drives: {', '.join(drives) or 'none'})")
         drives[axis][name] = value
-        notes.append(f"drive {axis} {name} = {value:g}")
+        notes.append(f"drive {axis} {name} = {value:g}" if isinstance(value, float) else f"drive {axis} {name} = {value}")
     data["machine"]["name"] = f"{machine.name}_real"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(f"# the real machine of the scenario: {machine.name} with {', '.join(notes) or 'no change'}\n\n"
@@ -420,6 +423,8 @@ def run_scenario(scenario: Scenario, out_dir, models: Models | None = None) -> S
     if scenario.along_path:
         t0 = time.perf_counter()
         path_summary = _along_path(out, models, day, preds, runs, path)
+        if scenario.probe_every_h:
+            path_summary["drives"] = drive_diagnosis(models, day.loads, measured.trace, scenario.probe_noise_um)
         timings["along_path_s"] = time.perf_counter() - t0
     files, all_events = _write_results(scenario, out, day, preds, runs, table)
     summary = _summary(scenario, models, real_machine, day, metrics, runs, timings, t_all, path_summary)
@@ -740,6 +745,27 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
         "drive_gains": {NAMES[s]: r["drive_gains"] for s, r in runs.items() if r.get("drive_gains") is not None},
         "metrics": m,
     }
+
+
+def drive_diagnosis(models: Models, loads, trace: Path, probe_noise_um: float) -> dict:
+    """The feed drives' diagnosis from the probing cycles of the monitor's trace (``along_path``).
+
+    :mod:`hybridcomp.diagnose.drives` on the probes the cycles took at the star of poses, against the models'
+    pose-aware model on the models' loads: which drive effect the models lack, named with its parameter (the
+    position-dependent disturbances, ``POSITION_DEPENDENT``), or none.  Returns its summary dictionary.
+    """
+    from hybridcomp.diagnose.drives import diagnose_drives, drive_candidates, read_probes
+
+    probes = read_probes(trace, models.machine)
+    t = loads.time_s
+    probes = probes.subset((probes.time_s >= t[0]) & (probes.time_s <= t[-1]))
+    if probes.n == 0:
+        return {"message": "no probe within the models' loads: no drive diagnosed", "named": [], "not_drives": [],
+                "fits": [], "probes": 0}
+    cands, predicted = drive_candidates(models.machine, models.pose_rom, loads, probes)
+    d = diagnose_drives(probes, cands, predicted, noise_um=probe_noise_um)
+    log.info("feed drives: %s", d.message)
+    return d.as_dict()
 
 
 def _tcp_um(rom, Y: np.ndarray) -> np.ndarray:
