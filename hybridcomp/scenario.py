@@ -654,6 +654,29 @@ def trace_positions(machine, trace: Path, t: np.ndarray) -> np.ndarray:
     return P[k]
 
 
+def trace_step_weights(grid, machine, trace: Path, t: np.ndarray) -> np.ndarray:
+    """The support poses' weights of every step of ``t`` (nt × poses), where the machine was weighted by the time.
+
+    Row k: over the step from ``t[k]`` on, the weights of the trace's samples in it, each for the time until the
+    next sample (:func:`hybridcomp.rom.poses.integrate_along`); a step with no sample: the last sample's.
+    """
+    from hybridcomp.histogram.trace import read_trace_chunks
+
+    chunks = list(read_trace_chunks(trace, machine))
+    ts = np.concatenate([c.time_s for c in chunks])
+    Ws = grid.weights_along(np.vstack([c.position_mm for c in chunks]))
+    dts = np.diff(ts, append=ts[-1])
+    W = np.empty((t.size, Ws.shape[1]))
+    row = np.searchsorted(t, ts, side="right") - 1  # the step each sample falls in
+    for k in range(t.size):
+        mine = row == k
+        if mine.any() and dts[mine].sum() > 0:
+            W[k] = dts[mine] @ Ws[mine] / dts[mine].sum()
+        else:
+            W[k] = Ws[max(int(np.searchsorted(ts, t[k], side="right")) - 1, 0)]
+    return W
+
+
 @dataclass(frozen=True)
 class PathTruth:
     """The real machine's drift at any pose over the day (``Scenario(along_path=True)``).
@@ -687,7 +710,7 @@ class PathTruth:
 
 def _path_truth(models: Models, real_machine, day: _Day) -> PathTruth:
     """The real machine's drift along the day's path and at any pose (:class:`PathTruth`)."""
-    from hybridcomp.rom.poses import drift_along, integrate_along
+    from hybridcomp.rom.poses import drift_along, grid_of, integrate_along
 
     prom, machine, t = models.pose_rom, models.machine, day.t
     positions = trace_positions(machine, day.controller, t)
@@ -696,7 +719,8 @@ def _path_truth(models: Models, real_machine, day: _Day) -> PathTruth:
     values = np.column_stack([np.interp(t, day.real_loads.time_s, day.real_loads.values[:, j])
                               for j in range(len(day.real_loads.names))])
     U_real = real_prom.layout().inputs(list(day.real_loads.names), values, "real machine")
-    Y_real, _ = integrate_along(real_prom, t, U_real, positions)  # the poses it visits: its pose history
+    weights = trace_step_weights(grid_of(real_prom), machine, day.controller, t)
+    Y_real, _ = integrate_along(real_prom, t, U_real, positions, weights=weights)  # its pose history
     added = drift_along(real_prom, Y_real, positions) - _tcp_um(real_prom, Y_real)
     log.info("real machine along the path: its %s pose-aware model, position-dependent part up to %.1f µm",
              "own" if own else "models'", np.abs(added).max())
@@ -711,11 +735,12 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
     offsets at the model's pose (``<strategy> at one pose``); ``ROM direct along the path`` is the models'
     pose-aware model on the models' loads at the path's pose.
     """
-    from hybridcomp.rom.poses import drift_along, integrate_along
+    from hybridcomp.rom.poses import drift_along, grid_of, integrate_along
 
     prom, machine, t, positions = models.pose_rom, models.machine, day.t, path.positions
     truth_path = day.truth + path.added
-    Y, _ = integrate_along(prom, t, prom.layout().inputs(day.loads.names, day.loads.values, "loads"), positions)
+    Y, _ = integrate_along(prom, t, prom.layout().inputs(day.loads.names, day.loads.values, "loads"), positions,
+                           weights=trace_step_weights(grid_of(prom), machine, day.controller, t))
     path_preds = {}
     for k, p in preds.items():
         if k == BOUND:

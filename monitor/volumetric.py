@@ -47,8 +47,9 @@ class PoseModel:
 class PoseTrack:
     """The pose-aware model's state at the end of the last model step, its outputs then and one step ahead.
 
-    ``weights``: the support poses' interpolation weights of the last step (where the machine was, weighted by
-    the time it spent there), for the pose history (:func:`advance`); None: not known.
+    ``weights``: the support poses' interpolation weights since the pose history last blended the blocks (where
+    the machine was, weighted by the time it spent there) and ``weights_s`` that time [s] (:func:`advance`);
+    None: not known.
     """
 
     time_s: float
@@ -56,6 +57,7 @@ class PoseTrack:
     y_now: np.ndarray
     y_next: np.ndarray
     weights: np.ndarray | None = None
+    weights_s: float = 0.0
 
 
 def pose_model(prom, points: int = 3) -> PoseModel:
@@ -82,25 +84,29 @@ def start(pm: PoseModel, u: np.ndarray, time_s: float, horizon_s: float) -> Pose
 
 
 def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizon_s: float,
-            weights: np.ndarray | None = None) -> PoseTrack:
+            weights: np.ndarray | None = None, tol: float | None = None) -> PoseTrack:
     """One model step to ``end_s`` with the inputs ``u`` held over it (as the observer steps), and the forecast.
 
     ``weights``: the support poses' interpolation weights over this step (time-weighted where the machine moved,
-    :func:`step_weights`).  Where they differ from the last step's, the machine moved: the support poses' blocks
-    are first blended with the last step's weights (the pose history, :func:`hybridcomp.rom.poses.blend_history`,
-    as :func:`~hybridcomp.rom.poses.integrate_along` does at a move); a model without a pose transfer, or no
+    :func:`step_weights`).  Where they differ from the time-weighted weights since the last blend by more than
+    ``tol`` (default :data:`hybridcomp.rom.poses.MOVE_WEIGHT_TOL`), the machine moved: the support poses' blocks
+    are first blended with those (the pose history, :func:`hybridcomp.rom.poses.blend_history`), as
+    :func:`~hybridcomp.rom.poses.integrate_along` does at a move.  A model without a pose transfer, or no
     weights, runs every block as if the machine stood at its pose.
     """
-    from hybridcomp.rom.poses import blend_history
+    from hybridcomp.rom.poses import MOVE_WEIGHT_TOL, blend_history
 
     dt = end_s - track.time_s
-    x = track.x
-    w = None if weights is None else np.asarray(weights, float)
-    if (w is not None and track.weights is not None and pm.rom.pose_transfer is not None
-            and not np.array_equal(w, track.weights)):
-        x = blend_history(pm.rom, x, track.weights)
+    x, acc, acc_s = track.x, track.weights, track.weights_s
+    if weights is not None and pm.rom.pose_transfer is not None:
+        w = np.asarray(weights, float)
+        if acc is not None and acc_s > 0 and np.abs(w - acc).max() > (MOVE_WEIGHT_TOL if tol is None else tol):
+            x, acc, acc_s = blend_history(pm.rom, x, acc), None, 0.0
+        step_s = max(dt, 0.0)
+        acc = w if acc is None or acc_s + step_s <= 0 else (acc * acc_s + w * step_s) / (acc_s + step_s)
+        acc_s += step_s
     x = x if dt <= 0 else np.asarray(pm.rom.step(x, u, u, dt), float)
-    return _track(pm, end_s, x, u, horizon_s, track.weights if w is None else w)
+    return _track(pm, end_s, x, u, horizon_s, acc, acc_s)
 
 
 def step_weights(pm: PoseModel, positions_mm: np.ndarray, dt_s: np.ndarray | None = None) -> np.ndarray:
@@ -117,9 +123,9 @@ def step_weights(pm: PoseModel, positions_mm: np.ndarray, dt_s: np.ndarray | Non
 
 
 def _track(pm: PoseModel, time_s: float, x: np.ndarray, u: np.ndarray, horizon_s: float,
-           weights: np.ndarray | None = None) -> PoseTrack:
+           weights: np.ndarray | None = None, weights_s: float = 0.0) -> PoseTrack:
     x_next = np.asarray(pm.rom.step(x, u, u, horizon_s), float)
-    return PoseTrack(float(time_s), x, _outputs(pm, x), _outputs(pm, x_next), weights)
+    return PoseTrack(float(time_s), x, _outputs(pm, x), _outputs(pm, x_next), weights, float(weights_s))
 
 
 def outputs_at(track: PoseTrack, t: float, horizon_s: float) -> np.ndarray:
@@ -181,6 +187,7 @@ def state_out(track: PoseTrack | None) -> dict | None:
     out = {"time_s": track.time_s, "x": [float(v) for v in track.x]}
     if track.weights is not None:
         out["weights"] = [float(v) for v in track.weights]
+        out["weights_s"] = float(track.weights_s)
     return out
 
 
@@ -193,7 +200,7 @@ def state_in(pm: PoseModel, d: dict | None, u, horizon_s: float) -> PoseTrack | 
         raise ValueError(f"pose-aware state of {x.size} values for a model of order {pm.rom.order}")
     w = d.get("weights")
     return _track(pm, float(d["time_s"]), x, np.asarray(u, float), horizon_s,
-                  None if w is None else np.asarray(w, float))
+                  None if w is None else np.asarray(w, float), float(d.get("weights_s", 0.0)))
 
 
 # ---------------------------------------------------------------------------------------------- the drives' gains

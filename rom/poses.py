@@ -283,8 +283,11 @@ def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray, feed
     return drift
 
 
-#: how :func:`integrate_along` follows the poses the machine visits (module docstring of :func:`blend_history`)
+#: how :func:`integrate_along` follows the poses the machine visits (:func:`blend_history`)
 HISTORIES = ("moves", "steps", "none")
+#: a move, for the pose history: a step's interpolation weights that differ from the time-weighted weights since
+#: the last blend by more than this (any support pose's) [-]; 0.1 is a tenth of an axis' half travel
+MOVE_WEIGHT_TOL = 0.1
 
 
 def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -324,9 +327,28 @@ def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.
     return y
 
 
+def history_cuts(time_s: np.ndarray, weights: np.ndarray, tol: float = MOVE_WEIGHT_TOL) -> list[tuple[int, np.ndarray]]:
+    """Where a path's pose history blends its blocks, and with which weights: (row, weights) in time order.
+
+    ``weights`` (nt × poses): row k's weights hold over the step from ``time_s[k]`` to the next row.  The weights
+    since the last blend are averaged with the time spent at each; where the next step's weights differ from that
+    average by more than ``tol``, the machine moved: the blocks are blended with the average at that row.
+    """
+    t = np.asarray(time_s, float)
+    W = np.asarray(weights, float)
+    cuts, acc, acc_s = [], np.zeros(W.shape[1]), 0.0
+    for k in range(1, t.size):
+        dt = t[k] - t[k - 1]
+        acc, acc_s = acc + dt * W[k - 1], acc_s + dt
+        if k < t.size - 1 and np.abs(W[k] - acc / acc_s).max() > tol:
+            cuts.append((k, acc / acc_s))
+            acc, acc_s = np.zeros(W.shape[1]), 0.0
+    return cuts
+
+
 def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, positions_mm: np.ndarray,
-                    initial: str | np.ndarray = "steady", history: str = "moves",
-                    hold: str = "linear") -> tuple[np.ndarray, np.ndarray]:
+                    initial: str | np.ndarray = "steady", history: str = "moves", hold: str = "linear",
+                    weights: np.ndarray | None = None, tol: float = MOVE_WEIGHT_TOL) -> tuple[np.ndarray, np.ndarray]:
     """A pose-aware model's outputs along a path, following the poses the machine visits (:func:`blend_history`).
 
     Parameters
@@ -335,8 +357,12 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
     time_s, inputs, initial, hold : as :meth:`~hybridcomp.rom.reduced.ReducedModel.integrate`
     positions_mm : axis positions per row (nt × axes, machine order) [mm]; row k's pose holds from ``time_s[k]``
         to the next row (the step into row k ran at row k − 1's pose)
-    history : ``"moves"``: the blocks blended at every change of pose, with the weights of the pose left;
-        ``"steps"``: at every step; ``"none"``: every block as if the machine stood at its pose all along
+    history : ``"moves"``: the blocks blended at every move (:func:`history_cuts`) with the time-weighted weights
+        since the last one; ``"steps"``: at every step with that step's weights; ``"none"``: every block as if
+        the machine stood at its pose all along
+    weights : the support poses' weights per row (nt × poses) instead of those of ``positions_mm``: over a step in
+        which the machine moved, the time-weighted weights of where it was (e.g. of a trace's samples)
+    tol : what counts as a move (:data:`MOVE_WEIGHT_TOL`)
 
     Returns
     -------
@@ -345,13 +371,11 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
     if history not in HISTORIES:
         raise ValueError(f"history must be one of {HISTORIES}, got {history!r}")
     t = np.asarray(time_s, float)
-    P = np.atleast_2d(np.asarray(positions_mm, float))
-    if P.shape[0] != t.size:
-        raise ValueError(f"{P.shape[0]} rows of positions for {t.size} times")
     if history == "none":
         return prom.integrate(t, inputs, initial, hold=hold)
-    grid = grid_of(prom)
-    W = grid.weights_along(P)
+    W = grid_of(prom).weights_along(positions_mm) if weights is None else np.asarray(weights, float)
+    if W.shape[0] != t.size:
+        raise ValueError(f"{W.shape[0]} rows of positions or weights for {t.size} times")
     U = np.asarray(inputs, float)
     Y = np.empty((t.size, prom.C.shape[0]))
     if history == "steps":
@@ -362,9 +386,9 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
             Y[k] = prom.outputs(x)
         return Y, x
     x, i0 = initial, 0
-    for k in (k for k in range(1, t.size) if np.any(P[k] != P[k - 1])):  # the moves
+    for k, w in history_cuts(t, W, tol):
         Y[i0:k + 1], x = prom.integrate(t[i0:k + 1], U[i0:k + 1], x, hold=hold)
-        x = blend_history(prom, x, W[k - 1])
+        x = blend_history(prom, x, w)
         Y[k], i0 = prom.outputs(x), k
     if i0 < t.size - 1 or t.size == 1:
         Y[i0:], x = prom.integrate(t[i0:], U[i0:], x, hold=hold)

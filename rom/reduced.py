@@ -369,7 +369,9 @@ class ReducedModel(HasOperators):
         # with a step hold, the input at the start of each interval is the one at its end: U0[k - 1] = U[k]
         U0 = U if hold == "linear" else np.vstack([U[1:], U[-1:]])
         Phi = self._modes()[1]
-        Cz = self.C @ Phi
+        if "Cz" not in self._cache:  # (a path with many moves integrates many short segments)
+            self._cache["Cz"] = self.C @ Phi
+        Cz = self._cache["Cz"]
         z = Phi.T @ (self.M @ x)
         Y = np.empty((t.size, self.C.shape[0]))
         Y[0] = Cz @ z

@@ -6,10 +6,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hybridcomp.rom.poses import blend_history, grid_of, integrate_along
+from hybridcomp.rom.poses import blend_history, grid_of, history_cuts, integrate_along
 from hybridcomp.rom.reduced import RomInputError, load_rom, save_rom
 
-pytestmark = pytest.mark.slow  # the pose-aware model of the 200 mm mesh (about 10 s, shared)
+
+def test_a_move_is_a_change_of_the_weights_beyond_the_time_weighted_ones_since_the_last():
+    t = np.array([0.0, 60.0, 120.0, 300.0, 360.0, 420.0, 480.0])
+    a, b = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.5, 0.5])
+    wiggle = np.array([0.05, -0.05, 0.0])
+    W = np.array([a, a + wiggle, a, b, b, a, a])
+    cuts = history_cuts(t, W, tol=0.1)
+    assert [k for k, _ in cuts] == [3, 5]  # the wiggle is no move
+    # the first blend: the weights of steps 0-2, by their durations (60, 60, 180 s)
+    assert np.allclose(cuts[0][1], (60 * a + 60 * (a + wiggle) + 180 * a) / 300)
+    assert np.allclose(cuts[1][1], b)
+    assert [k for k, _ in history_cuts(t, W, tol=0.01)] == [1, 2, 3, 5]
 
 
 def _blocks(prom):
@@ -18,6 +29,8 @@ def _blocks(prom):
     return [slice(o[k], o[k + 1]) for k in range(n)], o[-1]
 
 
+# the tests below take the pose-aware model of the 200 mm mesh (about 10 s, shared): slow
+@pytest.mark.slow
 def test_transfer_shape_and_round_trip(pose_rom_200mm, tmp_path):
     prom = pose_rom_200mm
     blocks, R = _blocks(prom)
@@ -32,6 +45,7 @@ def test_transfer_shape_and_round_trip(pose_rom_200mm, tmp_path):
     assert changed.rom_id != prom.rom_id
 
 
+@pytest.mark.slow
 def test_a_uniform_rise_is_the_same_field_in_every_block(pose_rom_200mm):
     """Every air temperature +1 K, steady: the field is 1 K everywhere at every pose, so carrying it from any blend of
     blocks to any other changes nothing (the outputs stay 1 K at every sensor and α·1 K·(TCP − table) drift)."""
@@ -46,6 +60,7 @@ def test_a_uniform_rise_is_the_same_field_in_every_block(pose_rom_200mm):
         assert np.allclose(prom.outputs(z), y, rtol=0, atol=1e-6 * np.abs(y).max())
 
 
+@pytest.mark.slow
 def test_at_a_support_pose_its_block_is_kept_and_the_others_take_its_field(pose_rom_200mm):
     prom = pose_rom_200mm
     blocks, R = _blocks(prom)
@@ -63,6 +78,7 @@ def test_at_a_support_pose_its_block_is_kept_and_the_others_take_its_field(pose_
         blend_history(prom, x, w[:3])
 
 
+@pytest.mark.slow
 def test_without_moves_the_path_is_the_plain_integration(pose_rom_200mm, machine):
     from hybridcomp.fem.loads import example_loads
 
@@ -78,6 +94,7 @@ def test_without_moves_the_path_is_the_plain_integration(pose_rom_200mm, machine
         integrate_along(prom, loads.time_s, U, P, history="sometimes")
 
 
+@pytest.mark.slow
 def test_a_model_without_transfer_is_refused(pose_rom_200mm):
     prom = pose_rom_200mm
     old = type(prom)(prom.operators, V=prom.V, D=prom.D, disturbance_names=prom.disturbance_names, meta=prom.meta)
@@ -85,6 +102,7 @@ def test_a_model_without_transfer_is_refused(pose_rom_200mm):
         blend_history(old, np.zeros(prom.order), grid_of(prom).weights({}))
 
 
+@pytest.mark.slow
 def test_the_monitors_steps_follow_the_poses_as_the_path_integration_does(pose_rom_200mm):
     """The daemon's model steps (:func:`hybridcomp.monitor.volumetric.advance` with each step's weights) blend the
     blocks at the moves exactly as :func:`integrate_along` does over the same steps, and the state round-trips with
@@ -109,6 +127,7 @@ def test_the_monitors_steps_follow_the_poses_as_the_path_integration_does(pose_r
     assert not np.allclose(ignored[-1], Y[-1], rtol=1e-3)  # the moves did change the state
     back = volumetric.state_in(pm, volumetric.state_out(track), U[-1], dt)
     assert np.array_equal(back.weights, track.weights) and np.array_equal(back.x, track.x)
+    assert back.weights_s == track.weights_s == 4 * dt  # the steps from rows 20-23: since the last move
     w = volumetric.step_weights(pm, np.array(stops[:2]), dt_s=np.array([1.0, 3.0]))
     assert np.allclose(w, 0.25 * grid_of(prom).weights(dict(zip("XYZ", stops[0])))
                        + 0.75 * grid_of(prom).weights(dict(zip("XYZ", stops[1]))))
