@@ -51,7 +51,7 @@ from hybridcomp.monitor.sinks import Offset
 from hybridcomp.monitor.sources import Reading, SourceDisconnected, WallClock
 from hybridcomp.monitor.state import STATE_VERSION, MonitorState
 from hybridcomp.monitor.store import LeaseHeld, MonitorStore, QueuedStore, lease_owner
-from hybridcomp.monitor.transitions import Counters, StepRecord, digest, set_predictions  # noqa: F401 - re-exported
+from hybridcomp.monitor.transitions import Counters
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +112,7 @@ class Monitor:
 
     def count(self, **inc) -> None:
         """Add to counters the shell keeps (reconnects)."""
-        self.state = T._count(self.state, **inc)
+        self.state = T.counted(self.state, **inc)
 
     @property
     def observer(self):

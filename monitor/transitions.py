@@ -109,7 +109,12 @@ def context(cfg: MonitorConfig, machine, rom, pose_key: str) -> Context:
 
 @dataclass(frozen=True)
 class Counters:
-    """What the daemon counts (status, metrics)."""
+    """What the daemon counts (status, metrics).
+
+    ``reconnects`` and the decision times are the shell's: ``last_decision_s`` and ``max_decision_s`` are the wall
+    time of the reading that closed a monitoring interval (its decision, the model steps and compensation of the
+    reading included) [s].
+    """
 
     readings: int = 0
     compensations: int = 0
@@ -321,7 +326,8 @@ def _set(st: State, **kw) -> State:
     return replace(st, **kw) if kw else st
 
 
-def _count(st: State, **inc) -> State:
+def counted(st: State, **inc) -> State:
+    """``st`` with its counters increased by ``inc`` (name → increment)."""
     c = st.counters
     return replace(st, counters=replace(c, **{k: getattr(c, k) + v for k, v in inc.items()}))
 
@@ -395,7 +401,7 @@ def on_reading(ctx: Context, st: State, r: Reading, stored_sets: StoredSets = no
     st, r = _check_time(ctx, st, r, now_unix, time_scale, out)
     if r is None:
         return out.step(st)
-    st = _count(st, readings=1)
+    st = counted(st, readings=1)
     st, r = _clean(ctx, st, r)
     first = st.saved.origin_s is None
     if first:
@@ -447,7 +453,7 @@ def _check_time(ctx: Context, st: State, r: Reading, now: float | None, time_sca
     st = _set(st, time_candidates=list(chk.candidates))
     if not chk.accepted:
         st = _set(st, interval_drops={**s.interval_drops, chk.verdict: s.interval_drops[chk.verdict] + 1})
-        st = _count(st, **{f"dropped_{chk.verdict}": 1})
+        st = counted(st, **{f"dropped_{chk.verdict}": 1})
         if chk.verdict == "jump" and first_suspect:
             out.event("time", s.last_time_s, {
                 "status": "implausible time stamp", "source_time_s": _finite(r.time_s), "last_time_s": s.last_time_s,
@@ -473,7 +479,7 @@ def _check_time(ctx: Context, st: State, r: Reading, now: float | None, time_sca
         out.event("time", chk.time_s, {"status": chk.verdict, "source_time_s": r.time_s, "last_time_s": s.last_time_s,
                                        "offset_s": chk.offset_s, "message": msg}, f"{chk.verdict}@{_t(chk.time_s)}")
         out.log("warning", msg)
-        st = _count(st, resyncs=int(chk.verdict == "resync"), gaps=int(chk.verdict == "gap"))
+        st = counted(st, resyncs=int(chk.verdict == "resync"), gaps=int(chk.verdict == "gap"))
     pace = st.pace if chk.verdict == "ok" else ()
     st = replace(_set(st, time_offset_s=chk.offset_s, last_source_time_s=r.time_s, last_wall_unix=now),
                  pace=(*pace, (chk.time_s, now))[-PACE_SAMPLES:])
@@ -689,7 +695,7 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
     st = _set(st, observer=state, sensors=sensors, rejected=rejected)
     if s.probe_um is not None:
         state = obs.update_probe(state, s.probe_um)
-        st = _count(_set(st, observer=state, probe_um=None, probe_n=0), probes=1)
+        st = counted(_set(st, observer=state, probe_um=None, probe_n=0), probes=1)
         payload = {"measured_um": dict(zip(DRIFT_COLUMNS, s.probe_um)), "probes": s.probe_n,
                    "estimate_um": dict(zip(DRIFT_COLUMNS, map(float, obs.drift_um(state))))}
         g = st.drive_gains
@@ -706,7 +712,7 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
                                                     else np.zeros_like(sig)) + d * sig),
                   signature_s=s.signature_s + d)
     st = _set(st, step_rows=[*st.saved.step_rows, [end_s, *map(float, u)]])
-    st = _count(_record(ctx, st, end_s), model_steps=1)
+    st = counted(_record(ctx, st, end_s), model_steps=1)
     # next step: the last sample carries over (continuity of the histogram)
     carry = st.buffer[-1] if st.buffer else st.saved.carry
     st = replace(_set(st, carry=carry, next_step_s=end_s + ctx.cfg.increment_s),
@@ -837,7 +843,7 @@ def _compensate(ctx: Context, st: State, r: Reading, out: _Out) -> tuple[State, 
     """One compensation cycle: the offsets (and with a pose-aware model the support-point table)."""
     cfg = ctx.cfg
     s = st.saved
-    st = _count(st, compensations=1)
+    st = counted(st, compensations=1)
     degraded = ",".join(n for n in ctx.sensor_names if s.sensors[n].status == "degraded")
     target, outside, by = None, False, "cd"
     eval_failed, nonfinite = st.eval_failed_logged, st.nonfinite_logged
@@ -955,7 +961,7 @@ def _close_interval(ctx: Context, st: State, boundary: float, stored_sets: Store
     st = _set(st, interval=st.saved.interval[-1:],  # the boundary row opens the next interval
               signature_sum=None, signature_s=0.0, rejected={},
               next_mon_s=boundary + ctx.cfg.monitoring_interval_s)
-    st = _count(st, monitorings=1)
+    st = counted(st, monitorings=1)
     if ctx.pose is not None:  # the pose-aware model's state, the last table and the drives' gains: persisted
         from hybridcomp.rom.volumetric import table_to_dict
 
@@ -1148,7 +1154,7 @@ def _activate(ctx: Context, st: State, new: CDSet | None, reason: str, t: float 
     out.command(Activate(ids, reason, t))
     had_set = st.active is not None
     st = _set(st, active_ids=dict(ids), activated_s=t, blend_pending=had_set and ctx.cfg.blend_s > 0)
-    return _count(replace(st, active=new, eval_failed_logged=False), switches=1)
+    return counted(replace(st, active=new, eval_failed_logged=False), switches=1)
 
 
 def on_regeneration_finished(ctx: Context, st: State, request: Mapping, result: Mapping | None, error: str | None,
@@ -1170,7 +1176,7 @@ def on_regeneration_finished(ctx: Context, st: State, request: Mapping, result: 
         out.event("generation", t, {"status": "finished", "ids": ids, "load_case": result.get("load_case", ""),
                                     "wall_s": result.get("wall_s"), "notes": result.get("notes") or {}},
                   f"{_t(t)}@finished")
-        st = _count(st, generations=1)
+        st = counted(st, generations=1)
         if load_error is None:
             try:
                 st = _activate(ctx, st, new, f"generated for the load case at {t:.0f} s", s.last_time_s, out)

@@ -218,24 +218,34 @@ def test_a_wrong_active_set_switches_to_a_stored_set_that_fits_with_no_database(
     assert after and all(o.active == ",".join(f"{d}={ids['right'][d]}" for d in sorted(ids["right"])) for o in after)
 
 
-def test_the_interval_clock_alone_decides_on_a_state_given_to_it(ctx, day, sets):
-    """:func:`on_interval` on a state mid-interval: one decision event, the interval reset, a persist command."""
+def test_the_interval_clock_switches_to_a_stored_set_that_fits_with_no_database(ctx, day, sets):
+    """:func:`on_interval` on a state mid-interval whose active set is wrong (no stored set offered so far: kept with
+    a warning) and a stored set that fits: one decision, a switch, an activate command before the persist, the stored
+    sets asked for once, the interval reset."""
     readings, _, _ = day
     _, ids, loaded = sets
     state = T.with_active(ctx, T.initial(ctx), loaded["wrong"])
-    st = replay(ctx, state, readings[:300])[-1].state
+    before = replay(ctx, state, readings[:300])
+    assert {e.payload["action"] for s in before for e in s.events if e.kind == "decision"} == {"warn"}
+    st = before[-1].state
+    assert st.saved.active_ids == ids["wrong"] and len(st.saved.interval) > 1
     boundary = st.saved.step_time_s
     asked = []
     step = T.on_interval(ctx, st, boundary, stored(sets, asked))
-    decisions = [e for e in step.events if e.kind == "decision"]
-    assert len(decisions) == 1 and decisions[0].t == boundary
-    assert step.state.saved.next_mon_s == boundary + ctx.cfg.monitoring_interval_s
-    assert len(step.state.saved.interval) == 1 and step.state.saved.interval[0] == st.saved.interval[-1]
-    assert isinstance(step.commands[-1], T.Persist) and step.commands[-1].state is step.state
-    if decisions[0].payload["action"] == "switch":
-        assert asked and [c.ids for c in step.commands if isinstance(c, T.Activate)] == [ids["right"]]
-    else:
-        assert not any(isinstance(c, T.Activate) for c in step.commands)
+    (decision,) = [e for e in step.events if e.kind == "decision"]
+    assert decision.t == boundary and decision.payload["action"] == "switch"
+    assert decision.payload["error_um"]["interval_um"] > 1.5 > decision.payload["target"]["error_um"]["interval_um"]
+    assert [type(c).__name__ for c in step.commands if not isinstance(c, T.Log)] == ["Activate", "Persist"]
+    (act,) = [c for c in step.commands if isinstance(c, T.Activate)]
+    assert act.ids == ids["right"] and act.t == boundary
+    assert len(asked) == 1 and asked[0].skip_ids == ids["wrong"]
+    new = step.state.saved
+    assert new.active_ids == ids["right"] and new.activated_s == boundary
+    assert new.blend_pending == (ctx.cfg.blend_s > 0)  # a set was active: the offsets blend over
+    assert new.next_mon_s == boundary + ctx.cfg.monitoring_interval_s
+    assert new.interval == st.saved.interval[-1:] and new.signature_sum is None and new.rejected == {}
+    assert step.commands[-1].state is step.state
+    assert st.saved.active_ids == ids["wrong"] and st.active is loaded["wrong"]  # the input state as it was
 
 
 def test_the_shell_writes_what_the_transitions_return(ctx, cfg, machine, small_rom, day, sets, tmp_path):
@@ -291,3 +301,4 @@ def test_the_shell_writes_what_the_transitions_return(ctx, cfg, machine, small_r
     last = next(c.state for s in reversed(steps) for c in reversed(s.commands) if isinstance(c, T.Persist))
     saved.pop("updated_unix")
     assert saved == json.loads(jsonio.dumps(last.saved.to_dict()))
+
