@@ -147,16 +147,19 @@ def child(args) -> None:
     db = CDDatabase(db_path)
     mon = Monitor(cfg, machine, rom, db, pose_key(POSE))
     times, rss, machine_t = [], [], []
-    close = mon._close_interval
+    process = mon.process
 
-    def timed(now_s):
-        t0 = time.perf_counter()
-        close(now_s)
-        times.append(time.perf_counter() - t0)
-        rss.append(rss_mb())
-        machine_t.append(mon.s.last_time_s)
+    def timed(r):
+        """A reading that closes a monitoring interval: its time (the decision's included) and the memory then."""
+        n, t0 = mon.counters.monitorings, time.perf_counter()
+        out = process(r)
+        if mon.counters.monitorings > n:
+            times.append(time.perf_counter() - t0)
+            rss.append(rss_mb())
+            machine_t.append(mon.s.last_time_s)
+        return out
 
-    mon._close_interval = timed
+    mon.process = timed
     rss0 = rss_mb()
     t0 = time.perf_counter()
     sink = JsonlSink(run_dir / "offsets.jsonl")

@@ -5,7 +5,9 @@
 * :mod:`hybridcomp.monitor.config` — the TOML configuration
 * :mod:`hybridcomp.monitor.sources` — replay of a trace CSV, OPC UA client; the injected clock
 * :mod:`hybridcomp.monitor.sinks` — JSON lines, CSV, OPC UA
-* :mod:`hybridcomp.monitor.daemon` — :class:`Monitor` (the state) and :func:`run_monitor` (the asyncio shell)
+* :mod:`hybridcomp.monitor.transitions` — the monitor as pure transitions: a frozen state, one function per clock
+* :mod:`hybridcomp.monitor.daemon` — :class:`Monitor` (the shell around the transitions) and :func:`run_monitor`
+  (the asyncio loop)
 * :mod:`hybridcomp.monitor.regeneration` — the background CD generation job
 * :mod:`hybridcomp.monitor.state` — the daemon's state as one dataclass with a derived JSON form
 * :mod:`hybridcomp.monitor.store` — the monitor's events and state in the CD database

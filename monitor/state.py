@@ -56,9 +56,12 @@ _CODECS: dict[str, tuple[Any, Any]] = {
 }
 
 
-@dataclass
+@dataclass(frozen=True)
 class MonitorState:
-    """The daemon's state (machine times in seconds, temperatures in °C, offsets in µm).
+    """The daemon's persisted state (machine times in seconds, temperatures in °C, offsets in µm).
+
+    Frozen: the monitor's transitions (:mod:`hybridcomp.monitor.transitions`) replace it, and its containers, never
+    change them in place.
 
     Attributes
     ----------

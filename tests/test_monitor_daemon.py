@@ -352,7 +352,9 @@ def test_a_sensor_frozen_while_the_machine_heats_is_filtered_out_from_its_onset(
     # truth. Without the rewind (planted here by switching it off) the estimate stays wrong.
     s, T_ok, p, db = _t1_frozen_at_1h(machine, trace, tmp_path)
     if not rewind:
-        monkeypatch.setattr(Monitor, "_refilter", lambda self, sensor, onset_s, t: None)
+        from hybridcomp.monitor import transitions
+
+        monkeypatch.setattr(transitions, "_refilter", lambda ctx, st, sensor, onset_s, t, out: st)
     # the rule "unchanged for frozen_s" alone (the model-aware rule, switched off here, finds it sooner: next test)
     cfg = config(rom_file, p, tmp_path, compensation={"strategy": "observer", "max_step_um": 100.0},
                  sensors={"hold_s": 60.0, "frozen_s": 1800.0, "frozen_model_K": 0.0})
