@@ -409,7 +409,9 @@ def save_rom(path: str | Path, rom: ReducedModel) -> Path:
         arrays["V"] = rom.V
     if rom.D is not None:
         arrays["D"] = rom.D
-    with path.open("wb") as fh:
+    from hybridcomp.safeio import atomic_path
+
+    with atomic_path(path) as tmp, tmp.open("wb") as fh:  # a temporary file renamed over path: never half a model
         np.savez_compressed(fh, **arrays)
     return path
 
