@@ -115,15 +115,16 @@ class _FileSink:
     """What the file sinks share: an :class:`~hybridcomp.safeio.AppendOnlyFile`, a whole line per write, close.
 
     Every line is flushed and fsync'd before :meth:`write` returns (a control reading the file sees whole lines
-    only); a failed write raises :class:`SinkWriteError` with the file cut back to its last whole line.
+    only; ``fsync=False``, for a benchmark of the daemon rather than the disk, only flushes); a failed write
+    raises :class:`SinkWriteError` with the file cut back to its last whole line.
     """
 
     _file = None
 
-    def _open(self, path: str | Path) -> None:
+    def _open(self, path: str | Path, fsync: bool) -> None:
         """Open ``path`` to append lines (its folder made; never through a link)."""
         self.path = Path(path)
-        self._file = AppendOnlyFile(self.path)
+        self._file = AppendOnlyFile(self.path, fsync)
 
     def _append(self, line: str) -> None:
         try:
@@ -139,8 +140,8 @@ class _FileSink:
 class JsonlSink(_FileSink):
     """Appends one JSON object per cycle to a file, one whole, fsync'd line each."""
 
-    def __init__(self, path: str | Path):
-        self._open(path)
+    def __init__(self, path: str | Path, fsync: bool = True):
+        self._open(path, fsync)
 
     async def write(self, offset: Offset) -> None:
         self._append(json.dumps(offset.record(), allow_nan=False) + "\n")
@@ -157,8 +158,8 @@ class CsvSink(_FileSink):
 
     FIELDS = ("time_s", *DIRECTIONS, "active", "clamped", "limited", "outside", "degraded", "by")
 
-    def __init__(self, path: str | Path):
-        self._open(path)
+    def __init__(self, path: str | Path, fsync: bool = True):
+        self._open(path, fsync)
         header = _csv_line(self.FIELDS)
         if self._file.size == 0:
             self._append(header)
@@ -183,8 +184,8 @@ class TableSink(_FileSink):
     drive's error over its axis [µm]; a control that interpolates the table itself reads it.)
     """
 
-    def __init__(self, path: str | Path):
-        self._open(path)
+    def __init__(self, path: str | Path, fsync: bool = True):
+        self._open(path, fsync)
 
     async def write(self, offset: Offset) -> None:
         if offset.table is None:
