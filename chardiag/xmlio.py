@@ -158,7 +158,10 @@ def read_cd(path: str | Path, machine=None, max_bytes: int = MAX_BYTES, allow_mo
 
 
 def check_machine(cd: CharDiagram, machine, source: str = "CD", allow_modified_machine: bool = False) -> None:
-    """Raise :class:`CDXmlError` unless the CD is for ``machine`` and uses only its sensors and axes."""
+    """Raise :class:`CDXmlError` unless the CD is for ``machine`` and names only its sensors and axes.
+
+    Checked: the inputs, the reference temperatures and the pose.
+    """
     if cd.machine != machine.name:
         raise CDXmlError(f"{source}: machine: the CD is for {cd.machine!r}, not for {machine.name!r}")
     if not allow_modified_machine and cd.machine_sha256 and cd.machine_sha256 != machine.sha256:
@@ -172,6 +175,10 @@ def check_machine(cd: CharDiagram, machine, source: str = "CD", allow_modified_m
             kind = "sensor" if i.unit == "degC" else "axis"
             raise CDXmlError(f"{source}: input {i.name!r}: machine {machine.name!r} has no {kind} of that name "
                              f"(has: {', '.join(sorted(known))})")
+    for name, _ in cd.t_reference_degC:  # the monitor compares these with the machine's sensors
+        if name not in sensors:
+            raise CDXmlError(f"{source}: referenceTemperatures sensor {name!r}: machine {machine.name!r} has no sensor "
+                             f"of that name (has: {', '.join(sorted(sensors))})")
     unknown_pose = [a for a, _ in cd.pose_mm if a not in axes]
     if unknown_pose:
         raise CDXmlError(f"{source}: pose: machine {machine.name!r} has no axis {unknown_pose[0]!r}")

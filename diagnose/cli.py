@@ -9,6 +9,13 @@ import time
 from pathlib import Path
 
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
+from hybridcomp.safeio import FORCE_HELP, check_output_dir
+
+#: the files ``diagnose`` writes into --out: on the machine's model, and with --data-only (plots last)
+MODEL_FILES = ("report.md", "summary.json", "machine_extended.toml")
+MODEL_PLOTS = ("residuals.png", "ep95.png", "xcorr.png")
+DATA_ONLY_FILES = ("report.md", "summary.json")
+DATA_ONLY_PLOTS = ("channels.png", "runs.png")
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "or a trace (time_s, x_mm ..., spindle_rpm, sensors, drift), turned into heat inputs by the histogram "
                    "generator. With --data-only, several files are a campaign: one run each (its own initial state and "
                    "zero; no lag crosses a run boundary); a 'run' column does the same in one file")
-    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory; files of an earlier run "
+                   "in it are overwritten only with --force, the inputs (--machine, --data, --map, --rom) never")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.add_argument("--map", type=Path, metavar="MAP.toml",
                    help="column map: [columns] project_name = \"csv column\", optional [scale] project_name = factor")
     p.add_argument("--train", default="0:60%", metavar="START:END",
@@ -103,6 +112,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {bad}", file=sys.stderr)
         return 2
     try:
+        files = (DATA_ONLY_FILES + DATA_ONLY_PLOTS * (not args.no_plots) if args.data_only
+                 else MODEL_FILES + MODEL_PLOTS * (not args.no_plots))
+        inputs = [*args.data, args.map, args.rom]
+        if not args.data_only:
+            from hybridcomp.models.loader import resolve_machine_path
+
+            inputs.append(resolve_machine_path(args.machine))
+        check_output_dir(args.out, files, inputs=inputs, force=args.force)
         if args.data_only:
             ds = read_campaign(args.data, args.map)
         else:

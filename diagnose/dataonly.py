@@ -43,6 +43,7 @@ from hybridcomp.diagnose.metrics import channel_metrics
 from hybridcomp.diagnose.problem import first_order_lag
 from hybridcomp.diagnose.updating import choose_settings, probe_rows, updated_prediction
 from hybridcomp.models import jsonio
+from hybridcomp.safeio import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -733,7 +734,7 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
     out.mkdir(parents=True, exist_ok=True)
     s = summary(d)
     s["dataset"] = dataset_name
-    (out / "summary.json").write_text(jsonio.dumps(s, indent=2, default=float))
+    write_text_atomic(out / "summary.json", jsonio.dumps(s, indent=2, default=float))
     stride = d.timings_s["row_stride"]
     thinned = "" if stride == 1 else f" (every {stride}. row of the dataset)"
     if d.selection == "held-out":
@@ -853,5 +854,5 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
                       "thick: validation runs):", "", "![runs](runs.png)", ""]
         except ImportError:
             log.warning("matplotlib is not installed: no plots (pip install 'hybridcomp[plot]')")
-    (out / "report.md").write_text("\n".join(L) + "\n")
+    write_text_atomic(out / "report.md", "\n".join(L) + "\n")
     return s

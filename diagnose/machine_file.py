@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.models.toml import dumps_toml, read_toml
+from hybridcomp.safeio import write_text_atomic
 
 NOT_EXPRESSIBLE = {
     "ambient_lag": "air temperatures are loads, not machine data: feed the lagged workshop air to the ambient zones' "
@@ -169,5 +170,5 @@ def write_extended_machine(machine, causes, path: str | Path, drives=()) -> tupl
         head += [f"#   {label}: {why}" for label, why in missing]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(head) + "\n\n" + dumps_toml(data))
+    write_text_atomic(path, "\n".join(head) + "\n\n" + dumps_toml(data))
     return path, applied, missing

@@ -11,6 +11,7 @@ import numpy as np
 from hybridcomp.diagnose.metrics import cross_correlation, ep95_curve, lag_grid, strongest_correlations
 from hybridcomp.diagnose.selection import Diagnosis
 from hybridcomp.models import jsonio
+from hybridcomp.safeio import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +173,7 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
                                                      drives.named if drives is not None else ())
     summary["machine_extended"] = {"file": mpath.name, "applied": applied,
                                    "not_expressible": [{"cause": a, "reason": b} for a, b in missing]}
-    (out / "summary.json").write_text(jsonio.dumps(summary, indent=2, default=float))
+    write_text_atomic(out / "summary.json", jsonio.dumps(summary, indent=2, default=float))
     files = _plots(d, out, ep, corr_before) if plots else []
 
     L = [f"# Diagnosis of {p.machine.name}" + (f" on {dataset_name}" if dataset_name else ""), ""]
@@ -266,5 +267,5 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
         L += ["", "Causes the machine file cannot express:", ""] + [f"* {a}: {b}" for a, b in missing]
     if files:
         L += ["", "## Plots", ""] + [f"![{f}]({f})" for f in files]
-    (out / "report.md").write_text("\n".join(L) + "\n")
+    write_text_atomic(out / "report.md", "\n".join(L) + "\n")
     return summary

@@ -290,6 +290,10 @@ def prepare_cases(cases: Mapping[str, Loads], machine: Machine) -> dict[str, Loa
 
 def write_case_atomically(out_dir: Path, result: CaseResult) -> Path:
     """Write ``out_dir/<case>.csv`` through a unique temporary file and an atomic rename."""
+    from hybridcomp.models.loads import check_outputs
+
+    check_outputs(result.time_s, result.sensor_names, result.sensors_degC, result.drift_um,
+                  f"batch case {result.name!r}")
     path = out_dir / f"{result.name}.csv"
     tmp = out_dir / f".{result.name}.csv.{os.getpid()}.{uuid.uuid4().hex}.tmp"
     try:

@@ -24,6 +24,7 @@ from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.loader import load_machine
 from hybridcomp.models.machine import MachineFileError
 from hybridcomp.models.pose import parse_pose
+from hybridcomp.safeio import FORCE_HELP, check_output_dir
 
 #: what ``--scheduler`` means in every command that runs FE load cases
 SCHEDULER_HELP = ("where the FE load cases run: 'serial' (default) here, one after another; 'process' a local process "
@@ -82,6 +83,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("--resume", action="store_true",
                    help="keep the outputs an interrupted run of the same batch (same settings in OUT/batch.json) "
                    "left in OUT and compute only the missing cases")
+    r.add_argument("--force", action="store_true", help=FORCE_HELP + " (outputs of an earlier batch in OUT); the "
+                   "loads CSVs are never overwritten")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -100,6 +103,11 @@ def run(args: argparse.Namespace) -> int:
         machine = load_machine(args.machine)
         pose = machine.check_pose(parse_pose(args.pose))
         cases = read_loads_dir(args.loads_dir, machine)
+        # every output checked before any work: never a loads CSV (LOADS_DIR = OUT), a link or, without --force or
+        # --resume, an earlier batch's file
+        check_output_dir(args.out, [*(f"{name}.csv" for name in cases), "batch.json"],
+                         inputs=[*sorted(args.loads_dir.glob("*.csv")), machine.source],
+                         force=args.force or args.resume)
         if executor not in ("serial", "process"):
             from hybridcomp.fem.batch import _import_distributed
 

@@ -19,6 +19,7 @@ from hybridcomp.fem.stepping import DEFAULT_THETA, DEFAULT_TOLERANCE, TimeTolera
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.loader import load_machine
+from hybridcomp.models.loads import check_outputs
 from hybridcomp.models.machine import MachineFileError
 from hybridcomp.models.pose import parse_pose
 from hybridcomp.safeio import FORCE_HELP, atomic_path, check_output_dir, write_text_atomic
@@ -206,6 +207,7 @@ def run(args: argparse.Namespace, reduced=None) -> int:
             "estimate_sensor_K": None, "estimate_drift_um": None,
             "estimate": "none: the θ-method at a chosen --dt/--theta is not error-controlled",
         }
+    check_outputs(res.time_s, model.sensor_names, res.sensors_degC, res.drift_um, f"simulate {machine.source}")
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "outputs.csv") as tmp:

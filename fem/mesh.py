@@ -10,7 +10,9 @@ taken from its named cell sets.  Coordinates inside are metres.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -312,6 +314,10 @@ def _box_zone_facets(machine: Machine, mm: MachineMesh) -> dict[str, np.ndarray]
     return out
 
 
+#: mesh formats meshio reads that hold surfaces only (no tetrahedra)
+SURFACE_FORMATS = (".stl", ".ply", ".off", ".obj")
+
+
 def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
     """Bodies and zones from the named cell sets of an imported mesh (units: mm in the file)."""
     import meshio
@@ -321,10 +327,20 @@ def _import_mesh(machine: Machine, pose: dict[str, float]) -> MachineMesh:
         open_regular_file(path, MachineFileError, "mesh file").close()
     except MachineFileError as exc:
         raise MachineFileError(f"{machine.source}: field 'mesh.file': {exc}") from None
+    if path.suffix.lower() in SURFACE_FORMATS:  # no volume in them, and meshio's PLY reader loops on a cut header
+        raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} is a surface mesh format "
+                               f"({path.suffix}): a machine's mesh needs tetrahedra in named cell sets (gmsh .msh, "
+                               ".vtu, .med, Abaqus .inp)")
+    said = io.StringIO()  # meshio prints why it fails, and some of its readers then exit the process
     try:
-        m = meshio.read(path)
-    except Exception as exc:  # noqa: BLE001 - meshio raises many kinds
-        raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} could not be read: {exc}") from None
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            m = meshio.read(path)
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - meshio raises many kinds, and SystemExit
+        why = "" if isinstance(exc, SystemExit) else str(exc)
+        why = why or " ".join(said.getvalue().split()) or type(exc).__name__
+        raise MachineFileError(f"{machine.source}: field 'mesh.file' {str(path)!r} could not be read: {why}") from None
+    if said.getvalue().strip():
+        log.info("meshio on %s: %s", path, " ".join(said.getvalue().split()))
     moved = {k: v for k, v in pose.items() if abs(v) > 1e-12}
     if moved:
         raise MachineFileError(

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from hybridcomp.models import jsonio
+from hybridcomp.safeio import FORCE_HELP, start_folder
 
 
 def add_parser(actions: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -22,7 +23,10 @@ def add_parser(actions: argparse._SubParsersAction) -> argparse.ArgumentParser:
                              "compensation, static default CDs, the hybrid monitor, the observer, the ROM used directly and a "
                              "multiple linear regression on the sensors (RMS, peak-to-peak, 95th-percentile range over "
                              "sliding windows, activations, largest offset step).")
-    c.add_argument("--out", required=True, type=Path, help="output directory (table, plot, databases, traces)")
+    c.add_argument("--out", required=True, type=Path, help="output directory (table, plot, databases, traces); a "
+                   "folder that holds anything is written into only with --force")
+    c.add_argument("--force", action="store_true", help=FORCE_HELP + " (an earlier run's folder: its files are "
+                   "replaced, its summary.json removed first)")
     c.add_argument("--disturbance", default="workspace air", metavar="NAME",
                    help="what the real machine does that the models do not know: " + ", ".join(
                        f"'{n}'" for n in _disturbance_names()) + " (default %(default)r)")
@@ -61,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
                                   ("--rom-order", args.rom_order, args.rom_order is None or args.rom_order >= 1)):
             if not ok:
                 raise ValueError(f"{option} must be positive, got {value:g}")
+        start_folder(args.out, force=args.force, finals=("summary.json",))
         res = run_scenario(Scenario(disturbance=DISTURBANCES[args.disturbance],
                                     element_size_mm=args.element_size_mm, rom_order=args.rom_order,
                                     basic_hours=args.basic_hours, day_hours=args.day_hours,

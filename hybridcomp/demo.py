@@ -28,6 +28,7 @@ from pathlib import Path
 
 from hybridcomp.metrics import cell_um
 from hybridcomp.models import jsonio
+from hybridcomp.safeio import FORCE_HELP, OutputPathError, start_folder, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +123,7 @@ def run_demo(out_dir: str | Path, options: DemoOptions = DemoOptions(), progress
     stages.next()
     day_plots = _day_plots(machine, nominal.files["controller"], out / "day")
     summary = _summary(options, nominal, after, diag_summary, time.perf_counter() - t_all, stages.times)
-    (out / "summary.json").write_text(jsonio.dumps(summary, indent=1, default=str))
+    write_text_atomic(out / "summary.json", jsonio.dumps(summary, indent=1, default=str))
     _report(out, options, summary, nominal, after, pictures, day_plots)
     stages.next()
     return summary
@@ -387,13 +388,16 @@ def _report(out: Path, options, summary, nominal, after, pictures, day_plots) ->
     t = summary["timings_s"]
     lines += ["## Run time", "", "| stage | [s] |", "|---|---|"] + [f"| {k} | {v:.0f} |" for k, v in t.items()]
     path = out / "report.md"
-    path.write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
     return path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``hybridcomp demo`` options."""
-    p.add_argument("--out", required=True, type=Path, help="output directory (report.md, summary.json, databases, plots)")
+    p.add_argument("--out", required=True, type=Path, help="output directory (report.md, summary.json, databases, "
+                   "plots); a folder that holds anything is written into only with --force")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP + " (an earlier run's folder: its files are "
+                   "replaced, its summary.json and report.md removed first)")
     p.add_argument("--element-size-mm", type=float, default=DemoOptions.element_size_mm,
                    help="FE element size of the real machine and the models [mm] (default %(default)s)")
     p.add_argument("--plant-source", default=DEFAULT_EFFECT[0],
@@ -424,6 +428,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if not args.plant_factor > 0:
         print(f"error: --plant-factor must be positive, got {args.plant_factor}", file=sys.stderr)
+        return 2
+    try:
+        start_folder(args.out, force=args.force, finals=("summary.json", "report.md"))
+    except OutputPathError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     opts = DemoOptions(element_size_mm=args.element_size_mm, source=args.plant_source, factor=args.plant_factor,
                        day_hours=args.day_hours, basic_hours=args.basic_hours, rom_order=args.rom_order,

@@ -39,6 +39,7 @@ from hybridcomp.models import jsonio
 from hybridcomp.models.layout import PROBE_COLUMNS, in_model_order, temperature_column
 from hybridcomp.models.toml import open_text
 from hybridcomp.monitor.example import rom_outputs
+from hybridcomp.safeio import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -428,7 +429,7 @@ def run_scenario(scenario: Scenario, out_dir, models: Models | None = None) -> S
         timings["along_path_s"] = time.perf_counter() - t0
     files, all_events = _write_results(scenario, out, day, preds, runs, table)
     summary = _summary(scenario, models, real_machine, day, metrics, runs, timings, t_all, path_summary)
-    (out / "summary.json").write_text(jsonio.dumps(summary, indent=1))
+    write_text_atomic(out / "summary.json", jsonio.dumps(summary, indent=1))
     return ScenarioResult(metrics, table, all_events,
                           {**files, "recorded": measured.recorded, "rom": models.rom_path,
                            "controller": day.controller, "trace": measured.trace},

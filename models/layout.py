@@ -62,6 +62,11 @@ ABSOLUTE_ZERO_DEGC = -273.15
 TEMPERATURE_RANGE_DEGC = (-50.0, 200.0)
 #: the largest power one heat input (loads column) may carry [W]; the largest spindle motors have ~100 kW
 MAX_HEAT_POWER_W = 1e6
+#: a computed structure temperature above this [°C] is no machine: every solid has melted (hafnium carbide, the
+#: highest known melting point, at about 3,900 °C; CRC Handbook); below absolute zero is impossible
+MAX_RESULT_TEMPERATURE_DEGC = 4000.0
+#: a computed drift or positioning error beyond this [µm] (1 m) is no machine tool's thermal error
+MAX_RESULT_DRIFT_UM = 1e6
 #: a negative power down to this is round-off of a written number and is read as 0 [W]
 POWER_ROUND_OFF_W = 1e-6
 #: a resampled grid time this close to the end time (relative, at least as many seconds) is the end time
@@ -359,6 +364,49 @@ def check_loads(loads: Loads, source: str = "loads") -> Loads:
         V[:, powers] = np.maximum(V[:, powers], 0.0)
         return Loads(t, V, loads.names)
     return loads
+
+
+class ResultError(HybridcompError, ValueError):
+    """A computed result that is not finite or not physically possible: never written as a result."""
+
+
+def check_result(time_s: np.ndarray, columns: Sequence[str], values: np.ndarray, what: str = "the result") -> None:
+    """Refuse a computed table with a non-finite or implausible value, naming the column, the time and the value.
+
+    ``*_degC`` columns are temperatures (within [-273.15, :data:`MAX_RESULT_TEMPERATURE_DEGC`] °C), every other
+    column a drift or error in µm (within ±:data:`MAX_RESULT_DRIFT_UM`).
+
+    Parameters
+    ----------
+    time_s : (nt,) times [s]
+    columns : the column names, one per column of ``values``
+    values : (nt, len(columns)) the computed values
+    what : what computed them, for the message
+
+    Raises
+    ------
+    ResultError
+        at the first bad value: ``<what>: column 'T1_degC' is 1e+281 at t = 60 s, ...; nothing is written``.
+    """
+    values = np.asarray(values, dtype=float).reshape(len(time_s), len(columns))
+    temp = np.array([c.endswith("_degC") for c in columns], dtype=bool)
+    lo = np.where(temp, ABSOLUTE_ZERO_DEGC, -MAX_RESULT_DRIFT_UM)
+    hi = np.where(temp, MAX_RESULT_TEMPERATURE_DEGC, MAX_RESULT_DRIFT_UM)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(values) | (values < lo) | (values > hi)
+    if not bad.any():
+        return
+    i, j = (int(k[0]) for k in np.nonzero(bad))
+    v = values[i, j]
+    if not np.isfinite(v):
+        why = "not finite"
+    elif temp[j]:
+        why = (f"below absolute zero ({ABSOLUTE_ZERO_DEGC:g} °C)" if v < lo[j] else
+               f"above {MAX_RESULT_TEMPERATURE_DEGC:g} °C, where every solid has melted")
+    else:
+        why = f"beyond ±{MAX_RESULT_DRIFT_UM:g} µm (1 m)"
+    raise ResultError(f"{what}: column {columns[j]!r} is {v:g} at t = {float(time_s[i]):g} s, {why}: not a machine's "
+                      "result (check the machine file's materials, zones and the loads); nothing is written")
 
 
 def time_problem(time_s: np.ndarray) -> tuple[int, str] | None:

@@ -52,6 +52,33 @@ MAX_BOX_BODIES = 100
 #: the most rail segments of one axis (each is a heat input and a loads column)
 MAX_SEGMENTS = 1000
 
+#: plausible material and boundary values, field -> (lowest, highest, unit): what engineering solids (and, for
+#: the thermal properties, gases) span at room temperature; beyond them a value is a typing mistake (1e-300,
+#: 1e300), never a machine, and would make simulate write 1e281 °C or NaN. Sources:
+#: conductivity: Incropera & DeWitt, Fundamentals of Heat and Mass Transfer, Fig. 2.4 and Tables A.1-A.4
+#:   (gases 0.007-0.2, insulation 0.02-0.1, metals 10-430, diamond about 2,300 W/(m K));
+#: density: CRC Handbook of Chemistry and Physics (hydrogen 0.08 kg/m³ at 1 bar to osmium 22,590 kg/m³);
+#: specific heat: CRC Handbook (lead, gold, tungsten about 130 J/(kg K) to hydrogen 14,300 J/(kg K));
+#: Young's modulus and expansion: Ashby, Materials Selection in Mechanical Design, charts E-ρ and α-λ
+#:   (foams and elastomers 1e-4 GPa to diamond 1,200 GPa; zero-expansion glass ceramics 0 to elastomers
+#:   and polymers below 1e-3 1/K);
+#: heat-transfer coefficient: Incropera Table 1.1 (free convection of gases 2-25, forced liquids up to 20,000,
+#:   boiling and condensation up to 100,000 W/(m² K)), down to 0.1 for a surface that is all but insulated;
+#: a bearing's conductance: up to that of a 1 m² steel plate 5 mm thick (1e4 W/K).
+#: Poisson's ratio is checked against [0, 0.5) (isotropic solids, no auxetics). The machine file has no emissivity
+#: (radiation is part of the coefficient h).
+PHYSICAL_RANGES = {
+    "conductivity_W_mK": (0.005, 2500.0, "W/(m K)"),
+    "density_kg_m3": (0.08, 23000.0, "kg/m³"),
+    "specific_heat_J_kgK": (100.0, 15000.0, "J/(kg K)"),
+    "youngs_modulus_GPa": (1e-4, 1200.0, "GPa"),
+    "expansion_1_K": (0.0, 1e-3, "1/K"),
+    "scale_expansion_1_K": (0.0, 1e-3, "1/K"),
+    "h_W_m2K": (0.1, 1e5, "W/(m² K)"),
+    "screw_h_W_m2K": (0.1, 1e5, "W/(m² K)"),
+    "bearing_conductance_W_K": (0.0, 1e4, "W/K"),
+}
+
 
 def bundled_machines() -> list[str]:
     """Names of the machine files shipped with the package."""
@@ -150,6 +177,22 @@ class _Reader(StrictTable):
         if any(b < a or (b == a and not flat_ok) for a, b in zip(lo, hi)):
             raise self.err(key, f"must have its second corner above the first in x, y and z, got {v!r}")
         return lo, hi
+
+
+def _physical(r: _Reader, key: str, default: Any = ...) -> Any:
+    """A material or boundary value within :data:`PHYSICAL_RANGES` (a default is returned unchecked)."""
+    v = r.number(key, default)
+    if key not in r.t:
+        return v
+    lo, hi, unit = PHYSICAL_RANGES[key]
+    if lo > 0 and not v > 0:
+        raise r.err(key, f"must be positive, got {v!r}")
+    if not v >= 0:
+        raise r.err(key, f"must not be negative, got {v!r}")
+    if not lo <= v <= hi:
+        raise r.err(key, f"= {v!r} {unit} is outside the plausible range [{lo:g}, {hi:g}] {unit} of engineering "
+                         "materials (models/README.md, 'Plausible values')")
+    return v
 
 
 def _is_number(x: Any) -> bool:
@@ -261,12 +304,12 @@ def _read_material(source: str, mname: str, mt: Any) -> Material:
         raise r.err("poisson_ratio", f"must be in [0, 0.5), got {nu!r}")
     return Material(
         name=mname,
-        conductivity_W_mK=r.number("conductivity_W_mK", positive=True),
-        density_kg_m3=r.number("density_kg_m3", positive=True),
-        specific_heat_J_kgK=r.number("specific_heat_J_kgK", positive=True),
-        youngs_modulus_Pa=r.number("youngs_modulus_GPa", positive=True) * 1e9,
+        conductivity_W_mK=_physical(r, "conductivity_W_mK"),
+        density_kg_m3=_physical(r, "density_kg_m3"),
+        specific_heat_J_kgK=_physical(r, "specific_heat_J_kgK"),
+        youngs_modulus_Pa=_physical(r, "youngs_modulus_GPa") * 1e9,
         poisson_ratio=nu,
-        expansion_1_K=r.number("expansion_1_K", nonneg=True),
+        expansion_1_K=_physical(r, "expansion_1_K"),
     )
 
 
@@ -479,9 +522,7 @@ def _read_zone(source: str, where: str, t: Any, bodies: tuple[Body, ...], mesh_p
     """One ``[[zones]]`` table: coefficient [W/(m^2 K)], air and its surfaces (none for the rest zone)."""
     r = _Reader(source, where, t, "zone")
     zname = _name_of(r)
-    h = r.number("h_W_m2K")
-    if h <= 0:
-        raise r.err("h_W_m2K", f"must be positive, got {h!r}")
+    h = _physical(r, "h_W_m2K")
     air = r.get("air", "ambient", str)
     if air not in AIR_KINDS:
         raise r.err("air", f"must be one of {AIR_KINDS}, got {air!r}")
@@ -631,7 +672,7 @@ def _read_drive(machine: Machine, where: str, t: dict) -> Drive:
         screw_material=material, mounting=mounting, prestretch_um=prestretch,
         fixed_bearing=fixed.name, floating_bearing=floating.name, nut=nut.name, **heat,
         screw_h_W_m2K=_screw_h(r), screw_zone=zone, screw_mean_rpm=r.number("screw_mean_rpm", None, nonneg=True),
-        bearing_conductance_W_K=r.number("bearing_conductance_W_K", BEARING_CONDUCTANCE_W_K, nonneg=True),
+        bearing_conductance_W_K=_physical(r, "bearing_conductance_W_K", BEARING_CONDUCTANCE_W_K),
     )
     scale_keys = [k for k in KEYS["drive"] if k.startswith("scale_") and k in t]
     if feedback == "rotary_encoder":
@@ -643,7 +684,7 @@ def _read_drive(machine: Machine, where: str, t: dict) -> Drive:
 
 def _screw_h(r: _Reader) -> float:
     """``screw_h_W_m2K`` when given, else from ``screw_mean_rpm`` when given, else :data:`SCREW_H_W_M2K`."""
-    h = r.number("screw_h_W_m2K", None, positive=True)
+    h = _physical(r, "screw_h_W_m2K", None)
     rpm = r.number("screw_mean_rpm", None, nonneg=True)
     if rpm is not None and rpm > MAX_SCREW_RPM:
         raise r.err("screw_mean_rpm", f"= {rpm!r} rpm is beyond {MAX_SCREW_RPM:g} rpm, where the convection correlation "
@@ -679,7 +720,7 @@ def _read_scale(r: _Reader, machine: Machine, axis: Axis, carrier: str, nut: Hea
         raise r.err("scale_head_at_mm", f"= {head!r} mm: the reading head travels over [{head + axis.travel_mm[0]:g}, "
                                         f"{head + axis.travel_mm[1]:g}] mm, beyond the scale [{a[d]:g}, {b[d]:g}] mm")
     return dict(scale_body=body, scale_from_mm=a, scale_to_mm=b, scale_fixed_at_mm=fixed, scale_head_at_mm=head,
-                scale_expansion_1_K=r.number("scale_expansion_1_K", nonneg=True))
+                scale_expansion_1_K=_physical(r, "scale_expansion_1_K"))
 
 
 def bodies_by(bodies) -> dict[str, Body]:

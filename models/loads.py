@@ -23,6 +23,7 @@ from hybridcomp.models.layout import (  # Loads and in_model_order re-exported f
     DRIFT_COLUMNS,
     Loads,
     LoadsColumnError,
+    check_result,
     control_character,
     in_model_order,
     temperature_column,
@@ -158,6 +159,16 @@ def write_loads(path: str | Path, loads: Loads) -> None:
         w.writerow(["time_s", *loads.names])
         for t, row in zip(loads.time_s, loads.values):
             w.writerow([f"{t:.12g}", *(f"{v:.6g}" for v in row)])
+
+
+def check_outputs(time_s, sensor_names, sensors_degC, drift_um, what: str) -> None:
+    """The final check before outputs.csv is written: every temperature and drift finite and physically possible.
+
+    Raises :class:`~hybridcomp.models.layout.ResultError` (exit code 2, nothing written) otherwise.
+    """
+    columns = [temperature_column(s) for s in sensor_names] + list(DRIFT_COLUMNS)
+    check_result(np.asarray(time_s), columns, np.hstack([np.asarray(sensors_degC).reshape(len(time_s), -1),
+                                                         np.asarray(drift_um).reshape(len(time_s), -1)]), what)
 
 
 def write_outputs(path: str | Path, time_s: np.ndarray, sensor_names, sensors_degC: np.ndarray, drift_um: np.ndarray) -> None:

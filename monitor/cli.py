@@ -127,13 +127,19 @@ def _example_trace(args) -> int:
 
 
 def open_everything(cfg):
-    """Machine, structure model, pose key and database of a configuration."""
+    """Machine, structure model, pose key and database of a configuration.
+
+    The sink's files are checked first (:func:`hybridcomp.monitor.sinks.check_sink_paths`): none of them may be
+    the configuration, the replay trace, the structure model, the machine file or the database.
+    """
     from hybridcomp.chardiag.cd import pose_key
     from hybridcomp.chardiag.db import CDDatabase
     from hybridcomp.models import load_machine
     from hybridcomp.monitor.config import ConfigError
+    from hybridcomp.monitor.sinks import check_sink_paths
     from hybridcomp.rom import load_rom
 
+    check_sink_paths(cfg)
     machine = load_machine(cfg.machine)
     rom = load_rom(cfg.rom, machine)  # a pose-aware one: the daemon compensates where the tool is
     if cfg.sink.table_path is not None and not rom.meta.get("poses"):

@@ -5,21 +5,28 @@ is the TCP drift the active CDs predict, after clamping and rate limiting
 (``dx_um``, ``dy_um``, ``dz_um``; the control subtracts it from the
 position), with the machine time, the ids of the active set and flags.
 A sink that cannot write (an OPC UA server away) logs, retries on the next
-cycle and never stops compensation.
+cycle and never stops compensation. A file sink is checked at startup
+(:func:`check_sink_paths`: never one of the monitor's inputs, never a
+symbolic link) and writes whole, fsync'd lines; a write that fails (a full
+disk) raises :class:`SinkWriteError`, naming the file, with the partial line
+cut off.
 """
 
 from __future__ import annotations
 
 import asyncio
 import csv
+import io
 import json
 import logging
 import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
+from hybridcomp.errors import HybridcompError
 from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.monitor.decisions import Backoff, backoff_delay
+from hybridcomp.safeio import AppendOnlyFile, OutputPathError, same_file
 
 log = logging.getLogger(__name__)
 
@@ -81,65 +88,93 @@ class MemorySink:
         pass
 
 
-class _FileSink:
-    """What the file sinks share: a flush every ``flush_every`` rows, and close."""
+class SinkWriteError(HybridcompError, OSError):
+    """A file sink could not write its line (a full disk, an I/O error): the file is named, its lines stay whole.
 
-    _fh = None
-    _n = 0
-    flush_every = 1
+    Attributes
+    ----------
+    path : the sink's file
+    cause : the ``OSError`` of the write
+    """
 
-    def _open(self, path: str | Path, flush_every: int) -> None:
-        """Open ``path`` to append lines (its folder made)."""
+    def __init__(self, path: str | Path, cause: OSError):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = self.path.open("a")
-        self._n = 0
-        self.flush_every = flush_every
+        self.cause = cause
+        why = cause.strerror or str(cause) or type(cause).__name__
+        super().__init__(f"sink {self.path}: cannot write the offsets ({why}); the file holds only whole lines, "
+                         "the last one the last offsets written")
 
-    def _wrote(self) -> None:
-        self._n += 1
-        if self._n % self.flush_every == 0:
-            self._fh.flush()
+    def __str__(self) -> str:
+        return self.args[0]
+
+    def __reduce__(self):
+        return (type(self), (self.path, self.cause))
+
+
+class _FileSink:
+    """What the file sinks share: an :class:`~hybridcomp.safeio.AppendOnlyFile`, a whole line per write, close.
+
+    Every line is flushed and fsync'd before :meth:`write` returns (a control reading the file sees whole lines
+    only; ``fsync=False``, for a benchmark of the daemon rather than the disk, only flushes); a failed write
+    raises :class:`SinkWriteError` with the file cut back to its last whole line.
+    """
+
+    _file = None
+
+    def _open(self, path: str | Path, fsync: bool) -> None:
+        """Open ``path`` to append lines (its folder made; never through a link)."""
+        self.path = Path(path)
+        self._file = AppendOnlyFile(self.path, fsync)
+
+    def _append(self, line: str) -> None:
+        try:
+            self._file.append(line)
+        except OSError as exc:
+            raise SinkWriteError(self.path, exc) from exc
 
     async def close(self) -> None:
-        self._fh.close()
+        if self._file is not None:
+            self._file.close()
 
 
 class JsonlSink(_FileSink):
-    """Appends one JSON object per cycle to a file.
+    """Appends one JSON object per cycle to a file, one whole, fsync'd line each."""
 
-    Flushed every ``flush_every`` rows (default: each, as a control reading the file expects) and on close.
-    """
-
-    def __init__(self, path: str | Path, flush_every: int = 1):
-        self._open(path, flush_every)
+    def __init__(self, path: str | Path, fsync: bool = True):
+        self._open(path, fsync)
 
     async def write(self, offset: Offset) -> None:
-        self._fh.write(json.dumps(offset.record(), allow_nan=False) + "\n")
-        self._wrote()
+        self._append(json.dumps(offset.record(), allow_nan=False) + "\n")
+
+
+def _csv_line(row) -> str:
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(row)
+    return buf.getvalue()
 
 
 class CsvSink(_FileSink):
-    """Appends one CSV row per cycle (header written when the file is new)."""
+    """Appends one CSV row per cycle (header written when the file is new; an existing file must have it)."""
 
     FIELDS = ("time_s", *DIRECTIONS, "active", "clamped", "limited", "outside", "degraded", "by")
 
-    def __init__(self, path: str | Path, flush_every: int = 1):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        new = not self.path.exists() or self.path.stat().st_size == 0
-        self._fh = self.path.open("a", newline="")
-        self._w = csv.writer(self._fh)
-        if new:
-            self._w.writerow(self.FIELDS)
-        self._n = 0
-        self.flush_every = flush_every
+    def __init__(self, path: str | Path, fsync: bool = True):
+        self._open(path, fsync)
+        header = _csv_line(self.FIELDS)
+        if self._file.size == 0:
+            self._append(header)
+            return
+        with open(self.path, encoding="utf-8", errors="replace", newline="") as fh:
+            first = fh.readline()
+        if first.replace("\r\n", "\n") != header:
+            self._file.close()
+            raise OutputPathError(f"sink {self.path}: an existing file whose first line is not the offsets' header "
+                                  f"{header.strip()!r} (got {first.strip()[:80]!r}): not appending to another file")
 
     async def write(self, offset: Offset) -> None:
         d = offset.record()
-        self._w.writerow([f"{d[k]:.6f}" if isinstance(d[k], float) else int(d[k]) if isinstance(d[k], bool) else d[k]
-                          for k in self.FIELDS])
-        self._wrote()
+        self._append(_csv_line([f"{d[k]:.6f}" if isinstance(d[k], float) else int(d[k]) if isinstance(d[k], bool)
+                                else d[k] for k in self.FIELDS]))
 
 
 class TableSink(_FileSink):
@@ -149,16 +184,15 @@ class TableSink(_FileSink):
     drive's error over its axis [µm]; a control that interpolates the table itself reads it.)
     """
 
-    def __init__(self, path: str | Path, flush_every: int = 1):
-        self._open(path, flush_every)
+    def __init__(self, path: str | Path, fsync: bool = True):
+        self._open(path, fsync)
 
     async def write(self, offset: Offset) -> None:
         if offset.table is None:
             return
         from hybridcomp.rom.volumetric import table_to_dict
 
-        self._fh.write(json.dumps(table_to_dict(offset.table), allow_nan=False) + "\n")
-        self._wrote()
+        self._append(json.dumps(table_to_dict(offset.table), allow_nan=False) + "\n")
 
 
 class TeeSink:
@@ -239,6 +273,65 @@ class OpcUaSink:
                 await asyncio.wait_for(c.disconnect(), 1.0)
             except Exception:  # noqa: BLE001
                 pass
+
+
+#: every sink kind of a configuration: whether it writes a file (checked by :func:`check_sink_paths`)
+SINK_FILE_KINDS = {"jsonl": True, "csv": True, "opcua": False, "none": False}
+
+
+def sink_files(sink_cfg) -> dict[str, Path]:
+    """The files a sink configuration appends to, by their key (``sink.path``, ``sink.table_path``)."""
+    files = {}
+    if SINK_FILE_KINDS[sink_cfg.kind] and sink_cfg.path is not None:
+        files["sink.path"] = Path(sink_cfg.path)
+    if getattr(sink_cfg, "table_path", None) is not None:
+        files["sink.table_path"] = Path(sink_cfg.table_path)
+    return files
+
+
+def monitor_inputs(cfg) -> dict[str, Path]:
+    """The files a monitor configuration reads or owns, by what they are: a sink may be none of them."""
+    from hybridcomp.chardiag.db import sqlite_file
+
+    inputs = {"the configuration": Path(cfg.source_file)}
+    if cfg.source.kind == "replay" and cfg.source.path is not None:
+        inputs["the replay trace source.path"] = Path(cfg.source.path)
+    inputs["the structure model monitor.rom"] = Path(cfg.rom)
+    if str(cfg.machine).endswith(".toml") or Path(cfg.machine).exists():
+        inputs["the machine file monitor.machine"] = Path(cfg.machine)
+    db = sqlite_file(cfg.database)
+    if db is not None:
+        inputs["the database monitor.database"] = Path(db)
+        for suffix in ("-wal", "-shm", "-journal"):
+            inputs[f"the database's {suffix[1:]} file"] = Path(f"{db}{suffix}")
+    return inputs
+
+
+def check_sink_paths(cfg) -> None:
+    """Refuse a file sink that is one of the monitor's inputs (by resolved path and inode) or a symbolic link.
+
+    Parameters
+    ----------
+    cfg : the :class:`~hybridcomp.monitor.config.MonitorConfig`
+
+    Raises
+    ------
+    OutputPathError
+        naming the configuration, the sink key, its path and what else that file is.
+    """
+    files = sink_files(cfg.sink)
+    inputs = monitor_inputs(cfg)
+    for key, path in files.items():
+        if path.is_symlink():
+            raise OutputPathError(f"{cfg.source_file}: {key} {path} is a symbolic link: a sink never writes through one")
+        for what, inp in inputs.items():
+            if same_file(path, inp):
+                raise OutputPathError(f"{cfg.source_file}: {key} {path} is {what}: the offsets are never appended to "
+                                      "an input of the monitor")
+        if path.exists() and not path.is_file():
+            raise OutputPathError(f"{cfg.source_file}: {key} {path} is not a regular file")
+    if len(files) == 2 and same_file(*files.values()):
+        raise OutputPathError(f"{cfg.source_file}: sink.path and sink.table_path are the same file {files['sink.path']}")
 
 
 def make_sink(cfg, backoff: Backoff | None = None, clock=None):

@@ -19,6 +19,7 @@ from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.loader import load_machine
 from hybridcomp.models.machine import MachineFileError
+from hybridcomp.safeio import FORCE_HELP, check_output_path
 
 #: L-BFGS iterations of the h2 basis of an exported system at a stated order by default: on the public rail
 #: benchmarks 1,500 leave rail_1357 at r = 40 at 2.5x balanced truncation, 20,000 bring it to 1.2x (38 s;
@@ -40,7 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--matrices", type=Path, metavar="FILE",
                    help="reduce an exported system E x' = A x + B u, y = C x instead: a .mat file (variables E, A, B, C) "
                    "or a directory of Matrix Market files E.mtx, A.mtx, B.mtx, C.mtx")
-    p.add_argument("--out", required=True, type=Path, help="reduced model to write (.npz with JSON metadata)")
+    p.add_argument("--out", required=True, type=Path, help="reduced model to write (.npz with JSON metadata); an "
+                   "existing file (a model a monitor configuration reads) is replaced only with --force")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     p.add_argument("--element-size-mm", type=float, help="largest element edge [mm] (default: from the machine file)")
     p.add_argument("--order", type=int, help="reduce to exactly this order instead of to the tolerances")
@@ -134,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
         if args.matrices is not None:
             from hybridcomp.rom.external import reduce_matrices
 
+            _check_out(args, [args.matrices, *(_matrix_files(args.matrices))])
+
             rom = reduce_matrices(args.matrices, tol=None if args.order or args.h2_tol else args.tol_K, order=args.order,
                                   h2_tol=args.h2_tol,
                                   keep_basis=not args.no_basis, basis=args.basis, progress=True,
@@ -141,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
                                   EXTERNAL_H2_MAXITER if args.order is not None else 1500)
         else:
             machine = load_machine(args.machine)
+            _check_out(args, [machine.source, args.check_loads])
             pose = machine.check_pose(parse_pose(args.pose))
             ends = [a.name for a in machine.axes if args.poses and pose[a.name] in a.travel_mm]
             if ends:
@@ -171,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
                                   input_scale=scale, workers=_workers(args),
                                   scheduler="process" if args.scheduler == "serial" else args.scheduler,
                                   progress=True)
-    save_rom(args.out, rom)
+    save_rom(args.out, rom)  # atomically: a temporary file renamed over --out
     summary = {"out": str(args.out), "order": rom.order, "seconds": round(time.perf_counter() - t0, 2)}
     if rom.meta.get("poses"):
         summary["support_poses"] = len(rom.meta["poses"]["poses"])
@@ -179,6 +185,12 @@ def run(args: argparse.Namespace) -> int:
         c = rom.meta["check"]
         summary.update(max_sensor_error_K=max(c["max_sensor_error_K"]), max_drift_error_um=max(c["max_drift_error_um"]),
                        passed=c["passed"])
+        if not c["passed"]:
+            print(f"warning: {args.out} does NOT meet the tolerances on the FE check: sensors off by up to "
+                  f"{summary['max_sensor_error_K']:.3g} K (--tol-K {args.tol_K:g}), drift by up to "
+                  f"{summary['max_drift_error_um']:.3g} µm (--tol-um {args.tol_um:g})"
+                  + (f" at --order {args.order}" if args.order is not None else "")
+                  + "; its metadata says passed = false", file=sys.stderr)
     else:
         summary["estimate"] = rom.meta.get("estimate")
         summary["basis"] = rom.meta.get("basis")
@@ -194,6 +206,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"relative H2 error of the reduced model: {err:.3g} ({how})", file=sys.stderr)
     print(jsonio.dumps(summary))
     return 0
+
+
+def _matrix_files(matrices: Path) -> list[Path]:
+    """The Matrix Market files of a ``--matrices`` directory (inputs: --out may be none of them)."""
+    return sorted(matrices.glob("*.mtx")) if matrices.is_dir() else []
+
+
+def _check_out(args, inputs) -> None:
+    """``--out``: never an input, a link or a folder, an existing file only with ``--force`` (before any work)."""
+    check_output_path(args.out, inputs=inputs, force=args.force)
 
 
 def _workers(args) -> int:

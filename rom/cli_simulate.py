@@ -39,7 +39,8 @@ def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], 
     from hybridcomp.fem.loads import write_outputs
     from hybridcomp.models import jsonio
     from hybridcomp.models.cli import given
-    from hybridcomp.models.loads import write_columns
+    from hybridcomp.models.layout import check_result
+    from hybridcomp.models.loads import check_outputs, write_columns
     from hybridcomp.rom.machine import inputs_from_columns, split_outputs
     from hybridcomp.rom.reduced import RomFileError, RomInputError, load_rom
     from hybridcomp.safeio import OutputPathError, atomic_path, check_output_dir, write_text_atomic
@@ -75,6 +76,10 @@ def run_rom(args: argparse.Namespace, machine: Machine, pose: dict[str, float], 
     Y, _ = rom.integrate(loads.time_s, U, initial=args.initial)
     t_sim = time.perf_counter() - ts
     sensors_degC, drift_um = split_outputs(rom, Y)
+    what = f"simulate --rom {args.rom}"
+    check_outputs(loads.time_s, outputs.sensors, sensors_degC, drift_um, what)
+    for group in groups:  # drifts and errors [m] -> [µm]
+        check_result(loads.time_s, outputs.columns(group), outputs.take(Y, group) * 1e6, what)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "outputs.csv") as tmp:  # --out was checked by the caller (fem.cli_simulate.run)

@@ -424,7 +424,9 @@ def save_rom(path: str | Path, rom: ReducedModel) -> Path:
         arrays["D"] = rom.D
     if rom.pose_transfer is not None:
         arrays["pose_transfer"] = rom.pose_transfer
-    with path.open("wb") as fh:
+    from hybridcomp.safeio import atomic_path
+
+    with atomic_path(path) as tmp, tmp.open("wb") as fh:  # a temporary file renamed over path: never half a model
         np.savez_compressed(fh, **arrays)
     return path
 

@@ -244,6 +244,18 @@ directions = ["z"]
 """
 
 
+@pytest.mark.parametrize("name,data,said", [
+    ("m.vtk", b"# vtk DataFile Version 4.2\ngarbage\n", "Couldn't read file"),  # meshio's reader exits the process
+    ("m.vtu", b"<?xml version='1.0'?><VTKFile type='UnstructuredGrid'><broken", "Couldn't read file"),
+    ("m.xyz", b"1 2 3\n", "Could not deduce file format"),
+    ("m.ply", b"ply\nformat ascii 1.0\nelement vertex 2\n", "surface mesh format"),  # meshio loops on it
+], ids=["vtk exits", "vtu", "unknown suffix", "ply loops"])
+def test_a_mesh_file_meshio_cannot_read_names_the_field(tmp_path, capsys, name, data, said):
+    path = write(tmp_path / "imported.toml", IMPORTED.replace('"m.msh"', f'"{name}"'))
+    (tmp_path / name).write_bytes(data)
+    bounded(lambda: refused(capsys, ["machine", path, "--mesh"], path, "'mesh.file'", name, said))
+
+
 def test_machine_mesh_with_an_unreadable_mesh_file_is_one_line(tmp_path, capsys):
     path = write(tmp_path / "imported.toml", IMPORTED)
     (tmp_path / "m.msh").write_bytes(b"\x00\xffnot a mesh\n")
@@ -446,6 +458,17 @@ def test_extreme_or_nan_cd_values_are_refused_on_reading(tmp_path, capsys, old, 
     assert "Traceback" not in line
     # the database import refuses it the same way (it used to crash writing 'nan' against the schema)
     refused(capsys, ["cd", "db", "import", "--db", tmp_path / "cds.sqlite", d / "cd_Z.xml"], "cd_Z.xml", says)
+
+
+def test_a_cd_whose_reference_temperatures_name_a_sensor_the_machine_lacks_is_refused(tmp_path, capsys):
+    path = write_cd(tmp_path / "cd_Z.xml", small_cd("Z", t_reference_degC=(("T1", 20.0), ("T9", 20.0))))
+    with pytest.raises(CDXmlError, match=r"cd_Z\.xml: referenceTemperatures sensor 'T9': machine 'vmc800' has no "
+                                         r"sensor of that name \(has: T1, "):
+        read_cd(path, load_machine("vmc800"))
+    db = tmp_path / "cds.sqlite"
+    refused(capsys, ["cd", "db", "import", "--db", db, "--machine", "vmc800", path], "cd_Z.xml", "'T9'")
+    assert not db.exists()
+    read_cd(path)  # without a machine there is nothing to compare with
 
 
 def test_the_cnc_export_writes_no_offset_beyond_its_clamp(tmp_path, capsys):
