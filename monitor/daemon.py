@@ -47,7 +47,7 @@ from hybridcomp.models.layout import DIRECTIONS, DRIFT_COLUMNS
 from hybridcomp.monitor import decisions
 from hybridcomp.monitor import transitions as T
 from hybridcomp.monitor.config import MonitorConfig
-from hybridcomp.monitor.sinks import Offset
+from hybridcomp.monitor.sinks import Offset, SinkWriteError
 from hybridcomp.monitor.sources import Reading, SourceDisconnected, WallClock
 from hybridcomp.monitor.state import STATE_VERSION, MonitorState
 from hybridcomp.monitor.store import LeaseHeld, MonitorStore, QueuedStore, lease_owner
@@ -480,7 +480,13 @@ async def run_monitor(
                             monitor.event("warning", off.time_s, {"message": f"offset not written: {problem}"},
                                           f"guard@{_t(off.time_s)}")
                             continue
-                        await sink.write(off)
+                        try:
+                            await sink.write(off)
+                        except SinkWriteError as exc:  # a full disk: stop, the file named, its lines whole
+                            monitor.event("sink", off.time_s, {"status": "write failed", "file": str(exc.path),
+                                                               "error": getattr(exc.cause, "strerror", None)
+                                                               or str(exc.cause)}, f"write-failed@{_t(off.time_s)}")
+                            raise
                         applied_unix = clock.unix()
                     if lost:
                         raise LeaseHeld(lost[0])

@@ -700,3 +700,51 @@ def test_example_trace_is_the_jobshop_day_with_the_models_sensors(machine, rom, 
     assert main(argv) == 2 and "--force" in capsys.readouterr().err
     assert main(["monitor", "example-trace", "--rom", str(rom_file), "--hours", "17", "--out", str(tmp_path / "d.csv")]) == 2
     assert "the job-shop day is 16 h long, got 17.0" in capsys.readouterr().err
+
+
+def test_a_full_disk_stops_the_daemon_with_an_event_naming_the_sink_and_whole_lines(machine, rom, rom_file, trace,
+                                                                                      tmp_path):
+    """The offsets' file fills the disk mid-replay: the daemon stops with :class:`SinkWriteError`, the database holds
+    an event naming the file, and every line written is whole."""
+    import errno
+    import json as _json
+
+    from hybridcomp.monitor.config import SinkConfig
+    from hybridcomp.monitor.sinks import SinkWriteError, make_sink
+    from hybridcomp.monitor.sources import ReplaySource
+
+    db, _ = make_db(tmp_path / "cd.db", machine, trace[2])
+    path = tmp_path / "offsets.jsonl"
+    sink = make_sink(SinkConfig(kind="jsonl", path=path))
+    real_write = sink.write
+    calls = {"n": 0}
+
+    class Full:  # the raw file: part of the line reaches the disk, then the disk is full
+        def __init__(self, fh):
+            self.fh = fh
+
+        def write(self, data):
+            self.fh.write(bytes(data)[:5])
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __getattr__(self, name):
+            return getattr(self.fh, name)
+
+    async def write(off):
+        calls["n"] += 1
+        if calls["n"] == 40:
+            sink._file._fh = Full(sink._file._fh)
+        await real_write(off)
+
+    sink.write = write
+    cfg = config(rom_file, trace[0], tmp_path)
+    try:
+        with pytest.raises(SinkWriteError, match="offsets.jsonl"):
+            run(cfg, machine, rom, db, ReplaySource(trace[0], machine, speed=0), sink)
+        ev = events(db, "sink")
+        assert len(ev) == 1 and ev[0][2]["file"] == str(path) and "No space left" in ev[0][2]["error"]
+    finally:
+        db.close()
+    lines = path.read_text().splitlines(keepends=True)
+    assert len(lines) == 39 and all(line.endswith("\n") for line in lines)
+    assert all(_json.loads(line)["time_s"] >= 0 for line in lines)
