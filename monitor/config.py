@@ -247,8 +247,9 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
 
     c = _Reader(source, "compensation", data.get("compensation", {}))
     v = _Reader(source, "validity", data.get("validity", {}))
+    values = {f.name: v.number(f.name, f.default, nonneg=True) for f in dataclass_fields(Validity)}
     try:
-        validity = Validity(**{f.name: v.number(f.name, f.default, nonneg=True) for f in dataclass_fields(Validity)})
+        validity = Validity(**values)
     except ValueError as exc:
         raise ConfigError(f"{source}: [validity] {exc}") from None
     o = _Reader(source, "observer", data.get("observer", {}))
@@ -413,6 +414,8 @@ dwell_s = 3600                     # after an activation, keep a set at least th
 forecast_h = 3                     # forecast horizon [h]
 bump_um = 1.0                      # a set that continues the offsets within this is made to continue them [um]
 max_candidates = 8                 # stored sets evaluated per decision
+reject_um = 50                     # a set predicted this far off is never applied: while no stored set fits, the
+                                   # offsets are held and ramp (max_step_um) to the corrected model's drift [um]
 
 [observer]                         # the Kalman filter that keeps the structure model on the machine
 sensor_sigma_K = 0.15              # sensor noise including model error [K]

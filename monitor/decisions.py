@@ -484,6 +484,10 @@ class Validity:
     bump_um : a generated set whose own fit differs from the offsets being written by at most this is made
         to continue them exactly; a stored set may be switched to only within this of them [µm]
     max_candidates : stored sets evaluated per decision (best by signature, then ΔT)
+    reject_um : a set whose predicted error over the last interval exceeds this is known to be wrong: while it is
+        active and no stored set fits, the monitor fails safe (it never applies it: the offsets are held and ramp at
+        the rate limit to the corrected structure model's drift, or to zero while that model is flagged) [µm]; at
+        least ``hard_um``
     """
 
     keep_um: float = 1.5
@@ -493,9 +497,10 @@ class Validity:
     forecast_h: float = 3.0
     bump_um: float = 1.0
     max_candidates: int = 8
+    reject_um: float = 50.0
 
     def __post_init__(self):
-        for name in ("keep_um", "forecast_um", "hard_um", "forecast_h"):
+        for name in ("keep_um", "forecast_um", "hard_um", "forecast_h", "reject_um"):
             v = getattr(self, name)
             if not nonnegative_number(v, strict=True):
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
@@ -506,6 +511,8 @@ class Validity:
         if int(self.max_candidates) != self.max_candidates or self.max_candidates < 0:
             raise ValueError(f"max_candidates must be a whole number ≥ 0, got {self.max_candidates!r}")
         object.__setattr__(self, "max_candidates", int(self.max_candidates))
+        if self.reject_um < self.hard_um:
+            raise ValueError(f"reject_um must be at least hard_um ({self.hard_um:g}), got {self.reject_um!r}")
 
 
 @dataclass(frozen=True)

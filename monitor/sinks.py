@@ -46,7 +46,8 @@ class Offset:
     outside : whether an input was outside the CDs' trained range
     degraded : sensors standing in by the structure model's estimate
     by : what computed the offsets: ``"cd"`` (the active CD set), ``"cd+model"`` (the CDs' slow part and the corrected
-        structure model's fast part) or ``"observer"`` (the corrected structure model)
+        structure model's fast part), ``"observer"`` (the corrected structure model) or ``"zero"`` (the fail-safe
+        on a known-wrong set while the structure model is flagged: ramping to zero)
     position_mm : with a pose-aware structure model: the commanded axis positions the offsets are for [mm]
     pose_um : ... the offsets at the model's pose (what a one-pose compensation writes) [µm]
     table : ... the support-point table of the cycle (:class:`hybridcomp.rom.volumetric.VolumetricTable`); the

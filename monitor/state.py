@@ -20,7 +20,7 @@ from hybridcomp.monitor.decisions import SensorState
 from hybridcomp.monitor.sources import Reading
 from hybridcomp.rom.observer import ObserverState
 
-STATE_VERSION = 4
+STATE_VERSION = 5
 ZERO_OFFSETS = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
 NO_DROPS = {"repeated": 0, "backwards": 0, "jump": 0, "invalid": 0}
 
@@ -111,6 +111,8 @@ class MonitorState:
     pose_track : a pose-aware structure model's state at ``step_time_s`` (:func:`hybridcomp.monitor.volumetric.state_out`)
     table : the support-point table written last (:func:`hybridcomp.rom.volumetric.table_to_dict`)
     gains : the drives' gains learnt from probes at several positions (:class:`hybridcomp.monitor.volumetric.DriveGains`)
+    failsafe : why the active set is not applied ("" when it is): its predicted error exceeded ``reject_um`` and no
+        stored set fitted (:func:`hybridcomp.monitor.transitions.fail_safe`)
     """
 
     version: int = STATE_VERSION
@@ -168,6 +170,7 @@ class MonitorState:
     pose_track: dict | None = None
     table: dict | None = None
     gains: dict | None = None
+    failsafe: str = ""
 
     def to_dict(self) -> dict:
         """JSON-able (non-finite floats become null)."""

@@ -865,7 +865,9 @@ def _compensate(ctx: Context, st: State, r: Reading, out: _Out) -> tuple[State, 
     eval_failed, nonfinite = st.eval_failed_logged, st.nonfinite_logged
     upd: dict = {}
     model = _model_drift_now(ctx, st, r.time_s)
-    if cfg.strategy == "observer" and model is not None:
+    if s.failsafe:  # the active set is known to be wrong (:func:`fail_safe`): never evaluated
+        target, by = (dict(model), "observer") if model is not None else (dict.fromkeys(DRIFT_COLUMNS, 0.0), "zero")
+    elif cfg.strategy == "observer" and model is not None:
         target, by = dict(model), "observer"
     elif st.active is not None:
         values = dict(s.filtered_degC)
@@ -1065,7 +1067,51 @@ def _monitor(ctx: Context, st: State, boundary: float, stored_sets: StoredSets, 
     st = _set(st, last_decision={"time_s": boundary, "action": d.action, "reason": d.reason},
               last_error=None if error is None else error.as_dict(), last_delta_T_K=_finite(dT))
     out.log("info", f"t = {boundary:.0f} s: {d.action} ({d.reason})")
+    st = fail_safe(ctx, st, d, boundary, out)
     return _act(ctx, st, d, boundary, est, sig, sets, out)
+
+
+def fail_safe(ctx: Context, st: State, d: Decision, t: float, out: _Out) -> State:
+    """Enter or leave the fail-safe: a set the decision calls wrong is never applied.
+
+    The active set is known to be wrong when its predicted error over the last interval exceeds
+    ``[validity] reject_um`` and the decision does not switch to a stored set that fits. Then, until another set is
+    activated (a stored one, a generated one, or one the operator activates) or a decision finds the active set within
+    ``reject_um`` again, :func:`_compensate` does not evaluate the set: the offsets written last are held and move at
+    most ``max_step_um`` per cycle (the rate limit) toward the corrected structure model's drift, or toward zero while
+    that model is flagged or has no estimate. A ``failsafe`` event says when it starts and ends.
+
+    Why the observer's drift and not zero: it is the yardstick the decision judged the set by (the set is wrong
+    *because* it departs from it), it is corrected by the sensors every model step, and on the demonstrator's day it
+    follows the drift to 0.20 µm RMS where no compensation leaves 34 µm peak to peak; zero is the target only when
+    the model itself is not trusted (flagged: it departs from the sensors), when nothing better is known. Why a ramp
+    and not a jump: the offsets written last are what the machine is cutting with; the rate limit keeps the path
+    continuous (0.2 µm per 5 s cycle by default) whichever target is right.
+    """
+    s = st.saved
+    v = ctx.cfg.validity
+    error = d.error
+    bad = s.active_ids is not None and error is not None and d.action != "switch" and error.interval_um > v.reject_um
+    if bad and not s.failsafe:
+        toward = "zero (the structure model is flagged)" if s.observer_flag else "the corrected structure model's drift"
+        ids = ",".join(f"{k}={s.active_ids[k]}" for k in sorted(s.active_ids))
+        msg = (f"the active set {ids} is predicted {error.interval_um:.2f} µm off, beyond reject_um = {v.reject_um:g} µm, "
+               f"and no stored set fits: it is not applied; the offsets are held and move at most "
+               f"{ctx.cfg.max_step_um:g} µm per cycle toward {toward}")
+        out.event("failsafe", t, {"status": "entered", "active": dict(s.active_ids), "error_um": error.as_dict(),
+                                  "reject_um": v.reject_um, "action": d.action, "message": msg}, f"{_t(t)}@entered")
+        out.log("error", msg)
+        return _set(st, failsafe=msg)
+    if s.failsafe and not bad and d.action != "switch" and error is not None:
+        return _leave_fail_safe(st, t, f"the active set is predicted {error.interval_um:.2f} µm off, within "
+                                f"reject_um = {v.reject_um:g} µm: applied again", out)
+    return st
+
+
+def _leave_fail_safe(st: State, t: float | None, why: str, out: _Out) -> State:
+    out.event("failsafe", t, {"status": "left", "message": why}, f"{_t(t) if t is not None else 'start'}@left")
+    out.log("warning", why)
+    return _set(st, failsafe="")
 
 
 def _flag(ctx: Context, st: State, t: float, drifted: bool, drift_K: float, sensor: str | None, out: _Out) -> State:
@@ -1168,6 +1214,8 @@ def _activate(ctx: Context, st: State, new: CDSet | None, reason: str, t: float 
     if (new.machine, new.pose_key) != (ctx.machine.name, ctx.pose_key):
         raise ValueError(f"CD set {ids} is for {new.machine} {new.pose_key}, not {ctx.machine.name} {ctx.pose_key}")
     out.command(Activate(ids, reason, t))
+    if st.saved.failsafe:
+        st = _leave_fail_safe(st, t, f"set {ids} activated ({reason}): the fail-safe ends", out)
     had_set = st.active is not None
     st = _set(st, active_ids=dict(ids), activated_s=t, blend_pending=had_set and ctx.cfg.blend_s > 0)
     return counted(replace(st, active=new, eval_failed_logged=False), switches=1)

@@ -67,6 +67,14 @@ def test_unknown_section_and_bad_values():
         cfg(regeneration={"job": "nojob"})
     with pytest.raises(ConfigError, match="sink.nodes.dq_um is not an offset"):
         cfg(sink={"kind": "opcua", "url": "opc.tcp://x", "nodes": {"dq_um": "ns=2;s=a"}})
+    # the fail-safe limit on a set's predicted error: a positive number, at least hard_um
+    assert cfg().validity.reject_um == 50.0 and cfg(validity={"reject_um": 3}).validity.reject_um == 3.0
+    with pytest.raises(ConfigError, match=r"m\.toml: \[validity\] reject_um must be at least hard_um \(3\), got 2"):
+        cfg(validity={"reject_um": 2})
+    with pytest.raises(ConfigError, match=r"^m\.toml: field 'validity\.reject_um' must not be negative, got -5"):
+        cfg(validity={"reject_um": -5})
+    with pytest.raises(ConfigError, match="field 'validity.reject_um' must be a number, got 'x'"):
+        cfg(validity={"reject_um": "x"})
     with pytest.raises(ConfigError, match="monitor.rom is missing"):
         parse_config({"monitor": {"machine": "vmc800", "database": "x"}, "source": {"path": "t"}, "sink": {"path": "o"}},
                      "m.toml")

@@ -292,7 +292,9 @@ def test_a_sensor_that_departs_from_the_model_is_rejected_named_and_flags_the_ob
 def test_offsets_are_clamped_and_rate_limited(machine, rom, rom_file, trace, tmp_path):
     path, s, T = trace
     db, _ = make_db(tmp_path / "cd.db", machine, T, gains=((1.0, 1.0, -400.0), (1.0, 1.0, -400.0)))
-    cfg = config(rom_file, path, tmp_path, compensation={"max_offset_um": 30.0, "max_step_um": 0.5})
+    # (a set this far off is applied only with the fail-safe's limit above its error: the clamp is what is tested)
+    cfg = config(rom_file, path, tmp_path, compensation={"max_offset_um": 30.0, "max_step_um": 0.5},
+                 validity={"reject_um": 1e6})
     _, sink, _ = run(cfg, machine, rom, db, ReplaySource(path, machine, speed=0))
     dz = np.array([r.dz_um for r in sink.rows])
     assert np.all(np.abs(dz) <= 30.0 + 1e-12)

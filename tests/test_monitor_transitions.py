@@ -302,3 +302,74 @@ def test_the_shell_writes_what_the_transitions_return(ctx, cfg, machine, small_r
     saved.pop("updated_unix")
     assert saved == json.loads(jsonio.dumps(last.saved.to_dict()))
 
+
+
+# --------------------------------------------------------------------------- fail safe on a known-wrong set
+@pytest.fixture(scope="module")
+def absurd(machine, day, tmp_path_factory):
+    """The only stored set, active: the drift plus 5,000 µm (inside the CDs' plausibility bound of 1e4 µm)."""
+    from hybridcomp.chardiag.cd import CDSet
+    from hybridcomp.chardiag.db import CDDatabase
+
+    _, T_degC, drift = day
+    db = CDDatabase(tmp_path_factory.mktemp("absurd") / "cd.db")
+    try:
+        ids = db.add_set(fit_set(machine, T_degC, drift + 5000.0, "absurd"), "absurd")
+        return CDSet({d: db.get(i) for d, i in ids.items()}, ids)
+    finally:
+        db.close()
+
+
+def _at(offsets, times, drift):
+    """The drift [µm] at the offsets' times (the day's drift is sampled with the readings)."""
+    idx = np.searchsorted(times, [o.time_s for o in offsets])
+    return drift[idx]
+
+
+def test_a_set_the_decision_calls_wrong_is_never_applied(ctx, day, absurd):
+    """The issue's attack: the only stored set is 5,000 µm off, regeneration is off. Every offset comes from the
+    corrected structure model (it never sits at the ±100 µm clamp), with one ``failsafe`` event at the first
+    decision, naming the error and the limit."""
+    readings, _, drift = day
+    steps = replay(ctx, T.with_active(ctx, T.initial(ctx), absurd), readings)
+    offsets = [o for s in steps for o in s.offsets]
+    events = [e for s in steps for e in s.events]
+    fs = [e for e in events if e.kind == "failsafe"]
+    first = next(e for e in events if e.kind == "decision")
+    assert first.payload["error_um"]["interval_um"] > 4000 and first.payload["action"] == "warn"
+    assert len(fs) == 1 and fs[0].payload["status"] == "entered" and fs[0].t == first.t
+    assert "beyond reject_um = 50 µm" in fs[0].payload["message"] and "not applied" in fs[0].payload["message"]
+    assert fs[0].payload["reject_um"] == ctx.cfg.validity.reject_um == 50.0
+    assert {o.by for o in offsets} == {"observer"} and not any(o.clamped for o in offsets)
+    got = np.array([[o.dx_um, o.dy_um, o.dz_um] for o in offsets])
+    times = np.array([r.time_s for r in readings])
+    assert np.max(np.abs(got)) <= np.max(np.abs(drift)) + 1.0  # never beyond the true drift (was: the 100 µm clamp)
+    assert np.max(np.abs(got - _at(offsets, times, drift))) < 1.0
+    assert steps[-1].state.saved.failsafe and steps[-1].state.saved.active_ids == absurd.ids
+
+
+def test_the_fail_safe_holds_the_offsets_and_ramps_to_the_observer(ctx, day, absurd):
+    """A run that applied the wrong set (a limit above its error: the offsets at the clamp) and then meets the
+    limit: from the decision on the offsets move at most ``max_step_um`` per cycle from where they were, toward the
+    corrected model's drift, and reach it."""
+    readings, _, drift = day
+    lax = dataclasses.replace(ctx, cfg=dataclasses.replace(
+        ctx.cfg, validity=dataclasses.replace(ctx.cfg.validity, reject_um=1e9)))
+    n = 200
+    before = replay(lax, T.with_active(ctx, T.initial(ctx), absurd), readings[:n])
+    written = [o for s in before for o in s.offsets]
+    assert all(o.clamped and o.by == "cd+model" for o in written[-10:])  # what happened without the fail-safe
+    assert not any(e.kind == "failsafe" for s in before for e in s.events)
+    after = replay(ctx, before[-1].state, readings[n:])
+    k = next(i for i, s in enumerate(after) if any(e.kind == "failsafe" for e in s.events))
+    # (the reading that closes the interval may have written its offsets before the decision)
+    offsets = [o for s in after[k + 1:] for o in s.offsets]
+    last = ([o for s in after[:k + 1] for o in s.offsets] or written)[-1]
+    prev = np.array([last.dx_um, last.dy_um, last.dz_um])
+    got = np.array([[o.dx_um, o.dy_um, o.dz_um] for o in offsets])
+    steps_um = np.abs(np.diff(np.vstack([prev, got]), axis=0))
+    assert np.max(steps_um) <= ctx.cfg.max_step_um + 1e-9  # held, then ramped at the rate limit
+    assert abs(got[0] - prev).max() <= ctx.cfg.max_step_um + 1e-9 and np.max(np.abs(prev)) >= 99.0
+    times = np.array([r.time_s for r in readings])
+    assert np.max(np.abs(got[-20:] - _at(offsets[-20:], times, drift))) < 1.0  # arrived at the drift
+    assert {o.by for o in offsets} == {"observer"}
