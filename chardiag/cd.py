@@ -95,13 +95,25 @@ class Term:
     values: np.ndarray
 
 
+#: positions in a pose key are rounded to this [mm] (a machine's position resolution, 1 µm): two spellings of one
+#: pose (``X = 1e-12`` and ``X = 0``) are one key, so one lease and one active set
+POSE_RESOLUTION_MM = 1e-3
+
+
 def pose_key(pose_mm: Mapping[str, float] | tuple) -> str:
-    """Canonical text key of a pose, e.g. ``"X=0,Y=-50,Z=0"`` (axes sorted, positions as shortest repr [mm])."""
+    """Canonical text key of a pose, e.g. ``"X=0,Y=-50,Z=0"``.
+
+    Axes sorted, positions rounded to :data:`POSE_RESOLUTION_MM` and written as their shortest repr [mm]
+    (``X = 1e-12`` and ``X = -0.0`` are ``X=0``).
+    """
     return ",".join(f"{k}={_num(v)}" for k, v in sorted(dict(pose_mm).items()))
 
 
 def _num(v: float) -> str:
     v = float(v)
+    if math.isfinite(v):
+        v = round(v / POSE_RESOLUTION_MM) * POSE_RESOLUTION_MM
+        v = float(f"{v:.6f}") + 0.0  # (no 0.30000000000000004, no -0)
     return str(int(v)) if v.is_integer() else repr(v)
 
 

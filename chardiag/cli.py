@@ -214,7 +214,7 @@ def _train_data(args) -> int:
 
 
 def _fit(args) -> int:
-    from hybridcomp.chardiag.cd import DIRECTIONS
+    from hybridcomp.chardiag.cd import DIRECTIONS, pose_key
     from hybridcomp.chardiag.fit import FitOptions, candidate_inputs, fit_cd
     from hybridcomp.chardiag.training import read_training_csv
     from hybridcomp.chardiag.xmlio import check_machine, write_cd
@@ -235,6 +235,8 @@ def _fit(args) -> int:
                          f"(sensors: {', '.join(sorted(sensors))})")
     outputs = [f"cd_{d}.xml" for d in DIRECTIONS] + ["fit.json"] + ([] if args.no_plot else ["fit.png"])
     check_output_dir(args.out, outputs, inputs=(args.data, machine.source, _db_file(args.db)), force=args.force)
+    if args.db and args.activate:  # a monitoring daemon holding the pose chooses its active set: refused before work
+        _refuse_held_pose(args.db, machine.name, pose_key(pose))
     cases = ",".join(data.cases)
     sig = data.signature()
     cds = {}
@@ -391,6 +393,17 @@ def _db_file(db: str | None) -> Path | None:
     return sqlite_file(db)
 
 
+def _refuse_held_pose(db_arg: str, machine: str, pose: str) -> None:
+    """Refuse (:class:`~hybridcomp.chardiag.db.CDDatabaseError`) when a monitoring daemon holds the pose."""
+    from hybridcomp.chardiag.db import CDDatabase
+
+    file = _db_file(db_arg)
+    if file is not None and not file.exists():
+        return  # a database yet to be made: no daemon holds anything in it
+    with CDDatabase(db_arg, readonly=True) as db:
+        db.check_pose_free(machine, pose)
+
+
 def _db(args) -> int:
     from hybridcomp.chardiag.db import CDDatabase
     from hybridcomp.chardiag.xmlio import read_cd, write_cd
@@ -427,7 +440,10 @@ def _db(args) -> int:
         elif c == "search":
             temps = parse_pairs(args.temperatures, "--temperatures")
             sig = np.array([float(v) for v in args.signature.split(",")]) if args.signature else None
-            found = db.search(args.machine_name, args.pose_key, sig, temps, args.threshold_K)
+            from hybridcomp.chardiag.cd import pose_key
+
+            pkey = pose_key(parse_pairs(args.pose_key, "--pose-key"))  # one key however it is spelled
+            found = db.search(args.machine_name, pkey, sig, temps, args.threshold_K)
             if not found:
                 print(f"no stored CD set within {args.threshold_K} K")
                 return 1

@@ -31,6 +31,7 @@ import json
 import logging
 import math
 import os
+import socket
 import time
 import zlib
 from collections.abc import Mapping, Sequence
@@ -64,6 +65,28 @@ def _sqlalchemy():
         raise CDDatabaseError("the CD database needs SQLAlchemy: pip install 'hybridcomp[db]' "
                               "(and 'hybridcomp[postgres]' for PostgreSQL)") from None
     return sqlalchemy
+
+
+def monitor_lease_key(machine: str, pose: str) -> str:
+    """The ``state`` row of the lease a monitoring daemon holds on a machine's pose (``monitor.store``)."""
+    return f"lease:monitor:{machine}:{pose}"
+
+
+def lease_free(cur: Mapping, now_unix: float) -> bool:
+    """Whether a lease record binds no one: it has expired, or its holder was a process on this host that is gone.
+
+    (A daemon killed with -9 leaves its lease behind; on its own host that is seen at once.)
+    """
+    if not float(cur.get("expires_unix", 0.0)) > now_unix:
+        return True
+    if cur.get("host") == socket.gethostname() and isinstance(cur.get("pid"), int):
+        try:
+            os.kill(cur["pid"], 0)
+        except ProcessLookupError:
+            return True  # its process is gone
+        except PermissionError:
+            return False  # it runs (as another user)
+    return False
 
 
 def utc_now() -> str:
@@ -544,11 +567,14 @@ class CDDatabase:
     # ------------------------------------------------------------------ activation
 
     def activate(self, machine: str, pose: str, ids: Mapping[str, int], reason: str = "",
-                 machine_time_s: float | None = None, event_key: str | None = None) -> int | None:
+                 machine_time_s: float | None = None, event_key: str | None = None,
+                 lease_owner: str | None = None) -> int | None:
         """Make three stored CDs (X, Y, Z) the active set of a pose, atomically.
 
         An ``activation`` event is logged in the same transaction. Returns the event id (None when ``event_key`` was
-        already logged: then nothing changes).
+        already logged: then nothing changes). While a monitoring daemon holds the pose's lease, only that daemon
+        (``lease_owner``: its owner token) may change the pose's active set: anyone else is refused
+        (:class:`CDDatabaseError` naming the daemon), in the same transaction as the check.
         """
         sa = self._sa
         cds, act, ev = self.t["cds"], self.t["active"], self.t["events"]
@@ -557,6 +583,7 @@ class CDDatabase:
 
         def run(conn):
             self.lock(conn, f"active {machine}\0{pose}")
+            self._refuse_held(conn, machine, pose, lease_owner)
             self.lock(conn, EVENTS_LOCK)
             if event_key is not None and conn.execute(sa.select(ev.c.id).where(ev.c.key == event_key)).first():
                 return None
@@ -580,6 +607,35 @@ class CDDatabase:
                                                    payload=jsonio.dumps(payload), key=event_key)).inserted_primary_key[0]
 
         return self.write(run, "activating a CD set")
+
+    def pose_holder(self, machine: str, pose: str, now_unix: float | None = None) -> dict | None:
+        """The lease record of the monitoring daemon that holds the pose now, or None."""
+        with self.engine.connect() as conn:
+            return self._holder(conn, machine, pose, None, time.time() if now_unix is None else now_unix)
+
+    def check_pose_free(self, machine: str, pose: str, lease_owner: str | None = None) -> None:
+        """Raise :class:`CDDatabaseError` when a monitoring daemon other than ``lease_owner`` holds the pose."""
+        with self.engine.connect() as conn:
+            self._refuse_held(conn, machine, pose, lease_owner, lock=False)
+
+    def _holder(self, conn, machine: str, pose: str, owner: str | None, now_unix: float) -> dict | None:
+        sa = self._sa
+        st = self.t["state"]
+        text = conn.execute(sa.select(st.c.value).where(st.c.key == monitor_lease_key(machine, pose))).scalar()
+        if not text:
+            return None
+        cur = json.loads(text)
+        return None if cur.get("owner") == owner or lease_free(cur, now_unix) else cur
+
+    def _refuse_held(self, conn, machine: str, pose: str, owner: str | None, lock: bool = True) -> None:
+        if lock:  # (in a write transaction: serialised with the daemon's lease)
+            self.lock(conn, monitor_lease_key(machine, pose))
+        cur = self._holder(conn, machine, pose, owner, time.time())
+        if cur is not None:
+            raise CDDatabaseError(
+                f"{_redact(self.url)}: {machine} {pose} is held by a monitoring daemon (pid {cur.get('pid')} on "
+                f"{cur.get('host')}, lease until {datetime.fromtimestamp(float(cur['expires_unix']), UTC):%H:%M:%S} "
+                "UTC): it chooses the pose's active set; stop it first ('hybridcomp monitor status' shows it)")
 
     def active_ids(self, machine: str, pose: str) -> dict[str, int]:
         sa = self._sa

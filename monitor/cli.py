@@ -11,6 +11,7 @@ import asyncio
 import json
 import logging
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -205,13 +206,17 @@ def _run(args) -> int:
 
 def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dict:
     """What ``monitor status`` shows, as a dict."""
-    from hybridcomp.monitor.daemon import state_key
+    from hybridcomp.monitor.daemon import read_heartbeat_file, state_key
     from hybridcomp.monitor.store import MonitorStore
 
     store = MonitorStore(db)
     key = state_key(machine_name, pkey)
     state = json.loads(store.get_state(key) or "null")
     beat = json.loads(store.get_state(key + ":heartbeat") or "null")
+    # this host's copy is newer while the database holds the daemon's writes back (a lock): take the newer
+    local = read_heartbeat_file(getattr(db, "url", ""), key) if getattr(db, "url", None) else None
+    if local is not None and (beat is None or float(local.get("unix", 0.0)) > float(beat.get("unix", 0.0))):
+        beat = local
     active = db.active_set(machine_name, pkey)
     now = time.time()
     ev = [e for e in store.events() if e.kind in ("decision", "activation", "generation", "warning", "model_drift", "sensor",
@@ -227,6 +232,8 @@ def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dic
         "seconds_since_data": None if beat is None else now - beat["unix"],
         "seconds_since_offset": None if beat is None or beat.get("applied_unix") is None else now - beat["applied_unix"],
         "running": None if beat is None else beat.get("running", True),
+        "daemon_alive": None if beat is None else _alive(beat),
+        "daemon_pid": None if beat is None else beat.get("pid"),
         "store_backlog": None if beat is None else beat.get("store_backlog"),
         "seconds_since_boundary": None if state is None else now - state["updated_unix"],
         "degraded_sensors": None if beat is None else beat.get("degraded"),
@@ -239,20 +246,45 @@ def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dic
     return out
 
 
+def _alive(beat: dict) -> bool | None:
+    """Whether the daemon of a heartbeat runs: asked of the process on this host, None for another host."""
+    import socket
+
+    pid = beat.get("pid")
+    if beat.get("host") != socket.gethostname() or not isinstance(pid, int):
+        return None
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def health(st: dict, stale_after_s: float) -> tuple[str, str]:
-    """Whether an offset is being applied now: ``("healthy" | "unhealthy", why)`` from a status dict."""
+    """Whether an offset is being applied now: ``("healthy" | "unhealthy", why)`` from a status dict.
+
+    A daemon on this host that no longer runs (killed with -9: its last heartbeat says running) is unhealthy at
+    once; on another host, once no offset was applied for ``stale_after_s``. The freshness of the offsets comes from
+    the newer of the database's heartbeat and this host's copy (a locked database delays the one, not the other).
+    """
     if st["running"] is None:
         return "unhealthy", "no daemon has run on this machine and pose"
     if not st["running"]:
         return "unhealthy", "the daemon stopped: no offsets are applied"
+    if st.get("daemon_alive") is False:
+        return "unhealthy", f"the daemon (pid {st.get('daemon_pid')}) is not running: killed or crashed, no offsets " \
+                            "are applied"
     age = st["seconds_since_offset"]
     if age is None:
         return "unhealthy", "no offset applied yet"
     if age > stale_after_s:
         return "unhealthy", f"no offset applied for {age:.0f} s (limit {stale_after_s:g} s)"
-    if (st["store_backlog"] or 0) > 1000:
-        return "unhealthy", f"{st['store_backlog']} database writes queued: the database does not take writes"
-    return "healthy", f"last offset applied {age:.1f} s ago"
+    said = f"last offset applied {age:.1f} s ago"
+    if (st["store_backlog"] or 0) > 1000:  # the offsets do not wait for the database: healthy, and said
+        return "healthy", f"{said}; {st['store_backlog']} database writes queued (the database does not take writes)"
+    return "healthy", said
 
 
 def _summary(e) -> str:

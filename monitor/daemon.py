@@ -35,11 +35,15 @@ import json
 import logging
 import math
 import multiprocessing
+import os
 import random
 import signal
+import socket
+import tempfile
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 from hybridcomp.chardiag.cd import CDSet
 from hybridcomp.models import jsonio
@@ -59,6 +63,42 @@ log = logging.getLogger(__name__)
 def state_key(machine: str, pose_key: str) -> str:
     """Key of the monitor's state in the database."""
     return f"monitor:{machine}:{pose_key}"
+
+
+def heartbeat_file(db_url: str, key: str) -> Path:
+    """The file holding this host's copy of a daemon's heartbeat: ``monitor status`` here reads it when the database lags.
+
+    The daemon writes its heartbeat to the database and to this file (beside an SQLite database, as its journal is;
+    for a database server in the system's temporary folder; named by a digest of the key); a locked database delays
+    the one, not the other.
+    """
+    from hybridcomp.chardiag.db import sqlite_file
+
+    file = sqlite_file(db_url)
+    name = f"{T.digest(key)}.heartbeat.json"
+    if file is not None:
+        return file.with_name(f"{file.name}.{name}")
+    return Path(tempfile.gettempdir()) / f"hybridcomp-monitor-{T.digest(str(db_url))}.{name}"
+
+
+def read_heartbeat_file(db_url: str, key: str) -> dict | None:
+    """The heartbeat this host's copy holds for ``key``, or None."""
+    try:
+        d = json.loads(heartbeat_file(db_url, key).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) and d.get("key") == key else None
+
+
+def _write_heartbeat_file(db_url: str, key: str, record: dict) -> None:
+    path = heartbeat_file(db_url, key)
+    try:
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=path.name, suffix=".tmp", delete=False,
+                                         encoding="utf-8") as fh:
+            fh.write(jsonio.dumps({**record, "key": key}))
+        os.replace(fh.name, path)
+    except OSError as exc:  # (the database's copy is the record; this one only bridges a lock)
+        log.debug("heartbeat file %s: %s", path, exc)
 
 
 def _t(x: float) -> str:
@@ -92,6 +132,7 @@ class Monitor:
         self.ctx = T.context(cfg, machine, rom, pose_key)
         self.state = T.initial(self.ctx)
         self.regeneration_running = False
+        self.lease_owner: str | None = None  # the owner token of the pose's lease while run_monitor holds it
         # machine seconds per wall second of the source: None (no clock to ask, a replay), a number, or "observed"
         # (a live control: its stamps against the wall clock over the last samples)
         self.time_scale: float | str | None = None
@@ -218,9 +259,9 @@ class Monitor:
         ids = {k: int(v) for k, v in a.ids.items()}
         t = a.t
         key = f"activation@{self.pose_key}@{_t(t)}@{ids['X']},{ids['Y']},{ids['Z']}"
-        name, pose, reason = self.machine.name, self.pose_key, a.reason
-        self.store.call(lambda: self.db.activate(name, pose, ids, reason=reason, machine_time_s=t, event_key=key),
-                        f"activating {ids}")
+        name, pose, reason, owner = self.machine.name, self.pose_key, a.reason, self.lease_owner
+        self.store.call(lambda: self.db.activate(name, pose, ids, reason=reason, machine_time_s=t, event_key=key,
+                                                 lease_owner=owner), f"activating {ids}")
 
     def _stored_sets(self, q: T.SetQuery):
         """The stored sets of a monitoring decision's query, read from the database as the decision asks for them."""
@@ -403,6 +444,7 @@ async def run_monitor(
     await _take_lease(monitor, lease, owner, cfg.lease_s, clock, stop, standby)
     if stop.is_set():
         return RunResult(monitor.status(), "signal")
+    monitor.lease_owner = owner["owner"]  # its own activations pass the lease (no other writer's do)
     sync_store = monitor.store
     monitor.store = QueuedStore(sync_store)
     monitor.time_scale = getattr(source, "time_scale", None)
@@ -413,6 +455,7 @@ async def run_monitor(
     last_beat = -math.inf
     applied_unix: float | None = None
     reported: set[str] = set()  # source nodes whose non-numeric values have an event
+    db_url = getattr(monitor.db, "url", None)
     lost: list[str] = []
 
     def renew() -> None:
@@ -443,12 +486,15 @@ async def run_monitor(
         now = clock.monotonic()
         if force or now - last_beat >= heartbeat_s:
             last_beat = now
-            monitor.store.put_state(monitor.key + ":heartbeat", jsonio.dumps(
-                {"unix": clock.unix(), "applied_unix": applied_unix, "running": running,
-                 "last_time_s": monitor.s.last_time_s, "offsets_um": monitor.s.offsets_um,
-                 "active": monitor.s.active_ids, "degraded": monitor.status()["degraded"],
-                 "regeneration_running": monitor.regeneration_running, "store_backlog": monitor.store.backlog(),
-                 "stale_after_s": cfg.stale_after_s}))
+            record = {"unix": clock.unix(), "applied_unix": applied_unix, "running": running,
+                      "last_time_s": monitor.s.last_time_s, "offsets_um": monitor.s.offsets_um,
+                      "active": monitor.s.active_ids, "degraded": monitor.status()["degraded"],
+                      "regeneration_running": monitor.regeneration_running, "store_backlog": monitor.store.backlog(),
+                      "stale_after_s": cfg.stale_after_s, "heartbeat_s": heartbeat_s, "pid": os.getpid(),
+                      "host": socket.gethostname()}
+            monitor.store.put_state(monitor.key + ":heartbeat", jsonio.dumps(record))
+            if db_url is not None:
+                _write_heartbeat_file(db_url, monitor.key, record)
 
     def source_faults(r: Reading) -> None:
         """Values the source could not read as numbers (a String node where a number belongs): an event per node."""

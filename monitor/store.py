@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from hybridcomp.chardiag.db import EVENTS_LOCK, CDDatabase, utc_now
+from hybridcomp.chardiag.db import EVENTS_LOCK, CDDatabase, lease_free, utc_now
 from hybridcomp.errors import HybridcompError
 from hybridcomp.models import jsonio
 
@@ -133,7 +133,7 @@ class MonitorStore:
             text = conn.execute(sa.select(st.c.value).where(st.c.key == key)).scalar()
             if text:
                 cur = json.loads(text)
-                if cur.get("owner") != owner["owner"] and not _lease_free(cur, now_unix):
+                if cur.get("owner") != owner["owner"] and not lease_free(cur, now_unix):
                     return cur
                 conn.execute(st.update().where(st.c.key == key).values(value=jsonio.dumps(mine), updated=utc_now()))
             else:
@@ -166,17 +166,7 @@ def lease_owner() -> dict:
             "pid": os.getpid()}
 
 
-def _lease_free(cur: Mapping, now_unix: float) -> bool:
-    if not float(cur.get("expires_unix", 0.0)) > now_unix:
-        return True
-    if cur.get("host") == socket.gethostname() and isinstance(cur.get("pid"), int):
-        try:
-            os.kill(cur["pid"], 0)
-        except ProcessLookupError:
-            return True  # its process is gone
-        except PermissionError:
-            return False  # it runs (as another user)
-    return False
+_lease_free = lease_free  # (the database's rule: its writers check the lease too)
 
 
 class QueuedStore:
