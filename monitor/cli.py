@@ -134,13 +134,17 @@ def open_everything(cfg):
     the configuration, the replay trace, the structure model, the machine file or the database.
     """
     from hybridcomp.chardiag.cd import pose_key
-    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.chardiag.db import CDDatabase, sqlite_file
     from hybridcomp.models import load_machine
     from hybridcomp.monitor.config import ConfigError
     from hybridcomp.monitor.sinks import check_sink_paths
     from hybridcomp.rom import load_rom
 
     check_sink_paths(cfg)
+    db_file = sqlite_file(cfg.database)
+    if db_file is not None and not db_file.parent.is_dir():  # a mistyped folder would run a day without any CD
+        raise ConfigError(f"{cfg.source_file}: monitor.database {db_file}: the folder {db_file.parent} does not exist "
+                          "(the monitor creates no folders)")
     machine = load_machine(cfg.machine)
     rom = load_rom(cfg.rom, machine)  # a pose-aware one: the daemon compensates where the tool is
     if cfg.sink.table_path is not None and not rom.meta.get("poses"):

@@ -454,7 +454,7 @@ async def run_monitor(
     attempt = 0
     last_beat = -math.inf
     applied_unix: float | None = None
-    reported: set[str] = set()  # source nodes whose non-numeric values have an event
+    reported: set = set()  # source nodes whose non-numeric values (or absence) have an event
     db_url = getattr(monitor.db, "url", None)
     lost: list[str] = []
 
@@ -497,7 +497,18 @@ async def run_monitor(
                 _write_heartbeat_file(db_url, monitor.key, record)
 
     def source_faults(r: Reading) -> None:
-        """Values the source could not read as numbers (a String node where a number belongs): an event per node."""
+        """Values the source could not read as numbers, and nodes the server does not have: an event per node.
+
+        (A String node where a number belongs; a well-formed id of a node that does not exist.)
+        """
+        for col, (node, why) in (getattr(source, "missing_nodes", None) or {}).items():
+            if ("missing", col) not in reported:
+                reported.add(("missing", col))
+                monitor.event("source", r.time_s, {
+                    "status": "node not found", "node": node, "column": col, "error": why,
+                    "message": f"source.nodes.{col} = {node!r}: the server has no such node ({why}); {col} is read "
+                               "as missing (a sensor: held, then degraded)"}, f"missing@{col}")
+                log.error("source node %s (%s) does not exist on the server: %s", node, col, why)
         for node, n in (getattr(source, "bad_values", None) or {}).items():
             if node not in reported:
                 reported.add(node)

@@ -126,6 +126,23 @@ def _float(text: str) -> float:
     return float(text) if text.strip() else math.nan
 
 
+def check_replay(path: str | Path, machine: Machine) -> TraceColumns:
+    """The columns of a trace the monitor is to replay.
+
+    Refused (:class:`SourceFileError`) when it has no column of the machine's sensors: a day of nothing (every sensor
+    degraded, no CD to evaluate, no set to generate) with exit 0.
+    """
+    path = Path(path)
+    with open_regular_file(path, SourceFileError, "replay trace") as fh:
+        header = _decode(fh.readline(), path, 1, "utf-8-sig").strip().split(",")
+    cols = trace_columns(header, machine, str(path))
+    if not cols.sensors:
+        raise SourceFileError(f"{path}: line 1: no sensor column: the monitor reads the temperatures of machine "
+                              f"{machine.name}'s sensors ({', '.join(temperature_column(s.name) for s in machine.sensors)}"
+                              f"), the trace has {', '.join(header)}")
+    return cols
+
+
 def read_replay(path: str | Path, machine: Machine) -> Iterable[Reading]:
     """Stream the readings of a trace CSV (line by line; memory does not grow with the file).
 
@@ -222,6 +239,7 @@ class ReplaySource:
     def __init__(self, path: str | Path, machine: Machine, speed: float = 1.0, clock=None, start_s: float = -math.inf):
         if not speed >= 0:
             raise ValueError(f"replay speed must not be negative, got {speed}")
+        check_replay(path, machine)
         self.path = Path(path)
         self.machine = machine
         self.speed = float(speed)
@@ -318,6 +336,8 @@ class OpcUaSource:
         self.finished = False
         self.time_scale = "observed"  # the daemon compares the stamps with the wall clock (1 for a live machine)
         self.bad_values: dict[str, int] = {}  # node → values that were not numbers (read as NaN: a sensor fault)
+        # column → (node id, the server's status) of a well-formed node id the server does not have (read as NaN)
+        self.missing_nodes: dict[str, tuple[str, str]] = {}
         self._check_node_ids()
         self._axes = [position_column(a.name) for a in machine.axes]
         self._sensors = [s.name for s in machine.sensors if temperature_column(s.name) in nodes]
@@ -342,6 +362,21 @@ class OpcUaSource:
                 raise SourceFileError(f"{self.url} nodes: source.nodes.{col} = {nid!r} is not an OPC UA node id "
                                       f"(e.g. 'ns=2;s=time_s'): {exc}") from None
 
+    def _check_subscribed(self, handles, ua) -> None:
+        """Nodes the server refused to subscribe (a well-formed id it does not have).
+
+        The time and the axes are a configuration error (no reading can be made); a sensor, the spindle or the air is
+        read as missing and named (``missing_nodes``: the daemon writes a ``source`` event per node).
+        """
+        for (col, nid), h in zip(self.nodes.items(), handles if isinstance(handles, list) else [handles]):
+            if not isinstance(h, ua.ua.StatusCode):
+                continue
+            why = getattr(h, "name", None) or str(h)
+            if col == TIME or col in self._axes:
+                raise SourceFileError(f"{self.url}: source.nodes.{col} = {nid!r}: the server has no such node ({why}); "
+                                      "without it the monitor reads nothing")
+            self.missing_nodes[col] = (str(nid), why)
+
     async def readings(self, start_after_s: float | None = None) -> AsyncIterator[Reading]:
         ua = _asyncua()
         client = ua.Client(self.url, timeout=self.timeout_s)
@@ -357,7 +392,8 @@ class OpcUaSource:
                 nodes.append(node)
                 by_id[node.nodeid] = col
             sub = await client.create_subscription(self.publishing_interval_ms, None, queue_maxsize=100_000)
-            await sub.subscribe_data_change(nodes)
+            handles = await sub.subscribe_data_change(nodes)
+            self._check_subscribed(handles, ua)
             values: dict[str, float] = {}
             last_time = None
             while True:

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import warnings
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
@@ -398,6 +399,7 @@ def on_reading(ctx: Context, st: State, r: Reading, stored_sets: StoredSets = no
         (from the recent samples' stamps and wall times)
     """
     out = _Out()
+    prev = st.saved
     st, r = _check_time(ctx, st, r, now_unix, time_scale, out)
     if r is None:
         return out.step(st)
@@ -407,9 +409,13 @@ def on_reading(ctx: Context, st: State, r: Reading, stored_sets: StoredSets = no
     if first:
         st = _start(ctx, st, r)
     else:
+        # model steps ending before this sample close first (samples up to a boundary belong to its step); a boundary
+        # among them is persisted as of the sample before this one, which is not in it: a restart resumes with this
+        # sample (not after it: that lost it, and its step's histogram differed from the uninterrupted run's)
+        mine = {"last_source_time_s": st.saved.last_source_time_s, "last_wall_unix": st.saved.last_wall_unix}
+        st = _set(st, last_source_time_s=prev.last_source_time_s, last_wall_unix=prev.last_wall_unix)
         s = st.saved
         inc = ctx.cfg.increment_s
-        # model steps ending before this sample close first (samples up to a boundary belong to its step)
         gap_end = s.origin_s + (math.ceil((r.time_s - s.origin_s) / inc) - 1) * inc
         if gap_end - s.next_step_s > ctx.cfg.monitoring_interval_s:
             # a long gap in the data: the step of the samples before it, then one standstill step across it
@@ -418,7 +424,7 @@ def on_reading(ctx: Context, st: State, r: Reading, stored_sets: StoredSets = no
             st = _close_step(ctx, st, gap_end, stored_sets, out, standstill=True)
         while r.time_s > st.saved.next_step_s:
             st = _close_step(ctx, st, st.saved.next_step_s, stored_sets, out)
-        st = replace(st, buffer=(*st.buffer, r))
+        st = replace(_set(st, **mine), buffer=(*st.buffer, r))
     st = _set(st, last_time_s=r.time_s)
     st = _check_sensors(ctx, st, r, out)
     st = _filter(ctx, st, r.time_s)
@@ -662,8 +668,7 @@ def _step_inputs(ctx: Context, st: State, end_s: float, out: _Out) -> tuple[np.n
                           f"histogram-error@{_t(end_s)}")
             finally:
                 for wn in caught:
-                    out.event("warning", end_s, {"message": str(wn.message)},
-                              f"histogram@{_t(end_s)}@{digest(str(wn.message))}")
+                    out.event("warning", end_s, {"message": str(wn.message)}, histogram_warning_key(end_s, str(wn.message)))
     if s.step_inputs is None:
         return _standstill_inputs(ctx, b[-1] if b else s.carry), None
     return np.asarray(s.step_inputs, float), None  # no samples, or an implausible histogram: hold the loads
@@ -1261,6 +1266,18 @@ def on_regeneration_finished(ctx: Context, st: State, request: Mapping, result: 
 
 
 # ============================================================================================ small helpers
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def histogram_warning_key(end_s: float, message: str) -> str:
+    """The event key of a histogram warning of the model step ending at ``end_s``: one per step and kind of warning.
+
+    The kind is the message with its numbers taken out: the step's samples after a restart (a live source does not
+    send the ones before it again) may give the same warning with other counts and lines, and it is one warning.
+    """
+    return f"histogram@{_t(end_s)}@{digest(_NUMBER.sub('#', message))}"
+
+
 def digest(text: str) -> str:
     """A short stable digest (the same in every process, unlike ``hash()``)."""
     import hashlib

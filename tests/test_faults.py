@@ -227,6 +227,58 @@ def test_malformed_node_ids_are_a_configuration_error_not_a_retry_loop(machine):
                                                   "z_mm": "ns=2;s=z"}, machine)
 
 
+@pytest.mark.slow
+def test_a_well_formed_node_id_that_does_not_exist_is_an_event_naming_the_node(machine, rom, rom_file, trace,
+                                                                                tmp_path):
+    """The OPC UA server (the simulator playing the trace) has no node ``ns=2;s=T1_nowhere``: a ``source`` event names
+    the node and its column, T1 degrades, compensation goes on; a missing time node is one configuration error."""
+    pytest.importorskip("asyncua")
+    from test_monitor_daemon import free_port, start_server, stop_server
+
+    from hybridcomp.monitor.simulator import node_ids
+    from hybridcomp.monitor.sources import OpcUaSource, SourceFileError
+
+    path, s, T = trace
+    db, _ = make_db(tmp_path / "cd.db", machine, T)
+    cfg = config(rom_file, path, tmp_path, monitor={"max_gap_s": 500.0, "increment_s": 300.0})
+    port = free_port()
+    url = f"opc.tcp://127.0.0.1:{port}/"
+    header = path.read_text().split("\n", 1)[0].split(",")
+    nodes = node_ids(header) | {"T1_degC": "ns=2;s=T1_nowhere"}
+    server = start_server(path, port, float(s.time_s[-1]) / 6.0)
+    mon = Monitor(cfg, machine, rom, db, PKEY)
+    sink = MemorySink()
+
+    async def main():
+        stop = asyncio.Event()
+        src = OpcUaSource(url, nodes, machine, publishing_interval_ms=50, stale_s=0.5, timeout_s=1.0)
+        task = asyncio.create_task(run_monitor(cfg, mon, src, sink, stop=stop, seed=1))
+        t0 = time.monotonic()
+        while (mon.s.last_time_s or 0.0) < 3600.0:
+            assert time.monotonic() - t0 < 20 and not task.done(), "no data from the OPC UA server"
+            await asyncio.sleep(0.05)
+        stop.set()
+        await task
+        async def read_all(src):
+            async for _ in src.readings():
+                pass
+
+        with pytest.raises(SourceFileError, match=r"source.nodes.time_s = 'ns=2;s=clock': the server has no such "
+                                                  r"node \(BadNodeIdUnknown\)"):  # (it waited for ever)
+            await asyncio.wait_for(read_all(OpcUaSource(url, node_ids(header) | {"time_s": "ns=2;s=clock"}, machine,
+                                                        publishing_interval_ms=50, stale_s=0.5, timeout_s=1.0)), 10.0)
+
+    try:
+        asyncio.run(main())
+    finally:
+        stop_server(server)
+    missing = [e[2] for e in events(db, "source") if e[2]["status"] == "node not found"]
+    assert len(missing) == 1 and missing[0]["node"] == "ns=2;s=T1_nowhere" and missing[0]["column"] == "T1_degC"
+    assert "BadNodeIdUnknown" in missing[0]["message"] and "ns=2;s=T1_nowhere" in missing[0]["message"]
+    assert ("T1", "degraded") in [(e[2]["sensor"], e[2]["status"]) for e in events(db, "sensor")]
+    assert sink.rows and all(math.isfinite(o.dx_um) for o in sink.rows)
+
+
 # --------------------------------------------------------------------------- the database may stall, offsets may not
 
 

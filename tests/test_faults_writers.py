@@ -17,6 +17,7 @@ from types import SimpleNamespace
 
 import pytest
 from test_faults_files import cd_set, ok, refused
+from test_monitor_daemon import rom, rom_file  # noqa: F401 - fixtures (the shared small model, saved)
 
 from hybridcomp.chardiag.cd import pose_key
 from hybridcomp.models import jsonio
@@ -177,3 +178,57 @@ def test_status_tells_a_killed_daemon_within_one_heartbeat(tmp_path, db_two_sets
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+# --------------------------------------------------------------------------- the monitor refuses a day of nothing
+@pytest.fixture()
+def monitor_toml(tmp_path, request):
+    """A monitor configuration file on the shared small model; ``database`` and ``path`` of the trace by argument."""
+    rom_path = request.getfixturevalue("rom_file")
+
+    def write(trace, database):
+        p = tmp_path / "monitor.toml"
+        p.write_text(f"""[monitor]
+machine = "vmc800"
+database = "{database}"
+rom = "{rom_path}"
+pose_mm = {{ X = 0, Y = 0, Z = 0 }}
+increment_s = 60
+[source]
+kind = "replay"
+path = "{trace}"
+speed = 0
+[sink]
+kind = "none"
+[regeneration]
+enabled = false
+""")
+        return p
+    return write
+
+
+def _trace(path, sensors: bool):
+    head = "time_s,x_mm,y_mm,z_mm,spindle_rpm," + ("T1_degC," if sensors else "") + "Tamb_degC"
+    rows = [f"{10 * i},0,0,0,6000," + ("22.0," if sensors else "") + "21.0" for i in range(30)]
+    path.write_text("\n".join([head, *rows]) + "\n")
+    return path
+
+
+def test_a_replay_with_no_sensor_column_is_refused_at_start(tmp_path, capsys, monitor_toml):
+    trace = _trace(tmp_path / "nosensors.csv", sensors=False)
+    cfg = monitor_toml(trace, tmp_path / "cd.db")
+    err = refused(capsys, ["monitor", "run", "--config", cfg], str(trace), "no sensor column", "T1_degC")
+    assert "the trace has time_s, x_mm" in err
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.store import MonitorStore
+
+    with CDDatabase(tmp_path / "cd.db", readonly=True) as db:  # (the database was opened, nothing ran)
+        assert not [e for e in MonitorStore(db).events() if e.kind == "decision"]
+
+
+def test_a_database_in_a_folder_that_does_not_exist_is_refused_not_created(tmp_path, capsys, monitor_toml):
+    trace = _trace(tmp_path / "t.csv", sensors=True)
+    missing = tmp_path / "no" / "such" / "folder"
+    cfg = monitor_toml(trace, missing / "cd.db")
+    refused(capsys, ["monitor", "run", "--config", cfg], "monitor.database", str(missing), "does not exist")
+    assert not (tmp_path / "no").exists()

@@ -373,3 +373,66 @@ def test_the_fail_safe_holds_the_offsets_and_ramps_to_the_observer(ctx, day, abs
     times = np.array([r.time_s for r in readings])
     assert np.max(np.abs(got[-20:] - _at(offsets[-20:], times, drift))) < 1.0  # arrived at the drift
     assert {o.by for o in offsets} == {"observer"}
+
+
+# --------------------------------------------------------------------------- a restart continues, nothing twice
+def test_a_restart_resumes_with_the_sample_that_closed_the_boundary(ctx, cfg, machine, small_rom, day, sets, tmp_path):
+    """Samples that never fall on a step's end (each 3 s after it) and a 70 s gap in the step after a monitoring
+    boundary (a histogram warning): a daemon stopped after that step and restarted from the boundary's state writes
+    the warning once, under one key, and the offsets of an uninterrupted run (the sample that closed the boundary's
+    step is not skipped)."""
+    import shutil
+
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.daemon import Monitor
+    from hybridcomp.monitor.store import MonitorStore
+
+    readings, T_degC, _ = day
+    t0 = readings[0].time_s
+    # (T2 read throughout: a sensor degraded across a restart is rewound from another point, the log not persisted)
+    whole = [dataclasses.replace(r, sensors_degC={**r.sensors_degC, "T2": float(T_degC[i, 1])})
+             for i, r in enumerate(readings)]
+    shifted = [whole[0]] + [dataclasses.replace(r, time_s=r.time_s + 3.0) for r in whole[1:]]
+    boundary = t0 + ctx.cfg.monitoring_interval_s
+    k0 = next(i for i, r in enumerate(shifted) if r.time_s > boundary + 60.0)
+    trace = shifted[:k0] + shifted[k0 + 7:]  # a 80 s gap in the second step after the boundary
+    stop_at = boundary + 400.0
+    path, _, _ = sets
+
+    def events_of(db):
+        return [(e.kind, e.machine_time_s, e.key, e.payload) for e in MonitorStore(db).events() if e.kind != "activation"]
+
+    runs = {}
+    for name in ("straight", "restarted"):
+        shutil.copy(path, tmp_path / f"{name}.db")
+        db = CDDatabase(tmp_path / f"{name}.db")
+        try:
+            mon = Monitor(cfg, machine, small_rom, db, PKEY, FixedClock())
+            if name == "straight":
+                offsets = [o for r in trace for o in mon.process(r)]
+            else:
+                offsets = [o for r in trace if r.time_s <= stop_at for o in mon.process(r)]
+                mon = Monitor(cfg, machine, small_rom, db, PKEY, FixedClock())  # the daemon restarted
+                after = mon.resume_after_s()
+                assert after is not None and after < stop_at
+                again = [o for r in trace if r.time_s > after for o in mon.process(r)]
+                offsets = [o for o in offsets if o.time_s <= after] + again
+            runs[name] = (offsets, events_of(db))
+        finally:
+            db.close()
+    (a, ev_a), (b, ev_b) = runs["straight"], runs["restarted"]
+    hist = [e for e in ev_b if e[0] == "warning" and "@histogram@" in e[2]]
+    assert hist and len({e[1] for e in hist}) == len(hist), hist  # one histogram warning per step
+    assert [e[:3] for e in ev_a] == [e[:3] for e in ev_b]
+    assert len(a) == len(b) and all(x == y for x, y in zip(a, b))
+
+
+def test_a_histogram_warning_of_a_step_has_one_key_whatever_its_counts():
+    """After a restart on a live source the step's samples differ: the same warning with other counts and lines is
+    the same event (it was a second one under a second key)."""
+    a = "model step ending 960 s: 1 gap(s) longer than 10 s (total 20 s, first ending at line 3) counted as standstill"
+    b = "model step ending 960 s: 2 gap(s) longer than 10 s (total 33.5 s, first ending at line 4) counted as standstill"
+    other = "model step ending 960 s: dropped 3 of 9 rows with NaN or empty fields (first at line 2)"
+    assert T.histogram_warning_key(960.0, a) == T.histogram_warning_key(960.0, b)
+    assert T.histogram_warning_key(960.0, a) != T.histogram_warning_key(960.0, other)
+    assert T.histogram_warning_key(960.0, a) != T.histogram_warning_key(980.0, a)
