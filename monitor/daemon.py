@@ -335,9 +335,64 @@ def resolve_job(spec: str) -> Callable:
     return getattr(importlib.import_module(mod), fn)
 
 
+def generation_key(request: Mapping) -> str:
+    """The database key of a generation request's result: its machine, pose and machine time."""
+    return f"generation@{request.get('machine')}@{request.get('pose_key')}@{_t(float(request['machine_time_s']))}"
+
+
+def _job_store(request: Mapping):
+    """The request's database (a :class:`MonitorStore`), or None when the request names none."""
+    if not request.get("database"):
+        return None
+    from hybridcomp.chardiag.db import CDDatabase
+
+    return MonitorStore(CDDatabase(request["database"]))
+
+
 def _call_job(spec: str, request: dict) -> dict:
-    """Worker-process entry: resolve the job and run it."""
-    return resolve_job(spec)(request)
+    """Worker-process entry: the stored result of the same request, else resolve the job, run it, store its result.
+
+    A request is pending in the daemon's persisted state from the decision that made it; a daemon restarted before
+    it heard the result submits it again. The result is stored under the request's key (:func:`generation_key`)
+    the moment the job returns, so the second submission adopts it (``notes.adopted``) instead of generating a
+    second set for one request.
+    """
+    store = _job_store(request)
+    key = generation_key(request)
+    try:
+        if store is not None:
+            text = store.get_state(key)
+            if text:
+                done = json.loads(text)
+                return {**done, "notes": {**(done.get("notes") or {}),
+                                          "adopted": f"the stored result of request {key} (a restart)"}}
+        result = dict(resolve_job(spec)(request))
+        if store is not None:
+            store.put_state(key, jsonio.dumps(result))
+        return result
+    finally:
+        if store is not None:
+            store.db.close()
+
+
+def _worker_init(parent_pid: int) -> None:
+    """In a generation worker: end it when the daemon that started it is gone (killed with -9, crashed).
+
+    A watch thread compares the worker's parent with the daemon's pid once a second; when the worker has been
+    handed to another parent (the daemon died), it exits at once, its job with it.
+    """
+    import threading
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(70)
+            time.sleep(PARENT_CHECK_S)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+PARENT_CHECK_S = 0.5  # how often a generation worker checks that its daemon still runs [s]
 
 
 class Regenerator:
@@ -353,7 +408,9 @@ class Regenerator:
 
     def _executor(self) -> cf.ProcessPoolExecutor:
         if self._pool is None:
-            self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+            # (a worker ends with the daemon: _worker_init watches its parent)
+            self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                                initializer=_worker_init, initargs=(os.getpid(),))
         return self._pool
 
     async def run(self, request: dict) -> tuple[dict | None, str | None, str]:

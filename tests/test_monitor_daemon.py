@@ -750,3 +750,101 @@ def test_a_full_disk_stops_the_daemon_with_an_event_naming_the_sink_and_whole_li
     lines = path.read_text().splitlines(keepends=True)
     assert len(lines) == 39 and all(line.endswith("\n") for line in lines)
     assert all(_json.loads(line)["time_s"] >= 0 for line in lines)
+
+
+# --------------------------------------------------------------------------- generation jobs die with the daemon
+def _dead(pid: int) -> bool:
+    """Whether a process is gone (a zombie no one has reaped yet counts as gone)."""
+    from pathlib import Path
+
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except (OSError, IndexError):
+        return True
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc"), reason="reads /proc")
+def test_a_generation_worker_ends_with_its_daemon_killed_with_9(tmp_path):
+    """A daemon (a process with a :class:`Regenerator` running a 10 min job) killed with SIGKILL: its worker is gone
+    within a few seconds (it ran on under PID 1 until its job ended)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    (tmp_path / "sleeper.py").write_text("import time\n\n\ndef job(request):\n    time.sleep(600)\n")
+    code = f"""
+import asyncio, sys
+sys.path.insert(0, {str(tmp_path)!r})
+from hybridcomp.monitor.daemon import Regenerator
+
+async def main():
+    r = Regenerator("sleeper:job", 3600.0)
+    task = asyncio.create_task(r.run({{"machine_time_s": 0.0}}))
+    while r._pool is None or not r._pool._processes:
+        await asyncio.sleep(0.05)
+    await asyncio.sleep(1.0)
+    print(*r._pool._processes, flush=True)
+    await task
+
+asyncio.run(main())
+"""
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              cwd=Path(__file__).resolve().parents[1])
+    workers = []
+    try:
+        workers = [int(x) for x in parent.stdout.readline().split()]
+        assert workers and not any(_dead(p) for p in workers)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=10)
+        t0 = time.monotonic()
+        while not all(_dead(p) for p in workers) and time.monotonic() - t0 < 5.0:
+            time.sleep(0.1)
+        assert all(_dead(p) for p in workers), f"worker(s) {workers} outlived their daemon"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+        parent.stdout.close()
+        for p in workers:
+            if not _dead(p):
+                os.kill(p, signal.SIGKILL)
+
+
+def test_a_pending_request_submitted_again_after_a_restart_adopts_the_stored_result(tmp_path, monkeypatch):
+    """The request a killed daemon left pending is submitted again by the restarted one: the job ran once, its result
+    (stored under the request's key when it returned) is adopted; a later request runs the job again."""
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.daemon import Regenerator
+    from hybridcomp.monitor.store import MonitorStore
+
+    (tmp_path / "counter.py").write_text(
+        "from pathlib import Path\n\n\ndef job(request):\n"
+        "    with Path(request['count_file']).open('a') as fh:\n        fh.write('x')\n"
+        "    return {'ids': {'X': 1, 'Y': 2, 'Z': 3}, 'load_case': 'generated', 'notes': {}}\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    count = tmp_path / "count.txt"
+    CDDatabase(tmp_path / "cd.db").close()
+    request = {"machine": "vmc800", "pose_key": PKEY, "machine_time_s": 900.0, "database": str(tmp_path / "cd.db"),
+               "count_file": str(count)}
+
+    async def twice():
+        out = []
+        for req in (request, request, {**request, "machine_time_s": 1800.0}):
+            regen = Regenerator("counter:job", 60.0)  # (a new daemon each time: a new worker)
+            try:
+                out.append(await regen.run(req))
+            finally:
+                regen.close()
+        return out
+
+    (r1, e1, s1), (r2, e2, s2), (r3, _, s3) = asyncio.run(twice())
+    assert (s1, s2, s3) == ("finished",) * 3 and e1 is None and e2 is None
+    assert count.read_text() == "xx"  # the first request once, the later one once: not the first twice
+    assert r2["ids"] == r1["ids"] and "adopted" in r2["notes"] and "adopted" not in r1["notes"]
+    from hybridcomp.monitor.daemon import generation_key
+
+    with CDDatabase(tmp_path / "cd.db") as db:
+        stored = MonitorStore(db).get_state(generation_key(request))
+    assert stored and json.loads(stored)["ids"] == {"X": 1, "Y": 2, "Z": 3}
