@@ -24,6 +24,13 @@ reads a reduced model reads this one), then per further support pose its drift `
 the screws.  ``meta["poses"]``
 holds the grid, ``meta["feedback"]`` the drives; :func:`drift_along` gives the drift, TCP minus table, at the axis
 positions of every time: the support poses interpolated plus every drive's added error at its axis' position.
+
+The pose history: each block runs as if the machine stood at its support pose all along.  Where the machine was
+decides the field, so the model keeps a state transfer between the blocks (:func:`pose_transfer`, built with them
+from their bases carried with the bodies) and, at a move, every block takes the field the blocks gave where the
+machine had been (:func:`blend_history`); :func:`integrate_along` runs a path so (the monitor's model step does the
+same, :func:`hybridcomp.monitor.volumetric.advance`).  ``benchmarks/pose_path.py`` checks it against FE carried
+along paths with moves.
 """
 
 from __future__ import annotations
@@ -316,6 +323,8 @@ def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.
     w = np.asarray(weights, float)
     if w.shape != (len(grid.poses),):
         raise ValueError(f"{w.shape} weights for {len(grid.poses)} support poses")
+    if not (np.all(np.isfinite(w)) and abs(w.sum() - 1.0) <= 1e-9):
+        raise ValueError(f"the support poses' weights must be finite and sum to 1, got sum {float(w.sum())!r}")
     orders = prom.meta["poses"]["orders"][:len(grid.poses)]
     o = np.cumsum([0] + list(orders))
     xs = np.asarray(x[:o[-1]], float)

@@ -76,6 +76,8 @@ def test_at_a_support_pose_its_block_is_kept_and_the_others_take_its_field(pose_
         assert np.allclose(z[b], x[b] + T[b, blocks[4]] @ x[blocks[4]] - T[b, b] @ x[b], rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="weights for 7 support poses"):
         blend_history(prom, x, w[:3])
+    with pytest.raises(ValueError, match="sum to 1, got sum 2"):
+        blend_history(prom, x, 2 * w)
 
 
 @pytest.mark.slow
