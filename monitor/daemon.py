@@ -185,6 +185,12 @@ class Monitor:
 
     def reload_active(self) -> None:
         self.state = T.with_active(self.ctx, self.state, self.db.active_set(self.machine.name, self.pose_key))
+        self.reload_grid()
+
+    def reload_grid(self) -> None:
+        """Without a pose-aware model: the machine's active CD grid (its sets give the support-point table)."""
+        if self.ctx.pose is None and hasattr(self.db, "active_grid"):
+            self.state = T.with_active_grid(self.ctx, self.state, self.db.active_grid(self.machine.name))
 
     def event(self, kind: str, t: float | None, payload: dict, key: str) -> None:
         self.store.log_event(kind, t, payload, key=f"{kind}@{self.pose_key}@{key}")
