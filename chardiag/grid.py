@@ -151,6 +151,18 @@ class CDGrid:
         """The sets' CD ids per point (empty dicts when not stored)."""
         return tuple(dict(s.ids) for s in self.sets)
 
+    def delta_T_K(self, temperatures_degC: Mapping[str, float]) -> float:
+        """The largest |T_reference − T| over the points' sets and the common sensors [K] (inf: none common)."""
+        out = -np.inf
+        for s in self.sets:
+            for cd in s.cds.values():
+                ref = cd.t_reference()
+                common = [k for k in temperatures_degC if k in ref]
+                if not common:
+                    return float("inf")
+                out = max(out, max(abs(ref[k] - float(temperatures_degC[k])) for k in common))
+        return float(out)
+
     def table(self, temperatures_degC: Mapping[str, float], time_s: float) -> tuple[VolumetricTable, bool]:
         """The support-point table at the sensor temperatures and whether a CD was outside its trained range.
 

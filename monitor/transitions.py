@@ -252,7 +252,7 @@ class Step:
 
     state: State
     offsets: tuple[Offset, ...] = ()
-    effects: tuple[Event | Activate | Request | Persist | Log, ...] = ()
+    effects: tuple[Event | Activate | ActivateGrid | Request | Persist | Log, ...] = ()
 
     @property
     def events(self) -> tuple[Event, ...]:
@@ -1260,6 +1260,61 @@ def on_regeneration_finished(ctx: Context, st: State, request: Mapping, result: 
         out.log("warning", f"generation job for {t:.0f} s {status}: {error}")
     st = _set(st, pending=None)
     out.command(Persist(None))
+    return out.step(st)
+
+
+# ============================================================================================ CD grids
+@dataclass(frozen=True)
+class ActivateGrid:
+    """Record in the database that CD grid ``grid_id`` became the machine's active grid at ``t``.
+
+    The state already has it; ``t`` is machine time [s].
+    """
+
+    grid_id: int
+    reason: str
+    t: float | None
+
+
+def grid_temperatures(ctx: Context, st: State) -> dict[str, float]:
+    """What a grid decision compares the grids' reference temperatures with: the structure model's sensors now [°C]."""
+    return _estimate_degC(ctx, st)
+
+
+def on_grid_decision(ctx: Context, st: State, t: float, temperatures_degC: Mapping[str, float],
+                     candidates: Iterable) -> Step:
+    """At a monitoring boundary, without a pose-aware model: keep the active CD grid or switch to a stored one.
+
+    The active grid is kept while its sets' reference temperatures are within ``threshold_K`` of
+    ``temperatures_degC`` (the structure model's sensors, :func:`grid_temperatures`; max over the sets and the
+    common sensors).  Otherwise the first of ``candidates`` (stored CD grids,
+    best first: the database's :meth:`~hybridcomp.chardiag.db.CDDatabase.search_grids`, read lazily by the shell)
+    that is another grid and fits within ``threshold_K`` becomes active: a ``grid switch`` event and an
+    :class:`ActivateGrid` command; the table's rate limit carries the change over.  None fitting: one
+    ``grid decision`` event, the active grid kept.  No grid active, or a pose-aware model: nothing.
+    """
+    out = _Out()
+    active = st.grid
+    if ctx.pose is not None or active is None or not temperatures_degC:
+        return out.step(st)
+    limit = ctx.cfg.threshold_K
+    dT = active.delta_T_K(temperatures_degC)
+    if dT <= limit:
+        return out.step(st)
+    for g in candidates:
+        if g.grid_id == active.grid_id:
+            continue
+        d = g.delta_T_K(temperatures_degC)
+        if d <= limit:
+            reason = f"grid {active.grid_id}'s reference temperatures are {dT:.2f} K off (> {limit:g} K)"
+            out.event("grid switch", t, {"from": active.grid_id, "to": g.grid_id, "delta_T_K": _finite(dT),
+                                         "new_delta_T_K": _finite(d), "load_case": g.load_case, "reason": reason},
+                      f"{_t(t)}@{g.grid_id}")
+            out.command(ActivateGrid(int(g.grid_id), reason, t))
+            return out.step(replace(st, grid=g))
+    out.event("grid decision", t, {"grid": active.grid_id, "delta_T_K": _finite(dT), "message":
+                                   f"the active CD grid's reference temperatures are {dT:.2f} K off (> {limit:g} K) "
+                                   "and no stored grid fits better: kept"}, _t(t))
     return out.step(st)
 
 

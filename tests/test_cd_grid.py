@@ -382,3 +382,63 @@ def test_a_table_file_needs_a_pose_aware_model_or_an_active_grid(tmp_path, small
         db.activate_grid(1)
     *_, db = open_everything(cfg)
     db.close()
+
+
+# ----------------------------------------------------------------------------------------------- grid decisions
+def _vmc_grid(machine, level_degC: float, gain: float) -> CDGrid:
+    """A 2 x 2 x 2 grid of vmc800 over its travel: dx = gain (T1 − 20) at every point, reference ``level_degC``."""
+    grid = SupportGrid(AXES, tuple((a.travel_mm[0], a.travel_mm[1]) for a in machine.axes))
+    rng = np.random.default_rng(0)
+    T1 = 20.0 + rng.uniform(-3.0, 3.0, 40)
+    T2 = 20.0 + rng.uniform(-3.0, 3.0, 40)
+    tref = {s.name: level_degC for s in machine.sensors}
+    sets = []
+    for i in range(grid.n_points):
+        table = {"T1_degC": T1, "T2_degC": T2, "dx_um": gain * (T1 - 20.0), "dy_um": -(T2 - 20.0),
+                 "dz_um": 0.1 * (T2 - 20.0)}
+        sets.append(CDSet(fit_cd_set(table, machine=machine.name, pose_mm=point_pose(grid, i), t_reference_degC=tref,
+                                     load_case=f"ref{level_degC:g}")))
+    return CDGrid(grid, tuple(sets), load_case=f"ref{level_degC:g}")
+
+
+def test_the_grid_decision_keeps_a_fitting_grid_and_switches_to_the_first_stored_one_that_fits(machine, small_rom):
+    from hybridcomp.monitor import transitions as T
+    from hybridcomp.monitor.config import MonitorConfig
+
+    cfg = MonitorConfig(machine="vmc800", database="cd.db", rom="r.npz", threshold_K=1.0)
+    ctx = T.context(cfg, machine, small_rom, "X=0,Y=0,Z=0")
+    far, near, other = (dataclasses.replace(_vmc_grid(machine, lv, 1.0), grid_id=i)
+                        for i, lv in ((1, 30.0), (2, 20.5), (3, 20.2)))
+    st = T.with_active_grid(ctx, T.initial(ctx), far)
+    temps = {s.name: 20.0 for s in machine.sensors}
+    step = T.on_grid_decision(ctx, st, 900.0, temps, iter([far, near, other]))
+    assert step.state.grid is near  # the first other grid within 1 K (the database's order), not the nearest
+    assert [type(c).__name__ for c in step.commands] == ["ActivateGrid"] and step.commands[0].grid_id == 2
+    assert [e.kind for e in step.events] == ["grid switch"] and step.events[0].payload["delta_T_K"] == 10.0
+    kept = T.on_grid_decision(ctx, step.state, 1800.0, temps, iter([other]))
+    assert kept.state.grid is near and kept.effects == ()  # within 0.5 K: kept, nothing read
+    none = T.on_grid_decision(ctx, st, 900.0, temps, iter([far]))
+    assert none.state.grid is far and [e.kind for e in none.events] == ["grid decision"] and not none.commands
+    assert T.on_grid_decision(ctx, T.initial(ctx), 900.0, temps, iter([near])).effects == ()  # no active grid
+
+
+@pytest.mark.slow
+def test_a_daemon_switches_to_the_stored_grid_that_fits_at_its_monitoring_boundary(machine, small_rom, tmp_path):
+    from hybridcomp.monitor.example import write_example_trace
+
+    trace = write_example_trace(tmp_path / "trace.csv", machine, small_rom, hours=1.0, rate_hz=0.2)
+    T0 = np.mean(list(_trace_temps(trace, ["T1"]).values())[0]["T1"])
+    far, fits = _vmc_grid(machine, 40.0, 1.0), _vmc_grid(machine, float(T0), 3.0)
+    with CDDatabase(tmp_path / "cd.db") as db:
+        a, b = db.add_grid(far), db.add_grid(fits)
+        db.activate_grid(a)
+    rows, again = _replay(machine, small_rom, tmp_path / "cd.db", trace, tmp_path)
+    with CDDatabase(tmp_path / "cd.db") as db:
+        assert db.active_grid_id("vmc800") == b
+        kinds = [r[0] for r in db.engine.connect().exec_driver_sql("SELECT kind FROM events ORDER BY id")]
+        assert kinds.count("grid switch") == 1 and kinds.count("grid activation") == 2
+    assert again.state.grid.grid_id == b
+    # before the switch the offsets come from the first grid (dx = T1 − 20), after it from the second (3 x)
+    temps = _trace_temps(trace, [s.name for s in machine.sensors])
+    ratio = [r.dx_um / (temps[r.time_s]["T1"] - 20.0) for r in rows if abs(temps[r.time_s]["T1"] - 20.0) > 0.2]
+    assert ratio[0] == pytest.approx(1.0, abs=1e-6) and ratio[-1] == pytest.approx(3.0, abs=1e-6)
