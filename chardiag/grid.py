@@ -59,7 +59,7 @@ class GridTrainingData:
 
 
 def grid_training_data(prom, cases: Mapping[str, LoadCase], grid: SupportGrid | None = None,
-                       points: int | Sequence[int] = 3) -> GridTrainingData:
+                       points: int | Sequence[int] = 3, feedback: bool = True) -> GridTrainingData:
     """The drift at every support point over the load cases, with the sensors: one CD training table per point.
 
     Each load case runs on the pose-aware reduced model from the steady state of its first row (inputs linear
@@ -73,6 +73,8 @@ def grid_training_data(prom, cases: Mapping[str, LoadCase], grid: SupportGrid | 
     cases : load cases by name (:mod:`hybridcomp.chardiag.training`)
     grid : the support grid (default :func:`hybridcomp.rom.volumetric.default_grid` with ``points``)
     points : points per axis of the default grid
+    feedback : include the drives' positioning errors (False: the structure's drift alone, for a control that
+        compensates the drives by other means)
     """
     from hybridcomp.rom.poses import drift_along, grid_of
     from hybridcomp.rom.volumetric import VolumetricError, default_grid
@@ -105,7 +107,7 @@ def grid_training_data(prom, cases: Mapping[str, LoadCase], grid: SupportGrid | 
                 block[temperature_column(s)] = T[:, j]
             for a, x in zip(grid.axes, p):
                 block[position_column(a)] = np.full(t.size, float(x))
-            D = drift_along(prom, Y, p[None], feedback=True)
+            D = drift_along(prom, Y, p[None], feedback=feedback)
             for j, c in enumerate(DRIFT_COLUMNS):
                 block[c] = D[:, j]
             rows += [name] * t.size
