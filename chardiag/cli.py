@@ -7,6 +7,8 @@ Commands::
     hybridcomp cd eval cds/ --data data.csv --cases simultaneous --out pred.csv
     hybridcomp cd eval cds/ --point T1=21.3,T2=22.0,... --cnc 840d
     hybridcomp cd db list|show|search|activate|import|export --db cds.sqlite ...
+    hybridcomp cd fit-grid --pose-rom POSES.rom.npz --out grid/ [--db cds.sqlite --activate]   (chardiag.cli_grid)
+    hybridcomp cd db grid-activate|grid-search|grid-export ...
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_DB = "hybridcomp-cds.sqlite"
 # database actions that only read: they open the database read-only and never create one
-READ_ONLY_DB_ACTIONS = ("list", "show", "search", "export")
+READ_ONLY_DB_ACTIONS = ("list", "show", "search", "export", "grid-search", "grid-export")
 
 
 
@@ -97,6 +99,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     e.add_argument("--out", type=Path, help="write predictions (with --data) or the CNC text (with --point) here")
     e.add_argument("--force", action="store_true", help=FORCE_HELP)
 
+    from hybridcomp.chardiag.cli_grid import add_db_grid_arguments, add_fit_grid_arguments
+
+    add_fit_grid_arguments(sub)
+
     d = sub.add_parser("db", help="the CD database: list, show, search, activate, import, export",
                        description="The CD database (SQLite file by default, any SQLAlchemy URL such as "
                        "postgresql+psycopg://user:password@host/db).")
@@ -135,6 +141,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     q.add_argument("ids", nargs="+", type=int)
     q.add_argument("--out", required=True, type=Path, help="output directory")
     q.add_argument("--force", action="store_true", help=FORCE_HELP)
+    add_db_grid_arguments(dsub, db_arg)
 
 
 
@@ -142,6 +149,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run a ``hybridcomp cd`` action; returns the exit code (1: no stored set found, 2: bad input)."""
     from hybridcomp.chardiag.cd import CDError
+    from hybridcomp.chardiag.cli_grid import fit_grid_command
     from hybridcomp.chardiag.db import CDDatabaseError
     from hybridcomp.chardiag.fit import CDFitError
     from hybridcomp.chardiag.training import TrainingDataError
@@ -149,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
     from hybridcomp.fem.loads import LoadsFileError
     from hybridcomp.models.machine import MachineFileError
 
-    handlers = {"train-data": _train_data, "fit": _fit, "eval": _eval, "db": _db}
+    handlers = {"train-data": _train_data, "fit": _fit, "eval": _eval, "db": _db, "fit-grid": fit_grid_command}
     try:
         bad = refuse_unused(args, _unused_rules(args))
         if bad:
@@ -169,6 +177,10 @@ def _unused_rules(args) -> list:
         why = "applies to the basic and simultaneous load cases only (the job-shop day and files have their own times)"
         return [("workers", args.scheduler not in ("process", "local"), WORKERS_RULE),
                 ("heat_hours", not heated, why), ("cool_hours", not heated, why)]
+    if c == "fit-grid":
+        from hybridcomp.chardiag.cli_grid import unused_rules
+
+        return unused_rules(args)
     if c == "fit":
         return [("activate", args.db is None, "needs --db (the database to activate the CDs in)")]
     if c == "eval":
@@ -404,6 +416,10 @@ def _db(args) -> int:
             machine = load_machine(args.machine)
         to_store = [read_cd(f, machine) for f in args.files]
     with CDDatabase(args.db, readonly=c in READ_ONLY_DB_ACTIONS) as db:
+        if c.startswith("grid-"):
+            from hybridcomp.chardiag.cli_grid import db_grid_command
+
+            return db_grid_command(args, db)
         if c == "list":
             rows = db.list(args.machine_name)
             if not rows:
@@ -413,6 +429,9 @@ def _db(args) -> int:
                 print(f"{r['id']:>5}  {r['machine']:<12} {r['pose_key']:<24} {r['direction']}  "
                       f"{r['load_case']:<40} inputs {r['n_active_inputs']:>2}  rms {rms:>8} µm  {r['created']}"
                       + ("  ACTIVE" if r["active"] else ""))
+            from hybridcomp.chardiag.cli_grid import list_grids
+
+            list_grids(db, args.machine_name)
         elif c == "show":
             cd = db.get(args.id)
             st = cd.fit_stats()

@@ -158,6 +158,23 @@ def table_step(new, old, max_step_um: float):
     return limit_table(new, old, max_step_um)
 
 
+def on_grid(table, grid):
+    """``table`` carried onto ``grid``'s points (its value interpolated there, drives included).
+
+    ``table`` itself when it is on ``grid`` already; None for None or for a grid of other axes.  The rate limit's
+    start when the support grid changes (another CD grid made active): the offsets move from what the last table
+    gave at each new point, by at most the rate limit per cycle.
+    """
+    from hybridcomp.rom.volumetric import VolumetricTable, interpolate
+
+    if table is None or table.grid == grid:
+        return table
+    if tuple(table.grid.axes) != tuple(grid.axes):
+        return None  # another machine's axes: nothing to continue
+    S = interpolate(table, grid.points_mm()).reshape(grid.shape + (3,))
+    return VolumetricTable(grid, table.time_s, S)
+
+
 #: a probe within this of the model's pose on every axis is a probe at the model's pose [mm]
 AT_POSE_MM = 1.0
 
