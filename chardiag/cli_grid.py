@@ -149,14 +149,14 @@ def fit_grid_command(args) -> int:
     items = [c.strip() for c in args.cases.split(",") if c.strip()]
     if not items:
         raise ValueError("--cases is empty")
+    from hybridcomp.chardiag.cli import _db_file
+
+    inputs = (args.pose_rom, machine.source, _db_file(args.db), *(Path(i) for i in items if i not in STANDARD_CASES))
+    check_output_dir(args.out, ["grid.json"], inputs=inputs, force=args.force)  # before any work
     prom = load_rom(args.pose_rom, machine)
     grid_of(prom)  # a one-pose model: refused with its message
     grid = default_grid(prom, args.grid_points)
-    from hybridcomp.chardiag.cli import _db_file
-
-    check_output_dir(args.out, _grid_files(grid.n_points, True),
-                     inputs=(args.pose_rom, machine.source, _db_file(args.db),
-                             *(Path(i) for i in items if i not in STANDARD_CASES)), force=args.force)
+    check_output_dir(args.out, _grid_files(grid.n_points, True), inputs=inputs, force=args.force)
     opts = FitOptions(n_support=args.support, smoothing=args.smoothing, min_range_K=args.min_range_K,
                       select=args.select, max_inputs=args.max_inputs, max_full_dims=args.max_full_dims)
     cases = {}
@@ -224,6 +224,7 @@ def db_grid_command(args, db) -> int:
     elif c == "grid-export":
         from hybridcomp.chardiag.cli import _db_file
 
+        check_output_dir(args.out, ["grid.json"], inputs=(_db_file(args.db),), force=args.force)  # before reading
         g = db.grid(args.id)
         check_output_dir(args.out, _grid_files(g.grid.n_points, False), inputs=(_db_file(args.db),), force=args.force)
         args.out.mkdir(parents=True, exist_ok=True)

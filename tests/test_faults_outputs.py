@@ -46,7 +46,8 @@ INPUTS = {
     ("simulate", "--loads"), ("simulate", "--rom"), ("histogram", "input"), ("cd fit", "data"), ("cd eval", "cds"),
     ("cd eval", "--data"), ("cd db import", "files"), ("table", "--rom"), ("table", "--loads"),
     ("reduce", "--matrices"), ("reduce", "--check-loads"), ("diagnose", "--data"), ("diagnose", "--map"),
-    ("diagnose", "--rom"), ("data fetch", "--from"), ("batch run", "loads_dir"), ("monitor run", "--config"),
+    ("diagnose", "--rom"), ("diagnose", "--probes"), ("diagnose", "--pose-rom"), ("cd fit-grid", "--pose-rom"),
+    ("data fetch", "--from"), ("batch run", "loads_dir"), ("monitor run", "--config"),
     ("monitor status", "--config"), ("monitor example-trace", "--rom"),
 }
 
@@ -67,6 +68,8 @@ OUTPUTS = {
     ("cd fit", "--out"): (["cd", "fit", "{table}", "--out", "{out}", "--no-plot"], "cd_X.xml"),
     ("cd eval", "--out"): (["cd", "eval", "{cds}", "--point", "T1=22,T2=22.5,T3=21", "--out", "{out}"], "file"),
     ("cd db export", "--out"): (["cd", "db", "export", "1", "--db", "{db}", "--out", "{out}"], "cd_1_X.xml"),
+    ("cd fit-grid", "--out"): (["cd", "fit-grid", "--pose-rom", "{rom}", "--out", "{out}"], "grid.json"),
+    ("cd db grid-export", "--out"): (["cd", "db", "grid-export", "1", "--db", "{db}", "--out", "{out}"], "grid.json"),
     ("table", "--out"): (["table", "--rom", "{rom}", "--loads", "{loads}", "--at-hours", "0", "--form", "csv", "--out", "{out}"],
                          "file"),
     ("reduce", "--out"): (["reduce", "--machine", "vmc800", "--out", "{out}"], "file"),
