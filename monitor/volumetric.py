@@ -89,18 +89,19 @@ def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizo
 
     ``weights``: the support poses' interpolation weights over this step (time-weighted where the machine moved,
     :func:`step_weights`).  Where they differ from the time-weighted weights since the last blend by more than
-    ``tol`` (default :data:`hybridcomp.rom.poses.MOVE_WEIGHT_TOL`), the machine moved: the support poses' blocks
-    are first blended with those (the pose history, :func:`hybridcomp.rom.poses.blend_history`), as
+    ``tol`` (default :data:`hybridcomp.rom.poses.MOVE_WEIGHT_TOL`) and a quarter hour has passed since it
+    (:func:`hybridcomp.rom.poses.is_move`), the machine moved: the support poses' blocks are first blended with
+    those (the pose history, :func:`hybridcomp.rom.poses.blend_history`), as
     :func:`~hybridcomp.rom.poses.integrate_along` does at a move.  A model without a pose transfer, or no
     weights, runs every block as if the machine stood at its pose.
     """
-    from hybridcomp.rom.poses import MOVE_WEIGHT_TOL, blend_history
+    from hybridcomp.rom.poses import MOVE_WEIGHT_TOL, blend_history, is_move
 
     dt = end_s - track.time_s
     x, acc, acc_s = track.x, track.weights, track.weights_s
     if weights is not None and pm.rom.pose_transfer is not None:
         w = np.asarray(weights, float)
-        if acc is not None and acc_s > 0 and np.abs(w - acc).max() > (MOVE_WEIGHT_TOL if tol is None else tol):
+        if acc is not None and is_move(w, acc, acc_s, MOVE_WEIGHT_TOL if tol is None else tol):
             x, acc, acc_s = blend_history(pm.rom, x, acc), None, 0.0
         step_s = max(dt, 0.0)
         acc = w if acc is None or acc_s + step_s <= 0 else (acc * acc_s + w * step_s) / (acc_s + step_s)

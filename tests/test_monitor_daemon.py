@@ -763,8 +763,8 @@ def test_opcua_source_reads_the_probing_cycles_of_the_control(machine, tmp_path)
         for k in range(41):
             t = float(k)
             p = probes.get(t, (float("nan"),) * 3)
-            fh.write(",".join(["%g" % t, "%g" % (10 * k), "0", "-5", "1000", "20.5",
-                               *("" if v != v else "%g" % v for v in p)]) + "\n")
+            fh.write(",".join([f"{t:g}", f"{10 * k:g}", "0", "-5", "1000", "20.5",
+                               *("" if v != v else f"{v:g}" for v in p)]) + "\n")
     header = path.read_text().split("\n", 1)[0].split(",")
     port = free_port()
     server = start_server(path, port, speed=5.0)  # a row every 0.2 s, a publish every 0.05 s: one row per batch

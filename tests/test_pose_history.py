@@ -15,12 +15,23 @@ def test_a_move_is_a_change_of_the_weights_beyond_the_time_weighted_ones_since_t
     a, b = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.5, 0.5])
     wiggle = np.array([0.05, -0.05, 0.0])
     W = np.array([a, a + wiggle, a, b, b, a, a])
-    cuts = history_cuts(t, W, tol=0.1)
+    cuts = history_cuts(t, W, tol=0.1, min_interval_s=0.0)
     assert [k for k, _ in cuts] == [3, 5]  # the wiggle is no move
     # the first blend: the weights of steps 0-2, by their durations (60, 60, 180 s)
     assert np.allclose(cuts[0][1], (60 * a + 60 * (a + wiggle) + 180 * a) / 300)
     assert np.allclose(cuts[1][1], b)
-    assert [k for k, _ in history_cuts(t, W, tol=0.01)] == [1, 2, 3, 5]
+    assert [k for k, _ in history_cuts(t, W, tol=0.01, min_interval_s=0.0)] == [1, 2, 3, 5]
+    # at most one blend in 5 min: the return to a after 2 min at b is where the machine spent those minutes
+    assert [k for k, _ in history_cuts(t, W, tol=0.1, min_interval_s=300.0)] == [3]
+
+
+def test_blending_uses_where_the_machine_was_not_the_interpolations_overshoot():
+    from hybridcomp.rom.poses import occupancy
+
+    w = np.array([0.1, 0.508, -0.117, -0.124, 0.336, 0.421, -0.124])
+    assert np.allclose(occupancy(w), np.clip(w, 0, None) / 1.365) and occupancy(w).sum() == pytest.approx(1.0)
+    one = np.eye(7)[3]
+    assert np.array_equal(occupancy(one), one)
 
 
 def _blocks(prom):
@@ -133,3 +144,31 @@ def test_the_monitors_steps_follow_the_poses_as_the_path_integration_does(pose_r
     w = volumetric.step_weights(pm, np.array(stops[:2]), dt_s=np.array([1.0, 3.0]))
     assert np.allclose(w, 0.25 * grid_of(prom).weights(dict(zip("XYZ", stops[0])))
                        + 0.75 * grid_of(prom).weights(dict(zip("XYZ", stops[1]))))
+
+
+@pytest.mark.slow
+def test_weeks_of_continuous_motion_stay_bounded(pose_rom_200mm, machine):
+    """A month of a machine that moves on every 5 min step (random poses over the whole workspace, the example
+    day's loads over and over): the blends (at most one a quarter hour, with the occupancy) stay within the range
+    of the model that ignores the history, and nothing builds up."""
+    from hybridcomp.fem.loads import example_loads
+
+    prom = pose_rom_200mm
+    day = example_loads(machine, 16.0, 300.0)
+    U_day = prom.layout().inputs(day.names, day.values)
+    days = 30
+    U = np.vstack([U_day[:-1]] * days + [U_day[-1:]])
+    t = np.arange(U.shape[0]) * 300.0
+    rng = np.random.default_rng(7)
+    grid = grid_of(prom)
+    lo = np.array([lv[0] for lv in grid.levels_mm])
+    hi = np.array([lv[2] for lv in grid.levels_mm])
+    P = lo + (hi - lo) * rng.random((t.size, 3))
+    Y, _ = integrate_along(prom, t, U, P)
+    Y0, _ = integrate_along(prom, t, U, P, history="none")
+    assert np.all(np.isfinite(Y))
+    scale = np.abs(Y0).max(axis=0)
+    assert np.all(np.abs(Y).max(axis=0) <= 1.5 * scale + 1e-12)
+    early, late = slice(5 * 192, 10 * 192), slice(25 * 192, 30 * 192)  # (the loads repeat every 192 steps)
+    growth = np.abs(Y[late]).max(axis=0) / np.abs(Y[early]).max(axis=0)  # nothing builds up over weeks
+    assert growth.max() <= 1.1, growth.max()
