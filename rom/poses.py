@@ -36,6 +36,7 @@ along paths with moves.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as la
@@ -292,14 +293,69 @@ def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray, feed
 
 #: how :func:`integrate_along` follows the poses the machine visits (:func:`blend_history`)
 HISTORIES = ("moves", "steps", "none")
-#: a move, for the pose history: a step's interpolation weights that differ from the time-weighted weights since
-#: the last blend by more than this (any support pose's) [-]; 0.1 is a tenth of an axis' half travel
+#: a move, for the pose history: interpolation weights that differ by more than this (any support pose's) [-];
+#: 0.1 is a tenth of an axis' half travel
 MOVE_WEIGHT_TOL = 0.1
-#: the shortest time between two blends [s]: a machine that moves on within a quarter hour is where it spent that
-#: quarter hour (its time-weighted weights); this also bounds the blends to 96 a day, each of which may grow a
-#: state by the transfer's round-trip error (about 0.1 % with the weights made an occupancy, :func:`blend_history`)
-#: while the slowest thermal mode decays more in 15 min, so the history cannot drift away over weeks
-MIN_BLEND_INTERVAL_S = 900.0
+#: the pose history's clock [s]: the blocks are blended at most at these ticks, with the time-weighted weights of
+#: where the machine was since the last tick; the same ticks whatever the model's step (60 s, 5 min), so the
+#: history does not depend on it, and at most 96 blends a day
+HISTORY_TICK_S = 900.0
+
+
+@dataclass(frozen=True)
+class HistoryWindow:
+    """Where the machine was since the pose history's last tick (:func:`history_step`).
+
+    Attributes
+    ----------
+    since_s : time since the tick [s]
+    weights : the time-weighted interpolation weights over it (None before the first step)
+    first : the weights of its first step
+    moved : whether a step's weights differed from ``first`` by more than the tolerance
+    """
+
+    since_s: float = 0.0
+    weights: np.ndarray | None = None
+    first: np.ndarray | None = None
+    moved: bool = False
+
+    def as_dict(self) -> dict:
+        return {"since_s": self.since_s, "moved": self.moved,
+                "weights": None if self.weights is None else [float(v) for v in self.weights],
+                "first": None if self.first is None else [float(v) for v in self.first]}
+
+    @staticmethod
+    def from_dict(d: dict) -> HistoryWindow:
+        def arr(v):
+            return None if v is None else np.asarray(v, float)
+
+        return HistoryWindow(float(d["since_s"]), arr(d["weights"]), arr(d["first"]), bool(d["moved"]))
+
+
+def history_step(window: HistoryWindow, step_weights: np.ndarray, step_s: float, tol: float = MOVE_WEIGHT_TOL,
+                 tick_s: float = HISTORY_TICK_S, step_spread: float = 0.0) -> tuple[np.ndarray | None, HistoryWindow]:
+    """Before a step of weights ``step_weights`` and ``step_s`` seconds: blend or not, and the window after it.
+
+    At a tick (``tick_s`` since the last one) the blocks are blended with the window's time-weighted weights when
+    the machine moved in it or moves on now (the step's weights differ from the window's by more than ``tol``);
+    a machine that held its pose all along is left alone, so each block keeps its own heat paths there.
+    ``step_spread``: how far the weights of the step's own samples went from its mean (a step with motion in it
+    is a move however long the step).  Returns the weights to blend with (None: no blend) and the window with this
+    step in it.
+    """
+    w = np.asarray(step_weights, float)
+    within = step_spread > tol
+    blend = None
+    if window.weights is not None and window.since_s >= tick_s - 1e-9:
+        if window.moved or np.abs(w - window.weights).max() > tol:
+            blend = window.weights
+        window = HistoryWindow()
+    if window.weights is None:
+        return blend, HistoryWindow(step_s, w, w, within)
+    total = window.since_s + step_s
+    avg = w if total <= 0 else (window.weights * window.since_s + w * step_s) / total
+    return blend, HistoryWindow(total, avg, window.first,
+                                window.moved or within or np.abs(w - window.first).max() > tol)
 
 
 def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -330,7 +386,6 @@ def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.
         raise ValueError(f"{w.shape} weights for {len(grid.poses)} support poses")
     if not (np.all(np.isfinite(w)) and abs(w.sum() - 1.0) <= 1e-9):
         raise ValueError(f"the support poses' weights must be finite and sum to 1, got sum {float(w.sum())!r}")
-    w = occupancy(w)
     orders = prom.meta["poses"]["orders"][:len(grid.poses)]
     o = np.cumsum([0] + list(orders))
     xs = np.asarray(x[:o[-1]], float)
@@ -342,52 +397,29 @@ def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.
     return y
 
 
-def occupancy(weights: np.ndarray) -> np.ndarray:
-    """Interpolation weights made a distribution of where the machine was.
-
-    Negative ones (the quadratic interpolation's overshoot) are cut to 0, the rest scaled to sum 1.  Blended with
-    negative weights the blocks' fields would be extrapolated, and the blend's round-trip error grows a state by a
-    few % each time (spectral radius 1.02-1.03 on vmc800 at off-grid poses, against 1.000-1.001 so).
-    """
-    w = np.clip(np.asarray(weights, float), 0.0, None)
-    return w / w.sum()
-
-
-def is_move(step_weights: np.ndarray, since_weights: np.ndarray, since_s: float, tol: float = MOVE_WEIGHT_TOL,
-            min_interval_s: float = MIN_BLEND_INTERVAL_S) -> bool:
-    """Whether the pose history blends before a step of weights ``step_weights``.
-
-    It does where the time-weighted weights since the last blend (``since_weights`` over ``since_s`` seconds)
-    differ by more than ``tol`` and at least ``min_interval_s`` have passed (:data:`MIN_BLEND_INTERVAL_S`).
-    """
-    return since_s >= min_interval_s and np.abs(np.asarray(step_weights) - since_weights).max() > tol
-
-
 def history_cuts(time_s: np.ndarray, weights: np.ndarray, tol: float = MOVE_WEIGHT_TOL,
-                 min_interval_s: float = MIN_BLEND_INTERVAL_S) -> list[tuple[int, np.ndarray]]:
+                 tick_s: float = HISTORY_TICK_S, spread: np.ndarray | None = None) -> list[tuple[int, np.ndarray]]:
     """Where a path's pose history blends its blocks, and with which weights: (row, weights) in time order.
 
-    ``weights`` (nt × poses): row k's weights hold over the step from ``time_s[k]`` to the next row.  The weights
-    since the last blend are averaged with the time spent at each; where the next step's weights differ from that
-    average by more than ``tol`` (and ``min_interval_s`` have passed since the last blend, :func:`is_move`), the
-    machine moved: the blocks are blended with the average at that row.
+    ``weights`` (nt × poses): row k's weights hold over the step from ``time_s[k]`` to the next row (``spread``:
+    how far its samples' weights went from them, default 0); the blends are those of :func:`history_step` before
+    each step.
     """
     t = np.asarray(time_s, float)
     W = np.asarray(weights, float)
-    cuts, acc, acc_s = [], np.zeros(W.shape[1]), 0.0
-    for k in range(1, t.size):
-        dt = t[k] - t[k - 1]
-        acc, acc_s = acc + dt * W[k - 1], acc_s + dt
-        if k < t.size - 1 and is_move(W[k], acc / acc_s, acc_s, tol, min_interval_s):
-            cuts.append((k, acc / acc_s))
-            acc, acc_s = np.zeros(W.shape[1]), 0.0
+    cuts, window = [], HistoryWindow()
+    for k in range(t.size - 1):
+        blend, window = history_step(window, W[k], t[k + 1] - t[k], tol, tick_s,
+                                     0.0 if spread is None else float(spread[k]))
+        if blend is not None:
+            cuts.append((k, blend))
     return cuts
 
 
 def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, positions_mm: np.ndarray,
                     initial: str | np.ndarray = "steady", history: str = "moves", hold: str = "linear",
                     weights: np.ndarray | None = None, tol: float = MOVE_WEIGHT_TOL,
-                    min_interval_s: float = MIN_BLEND_INTERVAL_S) -> tuple[np.ndarray, np.ndarray]:
+                    tick_s: float = HISTORY_TICK_S, spread: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A pose-aware model's outputs along a path, following the poses the machine visits (:func:`blend_history`).
 
     Parameters
@@ -396,13 +428,14 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
     time_s, inputs, initial, hold : as :meth:`~hybridcomp.rom.reduced.ReducedModel.integrate`
     positions_mm : axis positions per row (nt × axes, machine order) [mm]; row k's pose holds from ``time_s[k]``
         to the next row (the step into row k ran at row k − 1's pose)
-    history : ``"moves"``: the blocks blended at every move (:func:`history_cuts`) with the time-weighted weights
-        since the last one; ``"steps"``: at every step with that step's weights (a comparison: it replaces each
-        block's own heat paths by the blend every step); ``"none"``: every block as if the machine stood at its
-        pose all along
+    history : ``"moves"``: the blocks blended at the history's ticks where the machine moved (:func:`history_cuts`)
+        with the time-weighted weights since the last tick; ``"steps"``: at every step with that step's weights
+        (a comparison: it replaces each block's own heat paths by the blend every step); ``"none"``: every block
+        as if the machine stood at its pose all along
     weights : the support poses' weights per row (nt × poses) instead of those of ``positions_mm``: over a step in
         which the machine moved, the time-weighted weights of where it was (e.g. of a trace's samples)
-    tol, min_interval_s : what counts as a move (:func:`is_move`)
+    tol, tick_s, spread : what counts as a move, the history's clock, and how far each row's samples' weights went
+        from ``weights`` (:func:`history_cuts`)
 
     Returns
     -------
@@ -426,7 +459,7 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
             Y[k] = prom.outputs(x)
         return Y, x
     x, i0 = initial, 0
-    for k, w in history_cuts(t, W, tol, min_interval_s):
+    for k, w in history_cuts(t, W, tol, tick_s, spread):
         Y[i0:k + 1], x = prom.integrate(t[i0:k + 1], U[i0:k + 1], x, hold=hold)
         x = blend_history(prom, x, w)
         Y[k], i0 = prom.outputs(x), k

@@ -10,28 +10,25 @@ from hybridcomp.rom.poses import blend_history, grid_of, history_cuts, integrate
 from hybridcomp.rom.reduced import RomInputError, load_rom, save_rom
 
 
-def test_a_move_is_a_change_of_the_weights_beyond_the_time_weighted_ones_since_the_last():
-    t = np.array([0.0, 60.0, 120.0, 300.0, 360.0, 420.0, 480.0])
+def test_the_history_blends_at_its_ticks_where_the_machine_moved():
+    """Ticks every 300 s, steps of 60 s: a hold is left alone, a move at a tick blends with the pose left, a move
+    within a window blends at the next tick with where the machine was in it; a wiggle below the tolerance is none."""
     a, b = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.5, 0.5])
-    wiggle = np.array([0.05, -0.05, 0.0])
-    W = np.array([a, a + wiggle, a, b, b, a, a])
-    cuts = history_cuts(t, W, tol=0.1, min_interval_s=0.0)
-    assert [k for k, _ in cuts] == [3, 5]  # the wiggle is no move
-    # the first blend: the weights of steps 0-2, by their durations (60, 60, 180 s)
-    assert np.allclose(cuts[0][1], (60 * a + 60 * (a + wiggle) + 180 * a) / 300)
-    assert np.allclose(cuts[1][1], b)
-    assert [k for k, _ in history_cuts(t, W, tol=0.01, min_interval_s=0.0)] == [1, 2, 3, 5]
-    # at most one blend in 5 min: the return to a after 2 min at b is where the machine spent those minutes
-    assert [k for k, _ in history_cuts(t, W, tol=0.1, min_interval_s=300.0)] == [3]
-
-
-def test_blending_uses_where_the_machine_was_not_the_interpolations_overshoot():
-    from hybridcomp.rom.poses import occupancy
-
-    w = np.array([0.1, 0.508, -0.117, -0.124, 0.336, 0.421, -0.124])
-    assert np.allclose(occupancy(w), np.clip(w, 0, None) / 1.365) and occupancy(w).sum() == pytest.approx(1.0)
-    one = np.eye(7)[3]
-    assert np.array_equal(occupancy(one), one)
+    t = np.arange(21) * 60.0
+    hold_then_move = np.array([a] * 10 + [b] * 11)  # the move at 600 s, a tick
+    cuts = history_cuts(t, hold_then_move, tol=0.1, tick_s=300.0)
+    assert [k for k, _ in cuts] == [10] and np.allclose(cuts[0][1], a)
+    mid = np.array([a] * 7 + [b] * 14)  # the move at 420 s, within the window 300-600 s
+    cuts = history_cuts(t, mid, tol=0.1, tick_s=300.0)
+    assert [k for k, _ in cuts] == [10] and np.allclose(cuts[0][1], (2 * a + 3 * b) / 5)
+    wiggle = np.array([a] * 21)
+    wiggle[3] = a + np.array([0.05, -0.05, 0.0])
+    assert history_cuts(t, wiggle, tol=0.1, tick_s=300.0) == []
+    # the same path on 5 min steps: the same blends (the clock, not the step, decides)
+    t5, mid5 = t[::5], mid[::5]
+    assert [(t5[k], w.round(12).tolist()) for k, w in history_cuts(t5, np.array([a, b, b, b, b]), 0.1, 300.0)] == \
+        [(300.0, a.tolist())]
+    assert [t5[k] for k, _ in history_cuts(t5, mid5, 0.1, 300.0)] == [600.0]  # as on the 1 min steps
 
 
 def _blocks(prom):
@@ -139,8 +136,8 @@ def test_the_monitors_steps_follow_the_poses_as_the_path_integration_does(pose_r
     ignored, _ = integrate_along(prom, t, U, P, initial=prom.steady_state(U[0]), history="none", hold="step")
     assert not np.allclose(ignored[-1], Y[-1], rtol=1e-3)  # the moves did change the state
     back = volumetric.state_in(pm, volumetric.state_out(track), U[-1], dt)
-    assert np.array_equal(back.weights, track.weights) and np.array_equal(back.x, track.x)
-    assert back.weights_s == track.weights_s == 4 * dt  # the steps from rows 20-23: since the last move
+    assert back.history.as_dict() == track.history.as_dict() and np.array_equal(back.x, track.x)
+    assert 0 < track.history.since_s < 900.0 + dt  # since the last tick
     w = volumetric.step_weights(pm, np.array(stops[:2]), dt_s=np.array([1.0, 3.0]))
     assert np.allclose(w, 0.25 * grid_of(prom).weights(dict(zip("XYZ", stops[0])))
                        + 0.75 * grid_of(prom).weights(dict(zip("XYZ", stops[1]))))
