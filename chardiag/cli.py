@@ -36,6 +36,19 @@ READ_ONLY_DB_ACTIONS = ("list", "show", "search", "export", "grid-search", "grid
 
 
 
+
+def add_fit_options(p) -> None:
+    """The CD fitter's options (:class:`hybridcomp.chardiag.fit.FitOptions`), for ``cd fit`` and ``cd fit-grid``."""
+    p.add_argument("--support", type=int, default=6, help="support points per active input (default %(default)s)")
+    p.add_argument("--smoothing", type=float, default=1.0, help="second-difference smoothing λ (default %(default)s)")
+    p.add_argument("--min-range-K", type=float, default=0.5,
+                   help="temperature inputs with a smaller range in the data are inactive [K] (default %(default)s)")
+    p.add_argument("--select", choices=("threshold", "bic"), default="threshold",
+                   help="input selection: range and correlation thresholds, or also greedy forward selection by BIC")
+    p.add_argument("--max-inputs", type=int, help="at most this many active inputs per CD")
+    p.add_argument("--max-full-dims", type=int, default=3,
+                   help="up to this many active inputs one full grid; above, an additive CD (default %(default)s)")
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``hybridcomp cd`` actions and their options."""
     sub = p.add_subparsers(dest="cd_command", metavar="ACTION")
@@ -69,15 +82,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f.add_argument("--out", required=True, type=Path, help="output directory")
     f.add_argument("--pose", help="pose of the training data, e.g. X=0,Y=0,Z=0 (default: mid travel)")
     f.add_argument("--cases", help="comma-separated load cases of the table to train on (default: all)")
-    f.add_argument("--support", type=int, default=6, help="support points per active input (default %(default)s)")
-    f.add_argument("--smoothing", type=float, default=1.0, help="second-difference smoothing λ (default %(default)s)")
-    f.add_argument("--min-range-K", type=float, default=0.5,
-                   help="temperature inputs with a smaller range in the data are inactive [K] (default %(default)s)")
-    f.add_argument("--select", choices=("threshold", "bic"), default="threshold",
-                   help="input selection: range and correlation thresholds, or also greedy forward selection by BIC")
-    f.add_argument("--max-inputs", type=int, help="at most this many active inputs")
-    f.add_argument("--max-full-dims", type=int, default=3,
-                   help="up to this many active inputs one full grid; above, an additive CD (default %(default)s)")
+    add_fit_options(f)
     f.add_argument("--with-positions", action="store_true", help="also offer the axis positions (*_mm) as inputs")
     f.add_argument("--db", help="also store the CDs in this database (file path or SQLAlchemy URL)")
     f.add_argument("--activate", action="store_true", help="and make them the active set of the pose")

@@ -47,15 +47,9 @@ def add_fit_grid_arguments(sub) -> None:
     g.add_argument("--cool-hours", type=float, default=8.0, help="cooling time after them [h]")
     g.add_argument("--grid-points", type=int, default=3,
                    help="support points per axis (default %(default)s: travel min, model pose, travel max)")
-    g.add_argument("--support", type=int, default=6, help="support points per active CD input (default %(default)s)")
-    g.add_argument("--smoothing", type=float, default=1.0, help="second-difference smoothing λ (default %(default)s)")
-    g.add_argument("--min-range-K", type=float, default=0.5,
-                   help="temperature inputs with a smaller range in the data are inactive [K] (default %(default)s)")
-    g.add_argument("--select", choices=("threshold", "bic"), default="threshold",
-                   help="input selection: range and correlation thresholds, or also greedy forward selection by BIC")
-    g.add_argument("--max-inputs", type=int, help="at most this many active inputs per CD")
-    g.add_argument("--max-full-dims", type=int, default=3,
-                   help="up to this many active inputs one full grid; above, an additive CD (default %(default)s)")
+    from hybridcomp.chardiag.cli import add_fit_options
+
+    add_fit_options(g)
     g.add_argument("--out", required=True, type=Path, help="output directory")
     g.add_argument("--db", help="also store the grid in this database (file path or SQLAlchemy URL)")
     g.add_argument("--activate", action="store_true", help="and make it the machine's active grid")

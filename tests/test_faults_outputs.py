@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_faults_files import refused, tree  # the same checks of a refusal and of what is on disk
 
 from hybridcomp.cli import build_parser, main
 from hybridcomp.safeio import AppendOnlyFile, OutputPathError
@@ -100,28 +101,6 @@ def test_every_command_with_an_output_has_force(command):
 
 
 # --------------------------------------------------------------------------- fixtures
-
-
-def tree(root: Path) -> dict[str, object]:
-    """Every entry under ``root``: a file's bytes, a link's target, a folder's marker."""
-    out = {}
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            p = Path(dirpath) / name
-            rel = str(p.relative_to(root))
-            out[rel] = ("link", os.readlink(p)) if p.is_symlink() else "dir" if p.is_dir() else p.read_bytes()
-    return out
-
-
-def refused(capsys, argv, *names) -> str:
-    """Run ``argv``; assert exit code 2 and one line on stderr naming each of ``names``; return that line."""
-    rc = main([str(a) for a in argv])
-    err = capsys.readouterr().err.strip()
-    assert rc == 2, err
-    assert "\n" not in err, err
-    for n in names:
-        assert str(n) in err, err
-    return err
 
 
 def reached_work(capsys, argv) -> None:
