@@ -7,6 +7,8 @@ Commands::
     hybridcomp cd eval cds/ --data data.csv --cases simultaneous --out pred.csv
     hybridcomp cd eval cds/ --point T1=21.3,T2=22.0,... --cnc 840d
     hybridcomp cd db list|show|search|activate|import|export --db cds.sqlite ...
+    hybridcomp cd fit-grid --pose-rom POSES.rom.npz --out grid/ [--db cds.sqlite --activate]   (chardiag.cli_grid)
+    hybridcomp cd db grid-activate|grid-search|grid-export ...
 """
 
 from __future__ import annotations
@@ -29,10 +31,23 @@ log = logging.getLogger(__name__)
 
 DEFAULT_DB = "hybridcomp-cds.sqlite"
 # database actions that only read: they open the database read-only and never create one
-READ_ONLY_DB_ACTIONS = ("list", "show", "search", "export")
+READ_ONLY_DB_ACTIONS = ("list", "show", "search", "export", "grid-search", "grid-export")
 
 
 
+
+
+def add_fit_options(p) -> None:
+    """The CD fitter's options (:class:`hybridcomp.chardiag.fit.FitOptions`), for ``cd fit`` and ``cd fit-grid``."""
+    p.add_argument("--support", type=int, default=6, help="support points per active input (default %(default)s)")
+    p.add_argument("--smoothing", type=float, default=1.0, help="second-difference smoothing λ (default %(default)s)")
+    p.add_argument("--min-range-K", type=float, default=0.5,
+                   help="temperature inputs with a smaller range in the data are inactive [K] (default %(default)s)")
+    p.add_argument("--select", choices=("threshold", "bic"), default="threshold",
+                   help="input selection: range and correlation thresholds, or also greedy forward selection by BIC")
+    p.add_argument("--max-inputs", type=int, help="at most this many active inputs per CD")
+    p.add_argument("--max-full-dims", type=int, default=3,
+                   help="up to this many active inputs one full grid; above, an additive CD (default %(default)s)")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``hybridcomp cd`` actions and their options."""
@@ -67,15 +82,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f.add_argument("--out", required=True, type=Path, help="output directory")
     f.add_argument("--pose", help="pose of the training data, e.g. X=0,Y=0,Z=0 (default: mid travel)")
     f.add_argument("--cases", help="comma-separated load cases of the table to train on (default: all)")
-    f.add_argument("--support", type=int, default=6, help="support points per active input (default %(default)s)")
-    f.add_argument("--smoothing", type=float, default=1.0, help="second-difference smoothing λ (default %(default)s)")
-    f.add_argument("--min-range-K", type=float, default=0.5,
-                   help="temperature inputs with a smaller range in the data are inactive [K] (default %(default)s)")
-    f.add_argument("--select", choices=("threshold", "bic"), default="threshold",
-                   help="input selection: range and correlation thresholds, or also greedy forward selection by BIC")
-    f.add_argument("--max-inputs", type=int, help="at most this many active inputs")
-    f.add_argument("--max-full-dims", type=int, default=3,
-                   help="up to this many active inputs one full grid; above, an additive CD (default %(default)s)")
+    add_fit_options(f)
     f.add_argument("--with-positions", action="store_true", help="also offer the axis positions (*_mm) as inputs")
     f.add_argument("--db", help="also store the CDs in this database (file path or SQLAlchemy URL)")
     f.add_argument("--activate", action="store_true", help="and make them the active set of the pose")
@@ -96,6 +103,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     e.add_argument("--axis-names", help="with --cnc 840d: control axis identifiers, e.g. X=X1,Y=Y1,Z=Z1")
     e.add_argument("--out", type=Path, help="write predictions (with --data) or the CNC text (with --point) here")
     e.add_argument("--force", action="store_true", help=FORCE_HELP)
+
+    from hybridcomp.chardiag.cli_grid import add_db_grid_arguments, add_fit_grid_arguments
+
+    add_fit_grid_arguments(sub)
 
     d = sub.add_parser("db", help="the CD database: list, show, search, activate, import, export",
                        description="The CD database (SQLite file by default, any SQLAlchemy URL such as "
@@ -135,6 +146,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     q.add_argument("ids", nargs="+", type=int)
     q.add_argument("--out", required=True, type=Path, help="output directory")
     q.add_argument("--force", action="store_true", help=FORCE_HELP)
+    add_db_grid_arguments(dsub, db_arg)
 
 
 
@@ -142,6 +154,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run a ``hybridcomp cd`` action; returns the exit code (1: no stored set found, 2: bad input)."""
     from hybridcomp.chardiag.cd import CDError
+    from hybridcomp.chardiag.cli_grid import fit_grid_command
     from hybridcomp.chardiag.db import CDDatabaseError
     from hybridcomp.chardiag.fit import CDFitError
     from hybridcomp.chardiag.training import TrainingDataError
@@ -149,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     from hybridcomp.fem.loads import LoadsFileError
     from hybridcomp.models.machine import MachineFileError
 
-    handlers = {"train-data": _train_data, "fit": _fit, "eval": _eval, "db": _db}
+    handlers = {"train-data": _train_data, "fit": _fit, "eval": _eval, "db": _db, "fit-grid": fit_grid_command}
     try:
         bad = refuse_unused(args, _unused_rules(args))
         if bad:
@@ -169,6 +182,10 @@ def _unused_rules(args) -> list:
         why = "applies to the basic and simultaneous load cases only (the job-shop day and files have their own times)"
         return [("workers", args.scheduler not in ("process", "local"), WORKERS_RULE),
                 ("heat_hours", not heated, why), ("cool_hours", not heated, why)]
+    if c == "fit-grid":
+        from hybridcomp.chardiag.cli_grid import unused_rules
+
+        return unused_rules(args)
     if c == "fit":
         return [("activate", args.db is None, "needs --db (the database to activate the CDs in)")]
     if c == "eval":
@@ -417,6 +434,10 @@ def _db(args) -> int:
             machine = load_machine(args.machine)
         to_store = [read_cd(f, machine) for f in args.files]
     with CDDatabase(args.db, readonly=c in READ_ONLY_DB_ACTIONS) as db:
+        if c.startswith("grid-"):
+            from hybridcomp.chardiag.cli_grid import db_grid_command
+
+            return db_grid_command(args, db)
         if c == "list":
             rows = db.list(args.machine_name)
             if not rows:
@@ -426,6 +447,9 @@ def _db(args) -> int:
                 print(f"{r['id']:>5}  {r['machine']:<12} {r['pose_key']:<24} {r['direction']}  "
                       f"{r['load_case']:<40} inputs {r['n_active_inputs']:>2}  rms {rms:>8} µm  {r['created']}"
                       + ("  ACTIVE" if r["active"] else ""))
+            from hybridcomp.chardiag.cli_grid import list_grids
+
+            list_grids(db, args.machine_name)
         elif c == "show":
             cd = db.get(args.id)
             st = cd.fit_stats()

@@ -9,7 +9,10 @@ Tables (schema version :data:`SCHEMA_VERSION`, kept in ``meta``):
 * ``events``: activations (written here, in the transaction that changes ``active``) and the monitor's
   switches, generations, decisions and warnings, with their numbers as JSON; an event may carry a unique
   ``key`` so a daemon that is killed and restarted never writes one twice;
-* ``state``: a small key–value store (JSON text) for a daemon's state.
+* ``state``: a small key–value store (JSON text) for a daemon's state;
+* ``grids``, ``grid_cds``, ``active_grid`` (schema 2): CD sets per support point of a workspace grid
+  (:mod:`hybridcomp.chardiag.grid`): the grid record (axes, positions, the model's pose), its points' CD ids, and the
+  active grid per machine (activating a grid activates every point's set in ``active`` too).
 
 This module stores CDs, load cases and active sets; the monitor's events and state are read and written by
 ``hybridcomp.monitor.store`` through the same engine (one database, one schema, created and migrated here).
@@ -48,7 +51,7 @@ from hybridcomp.models import jsonio
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 # event writers serialise on this lock, so event ids become visible in commit order (a reader tailing with
 # ``since_id`` never skips an event that commits after a later id)
 EVENTS_LOCK = "hybridcomp events"
@@ -179,6 +182,24 @@ class Match:
     distance: float
 
 
+@dataclass(frozen=True)
+class GridMatch:
+    """A stored CD grid that fits a load case (:meth:`CDDatabase.search_grids`).
+
+    Attributes
+    ----------
+    grid_id : its id
+    load_case : its training load case(s)
+    delta_T_K : max |T_reference − T| over its points' sets and the common sensors [K]
+    distance : the largest load-case signature distance over its points' sets (NaN when none was given or stored)
+    """
+
+    grid_id: int
+    load_case: str
+    delta_T_K: float
+    distance: float
+
+
 def _tables(sa):
     md = sa.MetaData()
     sa.Table("meta", md, sa.Column("key", sa.String(64), primary_key=True), sa.Column("value", sa.Text, nullable=False))
@@ -225,6 +246,28 @@ def _tables(sa):
         sa.Column("key", sa.String(400), nullable=True, unique=True),
     )
     sa.Table(
+        "grids", md,
+        sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+        sa.Column("machine", sa.String(200), nullable=False, index=True),
+        sa.Column("grid", sa.Text, nullable=False),  # SupportGrid.as_dict() as JSON
+        sa.Column("load_case", sa.String(400), nullable=False),
+        sa.Column("created", sa.String(40), nullable=False),
+    )
+    sa.Table(
+        "grid_cds", md,
+        sa.Column("grid_id", sa.Integer, sa.ForeignKey("grids.id"), primary_key=True),
+        sa.Column("point", sa.Integer, primary_key=True),
+        sa.Column("direction", sa.String(1), primary_key=True),
+        sa.Column("pose_key", sa.String(400), nullable=False),
+        sa.Column("cd_id", sa.Integer, sa.ForeignKey("cds.id"), nullable=False),
+    )
+    sa.Table(
+        "active_grid", md,
+        sa.Column("machine", sa.String(200), primary_key=True),
+        sa.Column("grid_id", sa.Integer, sa.ForeignKey("grids.id"), nullable=False),
+        sa.Column("activated", sa.String(40), nullable=False),
+    )
+    sa.Table(
         "state", md,
         sa.Column("key", sa.String(200), primary_key=True),
         sa.Column("value", sa.Text, nullable=False),
@@ -251,8 +294,16 @@ def _readonly_connector(path: Path):
     return connect
 
 
-# schema migrations: version N → N+1, each a function of a connection (none yet: version 1 is the first)
-MIGRATIONS: dict[int, object] = {}
+def _migrate_1(conn) -> None:
+    """Version 1 → 2: the CD grids' tables.
+
+    ``grids``, ``grid_cds`` and ``active_grid`` are new tables, created from the table definitions before the
+    migration runs; no existing table changes.
+    """
+
+
+# schema migrations: version N → N+1, each a function of a connection
+MIGRATIONS: dict[int, object] = {1: _migrate_1}
 
 
 class CDDatabase:
@@ -651,5 +702,188 @@ class CDDatabase:
             return None
         return CDSet({d: self.get(i) for d, i in ids.items()}, ids)
 
+    # ------------------------------------------------------------------ CD grids (CD sets per support point)
 
-__all__ = ["CDDatabase", "CDDatabaseError", "Match", "SCHEMA_VERSION", "pose_key", "sqlite_file"]
+    def add_grid(self, grid, load_case: str | None = None) -> int:
+        """Store a :class:`~hybridcomp.chardiag.grid.CDGrid`; returns the grid's id.
+
+        Every point's CDs and the grid record, in one transaction (all or nothing).
+        """
+        from hybridcomp.chardiag.grid import point_keys
+
+        grids, gc = self.t["grids"], self.t["grid_cds"]
+        keys = point_keys(grid.grid)
+        items = [[(s.cds[d], cd_to_bytes(s.cds[d])) for d in DIRECTIONS] for s in grid.sets]
+        name = load_case if load_case is not None else grid.load_case
+
+        def add(conn):
+            gid = int(conn.execute(grids.insert().values(
+                machine=grid.machine, grid=jsonio.dumps(grid.grid.as_dict()), load_case=name,
+                created=utc_now())).inserted_primary_key[0])
+            rows = []
+            for i, (key, cds) in enumerate(zip(keys, items)):
+                for cd, xml in cds:
+                    rows.append({"grid_id": gid, "point": i, "direction": cd.direction, "pose_key": key,
+                                 "cd_id": self._insert(conn, cd, xml, load_case)})
+            conn.execute(gc.insert(), rows)
+            return gid
+
+        return int(self.write(add, f"storing a CD grid of {len(items)} support points"))
+
+    def grids(self, machine: str | None = None) -> list[dict]:
+        """Summary rows of the stored CD grids (oldest first).
+
+        Each: id, machine, axes, shape, load case, created, the largest RMS fit residual of its CDs [µm], whether
+        it is the machine's active grid.
+        """
+        sa = self._sa
+        grids, gc, cds, ag = self.t["grids"], self.t["grid_cds"], self.t["cds"], self.t["active_grid"]
+        worst = (sa.select(gc.c.grid_id, sa.func.max(cds.c.rms_residual_um).label("rms"))
+                 .join(cds, cds.c.id == gc.c.cd_id).group_by(gc.c.grid_id).subquery())
+        q = (sa.select(grids.c.id, grids.c.machine, grids.c.grid, grids.c.load_case, grids.c.created,
+                       worst.c.rms, ag.c.grid_id.label("active"))
+             .outerjoin(worst, worst.c.grid_id == grids.c.id)
+             .outerjoin(ag, sa.and_(ag.c.grid_id == grids.c.id, ag.c.machine == grids.c.machine))
+             .order_by(grids.c.id))
+        if machine is not None:
+            q = q.where(grids.c.machine == machine)
+        out = []
+        with self.engine.connect() as conn:
+            for r in conn.execute(q):
+                g = json.loads(r.grid)
+                out.append({"id": int(r.id), "machine": r.machine, "axes": g["axes"],
+                            "shape": [len(p) for p in g["positions_mm"]], "load_case": r.load_case,
+                            "created": r.created, "max_rms_residual_um": r.rms, "active": r.active is not None})
+        return out
+
+    def grid_ids(self, grid_id: int) -> tuple[dict, list[dict[str, int]]]:
+        """A stored grid's record (machine, grid dict, load case) and its points' CD ids by direction."""
+        sa = self._sa
+        grids, gc = self.t["grids"], self.t["grid_cds"]
+        with self.engine.connect() as conn:
+            row = conn.execute(sa.select(grids).where(grids.c.id == int(grid_id))).first()
+            if row is None:
+                raise CDDatabaseError(f"{_redact(self.url)}: table grids has no id {grid_id}")
+            pts = conn.execute(sa.select(gc.c.point, gc.c.direction, gc.c.cd_id)
+                               .where(gc.c.grid_id == int(grid_id)).order_by(gc.c.point)).all()
+        rec = {"machine": row.machine, "grid": json.loads(row.grid), "load_case": row.load_case, "created": row.created}
+        n = 1
+        for p in rec["grid"]["positions_mm"]:
+            n *= len(p)
+        ids: list[dict[str, int]] = [{} for _ in range(n)]
+        for p, d, cd_id in pts:
+            if not 0 <= p < n:
+                raise CDDatabaseError(f"{_redact(self.url)}: grid {grid_id}: point {p} is not one of its {n} points")
+            ids[p][d] = int(cd_id)
+        bad = [i for i, x in enumerate(ids) if set(x) != set(DIRECTIONS)]
+        if bad:
+            raise CDDatabaseError(f"{_redact(self.url)}: grid {grid_id}: support point {bad[0]} has CDs for "
+                                  f"{sorted(ids[bad[0]])}, not one per direction {DIRECTIONS}")
+        return rec, ids
+
+    def grid(self, grid_id: int):
+        """A stored :class:`~hybridcomp.chardiag.grid.CDGrid` (its sets read and checked)."""
+        from hybridcomp.chardiag.grid import CDGrid
+        from hybridcomp.rom.volumetric import SupportGrid
+
+        rec, ids = self.grid_ids(grid_id)
+        sets = tuple(CDSet({d: self.get(i[d]) for d in DIRECTIONS}, i) for i in ids)
+        return CDGrid(SupportGrid.from_dict(rec["grid"]), sets, int(grid_id), rec["load_case"])
+
+    def activate_grid(self, grid_id: int, reason: str = "", machine_time_s: float | None = None,
+                      event_key: str | None = None) -> int | None:
+        """Make a stored grid its machine's active grid and every point's set the active set of its pose, atomically.
+
+        A ``grid activation`` event is logged in the same transaction.  Returns the event id (None when
+        ``event_key`` was already logged: then nothing changes).
+        """
+        sa = self._sa
+        act, ag, ev = self.t["active"], self.t["active_grid"], self.t["events"]
+        rec, ids = self.grid_ids(grid_id)
+        machine = rec["machine"]
+        from hybridcomp.chardiag.grid import point_keys
+        from hybridcomp.rom.volumetric import SupportGrid
+
+        keys = point_keys(SupportGrid.from_dict(rec["grid"]))
+
+        def run(conn):
+            self.lock(conn, f"active grid {machine}")
+            for key in keys:
+                self.lock(conn, f"active {machine}\0{key}")
+            self.lock(conn, EVENTS_LOCK)
+            if event_key is not None and conn.execute(sa.select(ev.c.id).where(ev.c.key == event_key)).first():
+                return None
+            previous = conn.execute(sa.select(ag.c.grid_id).where(ag.c.machine == machine)).scalar()
+            now = utc_now()
+            for key, i in zip(keys, ids):
+                conn.execute(act.delete().where(act.c.machine == machine, act.c.pose_key == key))
+                conn.execute(act.insert(), [{"machine": machine, "pose_key": key, "direction": d, "cd_id": i[d],
+                                             "activated": now} for d in DIRECTIONS])
+            conn.execute(ag.delete().where(ag.c.machine == machine))
+            conn.execute(ag.insert().values(machine=machine, grid_id=int(grid_id), activated=now))
+            payload = {"machine": machine, "grid_id": int(grid_id), "points": len(ids), "previous": previous,
+                       "reason": reason}
+            return conn.execute(ev.insert().values(kind="grid activation", machine_time_s=machine_time_s, created=now,
+                                                   payload=jsonio.dumps(payload), key=event_key)).inserted_primary_key[0]
+
+        return self.write(run, f"activating CD grid {grid_id}")
+
+    def active_grid_id(self, machine: str) -> int | None:
+        """The id of the machine's active CD grid, or None."""
+        sa = self._sa
+        ag = self.t["active_grid"]
+        with self.engine.connect() as conn:
+            v = conn.execute(sa.select(ag.c.grid_id).where(ag.c.machine == machine)).scalar()
+        return None if v is None else int(v)
+
+    def active_grid(self, machine: str):
+        """The machine's active :class:`~hybridcomp.chardiag.grid.CDGrid`, or None."""
+        gid = self.active_grid_id(machine)
+        return None if gid is None else self.grid(gid)
+
+    def search_grids(self, machine: str, signature, t_reference_degC: Mapping[str, float], threshold_K: float = 0.5,
+                     layout=None) -> list[GridMatch]:
+        """Stored CD grids of a machine for a load case, best first (as :meth:`search` per pose).
+
+        A grid fits when the reference temperatures of every point's set are within ``threshold_K`` of
+        ``t_reference_degC`` (max over the common sensors); ordered by its largest signature distance (when a
+        signature is given), then ΔT.
+        """
+        if not threshold_K >= 0:
+            raise ValueError(f"threshold_K must be ≥ 0, got {threshold_K!r}")
+        sa = self._sa
+        grids, gc, cds, lc = self.t["grids"], self.t["grid_cds"], self.t["cds"], self.t["load_cases"]
+        sig = None if signature is None else np.asarray(signature, float)
+        q = (sa.select(grids.c.id, grids.c.load_case, lc.c.signature, lc.c.t_reference)
+             .join(gc, gc.c.grid_id == grids.c.id).join(cds, cds.c.id == gc.c.cd_id)
+             .join(lc, lc.c.id == cds.c.load_case_id).where(grids.c.machine == machine).distinct())
+        per: dict[int, list] = {}
+        with self.engine.connect() as conn:
+            for r in conn.execute(q):
+                per.setdefault(int(r.id), []).append(r)
+        out = []
+        for gid, rows in per.items():
+            dT, dist, ok = 0.0, math.nan, True
+            for r in rows:
+                tref = json.loads(r.t_reference)
+                common = [s for s in t_reference_degC if s in tref]
+                if not common:
+                    ok = False
+                    break
+                dT = max(dT, max(abs(float(tref[s]) - float(t_reference_degC[s])) for s in common))
+                stored = np.array(json.loads(r.signature), float)
+                if sig is not None and sig.size and stored.shape == sig.shape:
+                    if layout is not None:
+                        from hybridcomp.histogram.signature import signature_distance
+
+                        d = float(signature_distance(sig, stored, layout))
+                    else:
+                        d = float(np.linalg.norm(sig - stored))
+                    dist = d if math.isnan(dist) else max(dist, d)
+            if ok and dT <= threshold_K:
+                out.append(GridMatch(gid, rows[0].load_case, dT, dist))
+        out.sort(key=lambda m: (math.inf if math.isnan(m.distance) else m.distance, m.delta_T_K, -m.grid_id))
+        return out
+
+
+__all__ = ["CDDatabase", "CDDatabaseError", "GridMatch", "Match", "SCHEMA_VERSION", "pose_key", "sqlite_file"]

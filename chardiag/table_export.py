@@ -58,10 +58,13 @@ compensation is off):
 * ``$AN_CEC_MULT_BY_TABLE`` is not used (0).
 
 Checked against the SINUMERIK 840D sl function manual K3 (extended functions): the K3 setting and machine data
-above, the ``$AN_CEC*`` variables with their meanings, MD18342, MD32710 and SD41300.  Not checked: the program
-header ``%_N_NC_CEC_INI`` with ``CHANDATA(1)`` (the manual's encoder-compensation example uses
-``%_N_AX_EEC_INI``), the parentheses of ``$AN_CEC_INPUT_AXIS[t]=(AX1)``, and MD32720/MD32730: compare with the
-control's own documentation before loading.  The tables are a commissioning form, for a compensation that is
+above, the ``$AN_CEC*`` variables with their meanings, MD18342, MD32710 and SD41300; the program form (header
+``%_N_NC_CEC_INI``, ``CHANDATA(1)``, ``$AN_CEC[t,i]`` in mm, the axes as ``$AN_CEC_INPUT_AXIS[t]=(AX2)``, the
+table parameters after the values, one table after the other) against the sag-compensation table example of the
+K3 function manual (SINUMERIK 802D sl, 11/2012, section 11.3 "Interpolatory compensation"; the 840D sl manual
+describes the same variables).  Not checked: MD32720/MD32730 and the closing ``M17`` of a ``_N_NC_CEC_INI``
+program (the manual's excerpt ends in its table values; its encoder example closes with ``M17``): compare with
+the control's own documentation before loading.  The tables are a commissioning form, for a compensation that is
 updated rarely; the running compensation goes through K3 or the generic table.
 """
 

@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         files = (DATA_ONLY_FILES + DATA_ONLY_PLOTS * (not args.no_plots) if args.data_only
                  else MODEL_FILES + MODEL_PLOTS * (not args.no_plots))
-        inputs = [*args.data, args.map, args.rom]
+        inputs = [*args.data, args.map, args.rom, args.probes, args.pose_rom]
         if not args.data_only:
             from hybridcomp.models.loader import resolve_machine_path
 

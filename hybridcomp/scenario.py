@@ -655,11 +655,12 @@ def trace_positions(machine, trace: Path, t: np.ndarray) -> np.ndarray:
     return P[k]
 
 
-def trace_step_weights(grid, machine, trace: Path, t: np.ndarray) -> np.ndarray:
+def trace_step_weights(grid, machine, trace: Path, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The support poses' weights of every step of ``t`` (nt × poses), where the machine was weighted by the time.
 
     Row k: over the step from ``t[k]`` on, the weights of the trace's samples in it, each for the time until the
-    next sample (:func:`hybridcomp.rom.poses.integrate_along`); a step with no sample: the last sample's.
+    next sample (:func:`hybridcomp.rom.poses.integrate_along`); a step with no sample: the last sample's.  Also
+    how far the samples' weights went from each row's (nt,).
     """
     from hybridcomp.histogram.trace import read_trace_chunks
 
@@ -668,14 +669,16 @@ def trace_step_weights(grid, machine, trace: Path, t: np.ndarray) -> np.ndarray:
     Ws = grid.weights_along(np.vstack([c.position_mm for c in chunks]))
     dts = np.diff(ts, append=ts[-1])
     W = np.empty((t.size, Ws.shape[1]))
+    spread = np.zeros(t.size)
     row = np.searchsorted(t, ts, side="right") - 1  # the step each sample falls in
     for k in range(t.size):
         mine = row == k
         if mine.any() and dts[mine].sum() > 0:
             W[k] = dts[mine] @ Ws[mine] / dts[mine].sum()
+            spread[k] = np.abs(Ws[mine] - W[k]).max()
         else:
             W[k] = Ws[max(int(np.searchsorted(ts, t[k], side="right")) - 1, 0)]
-    return W
+    return W, spread
 
 
 @dataclass(frozen=True)
@@ -720,8 +723,8 @@ def _path_truth(models: Models, real_machine, day: _Day) -> PathTruth:
     values = np.column_stack([np.interp(t, day.real_loads.time_s, day.real_loads.values[:, j])
                               for j in range(len(day.real_loads.names))])
     U_real = real_prom.layout().inputs(list(day.real_loads.names), values, "real machine")
-    weights = trace_step_weights(grid_of(real_prom), machine, day.controller, t)
-    Y_real, _ = integrate_along(real_prom, t, U_real, positions, weights=weights)  # its pose history
+    weights, spread = trace_step_weights(grid_of(real_prom), machine, day.controller, t)
+    Y_real, _ = integrate_along(real_prom, t, U_real, positions, weights=weights, spread=spread)  # its pose history
     added = drift_along(real_prom, Y_real, positions) - _tcp_um(real_prom, Y_real)
     log.info("real machine along the path: its %s pose-aware model, position-dependent part up to %.1f µm",
              "own" if own else "models'", np.abs(added).max())
@@ -740,8 +743,9 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
 
     prom, machine, t, positions = models.pose_rom, models.machine, day.t, path.positions
     truth_path = day.truth + path.added
+    weights, spread = trace_step_weights(grid_of(prom), machine, day.controller, t)
     Y, _ = integrate_along(prom, t, prom.layout().inputs(day.loads.names, day.loads.values, "loads"), positions,
-                           weights=trace_step_weights(grid_of(prom), machine, day.controller, t))
+                           weights=weights, spread=spread)
     path_preds = {}
     for k, p in preds.items():
         if k == BOUND:

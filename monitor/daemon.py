@@ -226,6 +226,12 @@ class Monitor:
 
     def reload_active(self) -> None:
         self.state = T.with_active(self.ctx, self.state, self.db.active_set(self.machine.name, self.pose_key))
+        self.reload_grid()
+
+    def reload_grid(self) -> None:
+        """Without a pose-aware model: the machine's active CD grid (its sets give the support-point table)."""
+        if self.ctx.pose is None and hasattr(self.db, "active_grid"):
+            self.state = T.with_active_grid(self.ctx, self.state, self.db.active_grid(self.machine.name))
 
     def event(self, kind: str, t: float | None, payload: dict, key: str) -> None:
         self.store.log_event(kind, t, payload, key=f"{kind}@{self.pose_key}@{key}")
@@ -234,6 +240,7 @@ class Monitor:
     def _apply(self, step: T.Step, t0: float | None = None) -> list[Offset]:
         """Take the step's state and carry out its effects in order; returns its offsets."""
         self.state = step.state
+        boundary = None
         for e in step.effects:
             if isinstance(e, T.Event):
                 self.event(e.kind, e.t, dict(e.payload), e.key)
@@ -241,18 +248,46 @@ class Monitor:
                 getattr(log, e.level)("%s", e.message)
             elif isinstance(e, T.Activate):
                 self._record_activation(e)
+            elif isinstance(e, T.ActivateGrid):
+                self._record_grid_activation(e)
             elif isinstance(e, T.Request):
                 self._outbox.append(dict(e.request))
             elif isinstance(e, T.Persist):
                 if e.state is not None:
-                    self._boundary = e.state
+                    self._boundary = boundary = e.state
                     if t0 is not None:  # how long the reading that closed the interval took, its decision included
                         dt = time.perf_counter() - t0
                         c = self.state.counters
                         self.state = replace(self.state, counters=replace(
                             c, last_decision_s=dt, max_decision_s=max(c.max_decision_s, dt)))
                 self.persist()
+        if boundary is not None and self.state.grid is not None:
+            self._decide_grid(boundary)
         return list(step.offsets)
+
+    def _decide_grid(self, boundary: T.State) -> None:
+        """The CD grid decision at a monitoring boundary (:func:`transitions.on_grid_decision`).
+
+        The stored grids are read lazily from the database, as the decision asks for them.
+        """
+        temps = T.grid_temperatures(self.ctx, boundary)
+        t = boundary.saved.last_time_s
+
+        def candidates():
+            for m in self.db.search_grids(self.machine.name, None, temps, self.cfg.threshold_K):
+                try:
+                    yield self.db.grid(m.grid_id)
+                except (KeyError, ValueError) as exc:  # an unreadable grid is no candidate
+                    log.warning("CD grid %s cannot be read: %s", m.grid_id, exc)
+
+        self._apply(T.on_grid_decision(self.ctx, self.state, t, temps, candidates()))
+
+    def _record_grid_activation(self, a: T.ActivateGrid) -> None:
+        """The database's record of a grid switch, written in order with the events."""
+        gid, t, reason = int(a.grid_id), a.t, a.reason
+        key = f"grid activation@{self.machine.name}@{_t(t)}@{gid}"
+        self.store.call(lambda: self.db.activate_grid(gid, reason=reason, machine_time_s=t, event_key=key),
+                        f"activating CD grid {gid}")
 
     def _record_activation(self, a: T.Activate) -> None:
         """The database's record of a switch, written in order with the events, off the compensation path."""

@@ -46,9 +46,11 @@ class Offset:
     outside : whether an input was outside the CDs' trained range
     degraded : sensors standing in by the structure model's estimate
     by : what computed the offsets: ``"cd"`` (the active CD set), ``"cd+model"`` (the CDs' slow part and the corrected
-        structure model's fast part), ``"observer"`` (the corrected structure model) or ``"zero"`` (the fail-safe
-        on a known-wrong set while the structure model is flagged: ramping to zero)
-    position_mm : with a pose-aware structure model: the commanded axis positions the offsets are for [mm]
+        structure model's fast part), ``"observer"`` (the corrected structure model), ``"zero"`` (the fail-safe on
+        a known-wrong set while the structure model is flagged: ramping to zero) or ``"cd-grid"`` (the
+        support-point table of the active CD grid, :mod:`hybridcomp.chardiag.grid`)
+    position_mm : with a pose-aware structure model or an active CD grid: the commanded axis positions the offsets
+        are for [mm]
     pose_um : ... the offsets at the model's pose (what a one-pose compensation writes) [µm]
     table : ... the support-point table of the cycle (:class:`hybridcomp.rom.volumetric.VolumetricTable`); the
         offsets are this table interpolated at ``position_mm``

@@ -316,7 +316,9 @@ class OpcUaSource:
     ----------
     url : endpoint, e.g. ``opc.tcp://127.0.0.1:4840``
     nodes : trace column -> node id; ``time_s`` is required, ``x_mm`` ... per axis, ``spindle_rpm``,
-        ``<sensor>_degC``, air columns
+        ``<sensor>_degC``, air columns, and optionally the probed drift ``probe_dx_um``, ``probe_dy_um``,
+        ``probe_dz_um`` (all three): a probe is read when any of them changes in a publish batch (the control
+        writes a probing cycle's result there, NaN or an unchanged value between probes meaning none)
     machine : the machine (axes, sensors)
     publishing_interval_ms : subscription publishing interval [ms]
     stale_s : silence after which the connection is checked [s]
@@ -342,14 +344,19 @@ class OpcUaSource:
         self._axes = [position_column(a.name) for a in machine.axes]
         self._sensors = [s.name for s in machine.sensors if temperature_column(s.name) in nodes]
         self._air = [c for c in air_columns(machine) if c in nodes]
+        self._probe = cols.probe is not None
 
-    def _reading(self, v: Mapping[str, object]) -> Reading:
+    def _reading(self, v: Mapping[str, object], changed: frozenset = frozenset()) -> Reading:
+        """The reading of the latest node values ``v``; ``changed``: the columns of this publish batch."""
         def g(k: str) -> float:
             return as_number(v.get(k), k, self.bad_values)
 
+        probe = None
+        if self._probe and changed & set(PROBE_COLUMNS):
+            probe = _probe(tuple(g(c) for c in PROBE_COLUMNS))
         return Reading(
             g(TIME), tuple(g(c) for c in self._axes), g(SPINDLE_RPM) if SPINDLE_RPM in self.nodes else 0.0,
-            {s: g(temperature_column(s)) for s in self._sensors}, {c: g(c) for c in self._air},
+            {s: g(temperature_column(s)) for s in self._sensors}, {c: g(c) for c in self._air}, probe,
         )
 
     def _check_node_ids(self) -> None:
@@ -395,6 +402,7 @@ class OpcUaSource:
             handles = await sub.subscribe_data_change(nodes)
             self._check_subscribed(handles, ua)
             values: dict[str, float] = {}
+            changed: set[str] = set()  # columns published since the last reading (a probe belongs to one reading)
             last_time = None
             while True:
                 ev = await sub.next_event(timeout=self.stale_s)
@@ -415,11 +423,14 @@ class OpcUaSource:
                     node = getattr(e, "node", None)
                     if node is not None and node.nodeid in by_id:
                         values[by_id[node.nodeid]] = e.value
+                        changed.add(by_id[node.nodeid])
                 t = values.get(TIME)
                 if t is None or t == last_time:
                     continue
+                # the first values are the subscription's snapshot of the nodes, not a probe taken now
+                r = self._reading(values, frozenset(changed) if last_time is not None else frozenset())
                 last_time = t
-                r = self._reading(values)
+                changed.clear()
                 if start_after_s is not None and r.time_s <= start_after_s:
                     continue
                 yield r

@@ -175,6 +175,8 @@ class State:
     written_table : the support-point table written last, or None
     raw_table : the last table before the drives' gains and the rate limit, or None
     drive_gains : the drives' gains (:class:`hybridcomp.monitor.volumetric.DriveGains`), or None
+    grid : without a pose-aware model, the active CD grid (:class:`hybridcomp.chardiag.grid.CDGrid`, loaded by the
+        daemon: :func:`with_active_grid`), whose sets give the support-point table; None: none
     pace : (machine time, wall time) of the last accepted samples (a live source's pace)
     eval_failed_logged, nonfinite_logged : a warning of a failing evaluation / non-finite offsets is out (once
         per run of them)
@@ -193,6 +195,7 @@ class State:
     written_table: object | None = None
     raw_table: object | None = None
     drive_gains: volumetric.DriveGains | None = None
+    grid: object | None = None
     pace: tuple[tuple[float, float], ...] = ()
     eval_failed_logged: bool = False
     nonfinite_logged: bool = False
@@ -250,7 +253,7 @@ class Step:
 
     state: State
     offsets: tuple[Offset, ...] = ()
-    effects: tuple[Event | Activate | Request | Persist | Log, ...] = ()
+    effects: tuple[Event | Activate | ActivateGrid | Request | Persist | Log, ...] = ()
 
     @property
     def events(self) -> tuple[Event, ...]:
@@ -361,6 +364,10 @@ def restored(ctx: Context, saved: MonitorState) -> State:
                      written_table=table_from_dict(saved.table) if saved.table is not None else None)
         if saved.gains is not None:
             st = replace(st, drive_gains=volumetric.DriveGains.from_dict(saved.gains))
+    elif saved.table is not None:  # a CD grid's table (a one-pose model): the rate limit continues from it
+        from hybridcomp.rom.volumetric import table_from_dict
+
+        st = replace(st, written_table=table_from_dict(saved.table))
     if saved.carry is not None:
         st = replace(st, buffer=(saved.carry,))
     return st
@@ -370,6 +377,15 @@ def with_active(ctx: Context, st: State, active: CDSet | None) -> State:
     """The state with ``active`` the active set as the database has it (the database has the last word)."""
     ids = {k: int(v) for k, v in active.ids.items()} if active is not None else None
     return replace(_set(st, active_ids=ids), active=active, eval_failed_logged=False)
+
+
+def with_active_grid(ctx: Context, st: State, grid) -> State:
+    """The state with ``grid`` the active CD grid as the database has it (None: none); a pose-aware model ignores it.
+
+    The next compensation cycles build the support-point table from its sets (:func:`_compensate_from_grid`); the
+    table written last stays the rate limit's start (carried onto the new grid's points when they differ).
+    """
+    return replace(st, grid=grid if ctx.pose is None else None)
 
 
 def boundary_saved(ctx: Context, boundary: State | None, st: State) -> MonitorState:
@@ -789,20 +805,20 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
     return st
 
 
-def _step_weights(ctx: Context, st: State, end_s: float) -> np.ndarray | None:
-    """The support poses' weights over the step ending at ``end_s``, for the pose history; None without samples.
+def _step_weights(ctx: Context, st: State, end_s: float) -> tuple[np.ndarray | None, float]:
+    """The support poses' weights over the step ending at ``end_s`` and their samples' spread, for the pose history.
 
     Where the step's samples were, each for the time until the next (the last until ``end_s``)
-    (:func:`hybridcomp.monitor.volumetric.advance`).
+    (:func:`hybridcomp.monitor.volumetric.advance`); (None, 0) without samples.
     """
     b = st.buffer
     if not b:
-        return None
+        return None, 0.0
     ts = np.fromiter((x.time_s for x in b), float, len(b))
     dt = np.clip(np.diff(ts, append=max(end_s, ts[-1])), 0.0, None)
     if dt.sum() <= 0:
         dt = np.ones(len(b))
-    return volumetric.step_weights(ctx.pose, np.array([x.position_mm for x in b], float), dt)
+    return volumetric.step_weights_spread(ctx.pose, np.array([x.position_mm for x in b], float), dt)
 
 
 def _after_update(ctx: Context, st: State, t: float, u: np.ndarray) -> State:
@@ -815,7 +831,7 @@ def _after_update(ctx: Context, st: State, t: float, u: np.ndarray) -> State:
         if track is None:
             track = volumetric.start(ctx.pose, uc, t, ctx.cfg.increment_s)
         elif t > track.time_s:
-            track = volumetric.advance(ctx.pose, track, uc, t, ctx.cfg.increment_s, _step_weights(ctx, st, t))
+            track = volumetric.advance(ctx.pose, track, uc, t, ctx.cfg.increment_s, *_step_weights(ctx, st, t))
     st = replace(_set(st, step_time_s=t, step_inputs=[float(v) for v in u],
                       drift_um=[float(v) for v in obs.drift_um(state)],
                       drift_next_um=[float(v) for v in obs.forecast(state, u[None, :], ctx.cfg.increment_s)[1][0]]),
@@ -936,6 +952,8 @@ def _compensate(ctx: Context, st: State, r: Reading, out: _Out) -> tuple[State, 
     if ctx.pose is not None and st.track is not None:
         return _compensate_at_position(ctx, st, r, at_pose, active, clamped, limited, bool(outside), degraded, by,
                                        out)
+    if ctx.pose is None and st.grid is not None:
+        return _compensate_from_grid(ctx, st, r, at_pose, active, clamped, limited, bool(outside), degraded, by, out)
     return st, Offset(r.time_s, *at_pose, active, clamped, limited, bool(outside), degraded, by)
 
 
@@ -962,6 +980,35 @@ def _compensate_at_position(ctx: Context, st: State, r: Reading, at_pose: tuple,
     return replace(st, written_table=table), Offset(
         r.time_s, dx, dy, dz, active, clamped, limited or moved, outside, degraded, by,
         position_mm=tuple(float(v) for v in r.position_mm), pose_um=at_pose, table=table)
+
+
+def _compensate_from_grid(ctx: Context, st: State, r: Reading, at_pose: tuple, active: str, clamped: bool,
+                          limited: bool, outside: bool, degraded: str, by: str, out: _Out) -> tuple[State, Offset]:
+    """The support-point table of the active CD grid at the sensors and the offsets it gives at the commanded position.
+
+    Without a pose-aware model: every point's CD set on the low-passed sensors (:meth:`CDGrid.table
+    <hybridcomp.chardiag.grid.CDGrid.table>`), each entry rate limited against the last table (carried onto this
+    grid's points when the grid changed), interpolated at the reading's position.  A grid that cannot be evaluated
+    (a missing sensor, a non-finite value): the offsets at the model's pose, the last table held, one warning.
+    """
+    from hybridcomp.rom.volumetric import interpolate_one
+
+    grid = st.grid
+    try:
+        table, grid_outside = grid.table(st.saved.filtered_degC, r.time_s)
+        old = volumetric.on_grid(st.written_table, table.grid)
+        table, moved = volumetric.table_step(table, old, ctx.cfg.max_step_um)
+    except (KeyError, ValueError) as exc:  # VolumetricError and CDError are ValueErrors
+        if not st.nonfinite_logged:
+            st = replace(st, nonfinite_logged=True)
+            out.event("warning", r.time_s, {"message": f"the CD grid {grid.grid_id} cannot give a support-point table "
+                                            f"({type(exc).__name__}: {exc}); the offsets at the model's pose are "
+                                            "written"}, f"grid@{_t(r.time_s)}")
+        return st, Offset(r.time_s, *at_pose, active, clamped, limited, outside, degraded, by)
+    dx, dy, dz = interpolate_one(table, r.position_mm)
+    return replace(st, written_table=table), Offset(
+        r.time_s, dx, dy, dz, active, clamped, limited or moved, outside or grid_outside, degraded,
+        "cd-grid", position_mm=tuple(float(v) for v in r.position_mm), pose_um=at_pose, table=table)
 
 
 # ============================================================================================ monitoring
@@ -991,6 +1038,10 @@ def _close_interval(ctx: Context, st: State, boundary: float, stored_sets: Store
         st = _set(st, pose_track=volumetric.state_out(st.track),
                   table=table_to_dict(st.written_table) if st.written_table is not None else None,
                   gains=st.drive_gains.as_dict())
+    elif st.written_table is not None:  # a CD grid's table: a restart continues its rate limit
+        from hybridcomp.rom.volumetric import table_to_dict
+
+        st = _set(st, table=table_to_dict(st.written_table))
     out.command(Persist(st))
     return st
 
@@ -1262,6 +1313,61 @@ def on_regeneration_finished(ctx: Context, st: State, request: Mapping, result: 
         out.log("warning", f"generation job for {t:.0f} s {status}: {error}")
     st = _set(st, pending=None)
     out.command(Persist(None))
+    return out.step(st)
+
+
+# ============================================================================================ CD grids
+@dataclass(frozen=True)
+class ActivateGrid:
+    """Record in the database that CD grid ``grid_id`` became the machine's active grid at ``t``.
+
+    The state already has it; ``t`` is machine time [s].
+    """
+
+    grid_id: int
+    reason: str
+    t: float | None
+
+
+def grid_temperatures(ctx: Context, st: State) -> dict[str, float]:
+    """What a grid decision compares the grids' reference temperatures with: the structure model's sensors now [°C]."""
+    return _estimate_degC(ctx, st)
+
+
+def on_grid_decision(ctx: Context, st: State, t: float, temperatures_degC: Mapping[str, float],
+                     candidates: Iterable) -> Step:
+    """At a monitoring boundary, without a pose-aware model: keep the active CD grid or switch to a stored one.
+
+    The active grid is kept while its sets' reference temperatures are within ``threshold_K`` of
+    ``temperatures_degC`` (the structure model's sensors, :func:`grid_temperatures`; max over the sets and the
+    common sensors).  Otherwise the first of ``candidates`` (stored CD grids,
+    best first: the database's :meth:`~hybridcomp.chardiag.db.CDDatabase.search_grids`, read lazily by the shell)
+    that is another grid and fits within ``threshold_K`` becomes active: a ``grid switch`` event and an
+    :class:`ActivateGrid` command; the table's rate limit carries the change over.  None fitting: one
+    ``grid decision`` event, the active grid kept.  No grid active, or a pose-aware model: nothing.
+    """
+    out = _Out()
+    active = st.grid
+    if ctx.pose is not None or active is None or not temperatures_degC:
+        return out.step(st)
+    limit = ctx.cfg.threshold_K
+    dT = active.delta_T_K(temperatures_degC)
+    if dT <= limit:
+        return out.step(st)
+    for g in candidates:
+        if g.grid_id == active.grid_id:
+            continue
+        d = g.delta_T_K(temperatures_degC)
+        if d <= limit:
+            reason = f"grid {active.grid_id}'s reference temperatures are {dT:.2f} K off (> {limit:g} K)"
+            out.event("grid switch", t, {"from": active.grid_id, "to": g.grid_id, "delta_T_K": _finite(dT),
+                                         "new_delta_T_K": _finite(d), "load_case": g.load_case, "reason": reason},
+                      f"{_t(t)}@{g.grid_id}")
+            out.command(ActivateGrid(int(g.grid_id), reason, t))
+            return out.step(replace(st, grid=g))
+    out.event("grid decision", t, {"grid": active.grid_id, "delta_T_K": _finite(dT), "message":
+                                   f"the active CD grid's reference temperatures are {dT:.2f} K off (> {limit:g} K) "
+                                   "and no stored grid fits better: kept"}, _t(t))
     return out.step(st)
 
 

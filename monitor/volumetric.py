@@ -47,17 +47,15 @@ class PoseModel:
 class PoseTrack:
     """The pose-aware model's state at the end of the last model step, its outputs then and one step ahead.
 
-    ``weights``: the support poses' interpolation weights since the pose history last blended the blocks (where
-    the machine was, weighted by the time it spent there) and ``weights_s`` that time [s] (:func:`advance`);
-    None: not known.
+    ``history``: where the machine was since the pose history's last tick
+    (:class:`hybridcomp.rom.poses.HistoryWindow`, :func:`advance`).
     """
 
     time_s: float
     x: np.ndarray
     y_now: np.ndarray
     y_next: np.ndarray
-    weights: np.ndarray | None = None
-    weights_s: float = 0.0
+    history: object = None
 
 
 def pose_model(prom, points: int = 3) -> PoseModel:
@@ -84,29 +82,26 @@ def start(pm: PoseModel, u: np.ndarray, time_s: float, horizon_s: float) -> Pose
 
 
 def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizon_s: float,
-            weights: np.ndarray | None = None, tol: float | None = None) -> PoseTrack:
+            weights: np.ndarray | None = None, spread: float = 0.0) -> PoseTrack:
     """One model step to ``end_s`` with the inputs ``u`` held over it (as the observer steps), and the forecast.
 
     ``weights``: the support poses' interpolation weights over this step (time-weighted where the machine moved,
-    :func:`step_weights`).  Where they differ from the time-weighted weights since the last blend by more than
-    ``tol`` (default :data:`hybridcomp.rom.poses.MOVE_WEIGHT_TOL`), the machine moved: the support poses' blocks
-    are first blended with those (the pose history, :func:`hybridcomp.rom.poses.blend_history`), as
-    :func:`~hybridcomp.rom.poses.integrate_along` does at a move.  A model without a pose transfer, or no
-    weights, runs every block as if the machine stood at its pose.
+    :func:`step_weights`; ``spread`` how far its samples' weights went from them).  The pose history's clock
+    (:func:`hybridcomp.rom.poses.history_step`) decides whether the support poses' blocks are first blended with
+    where the machine was since its last tick
+    (:func:`hybridcomp.rom.poses.blend_history`), as :func:`~hybridcomp.rom.poses.integrate_along` does.  A model
+    without a pose transfer, or no weights, runs every block as if the machine stood at its pose.
     """
-    from hybridcomp.rom.poses import MOVE_WEIGHT_TOL, blend_history
+    from hybridcomp.rom.poses import blend_history, history_step
 
     dt = end_s - track.time_s
-    x, acc, acc_s = track.x, track.weights, track.weights_s
+    x, window = track.x, track.history
     if weights is not None and pm.rom.pose_transfer is not None:
-        w = np.asarray(weights, float)
-        if acc is not None and acc_s > 0 and np.abs(w - acc).max() > (MOVE_WEIGHT_TOL if tol is None else tol):
-            x, acc, acc_s = blend_history(pm.rom, x, acc), None, 0.0
-        step_s = max(dt, 0.0)
-        acc = w if acc is None or acc_s + step_s <= 0 else (acc * acc_s + w * step_s) / (acc_s + step_s)
-        acc_s += step_s
+        blend, window = history_step(window, weights, max(dt, 0.0), step_spread=spread)
+        if blend is not None:
+            x = blend_history(pm.rom, x, blend)
     x = x if dt <= 0 else np.asarray(pm.rom.step(x, u, u, dt), float)
-    return _track(pm, end_s, x, u, horizon_s, acc, acc_s)
+    return _track(pm, end_s, x, u, horizon_s, window)
 
 
 def step_weights(pm: PoseModel, positions_mm: np.ndarray, dt_s: np.ndarray | None = None) -> np.ndarray:
@@ -115,17 +110,27 @@ def step_weights(pm: PoseModel, positions_mm: np.ndarray, dt_s: np.ndarray | Non
     ``positions_mm``: the readings' axis positions (m × axes, machine order) [mm]; ``dt_s``: the time each
     reading stands for (default: equal).
     """
+    return step_weights_spread(pm, positions_mm, dt_s)[0]
+
+
+def step_weights_spread(pm: PoseModel, positions_mm: np.ndarray,
+                        dt_s: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """:func:`step_weights` and how far the readings' own weights went from them (the largest difference)."""
     from hybridcomp.rom.poses import grid_of
 
     W = grid_of(pm.rom).weights_along(positions_mm)
     dt = np.ones(W.shape[0]) if dt_s is None else np.asarray(dt_s, float)
-    return dt @ W / dt.sum()
+    w = dt @ W / dt.sum()
+    return w, float(np.abs(W - w).max())
 
 
 def _track(pm: PoseModel, time_s: float, x: np.ndarray, u: np.ndarray, horizon_s: float,
-           weights: np.ndarray | None = None, weights_s: float = 0.0) -> PoseTrack:
+           history=None) -> PoseTrack:
+    from hybridcomp.rom.poses import HistoryWindow
+
     x_next = np.asarray(pm.rom.step(x, u, u, horizon_s), float)
-    return PoseTrack(float(time_s), x, _outputs(pm, x), _outputs(pm, x_next), weights, float(weights_s))
+    return PoseTrack(float(time_s), x, _outputs(pm, x), _outputs(pm, x_next),
+                     HistoryWindow() if history is None else history)
 
 
 def outputs_at(track: PoseTrack, t: float, horizon_s: float) -> np.ndarray:
@@ -158,6 +163,23 @@ def table_step(new, old, max_step_um: float):
     return limit_table(new, old, max_step_um)
 
 
+def on_grid(table, grid):
+    """``table`` carried onto ``grid``'s points (its value interpolated there, drives included).
+
+    ``table`` itself when it is on ``grid`` already; None for None or for a grid of other axes.  The rate limit's
+    start when the support grid changes (another CD grid made active): the offsets move from what the last table
+    gave at each new point, by at most the rate limit per cycle.
+    """
+    from hybridcomp.rom.volumetric import VolumetricTable, interpolate
+
+    if table is None or table.grid == grid:
+        return table
+    if tuple(table.grid.axes) != tuple(grid.axes):
+        return None  # another machine's axes: nothing to continue
+    S = interpolate(table, grid.points_mm()).reshape(grid.shape + (3,))
+    return VolumetricTable(grid, table.time_s, S)
+
+
 #: a probe within this of the model's pose on every axis is a probe at the model's pose [mm]
 AT_POSE_MM = 1.0
 
@@ -185,9 +207,8 @@ def state_out(track: PoseTrack | None) -> dict | None:
     if track is None:
         return None
     out = {"time_s": track.time_s, "x": [float(v) for v in track.x]}
-    if track.weights is not None:
-        out["weights"] = [float(v) for v in track.weights]
-        out["weights_s"] = float(track.weights_s)
+    if track.history is not None:
+        out["history"] = track.history.as_dict()
     return out
 
 
@@ -198,9 +219,11 @@ def state_in(pm: PoseModel, d: dict | None, u, horizon_s: float) -> PoseTrack | 
     x = np.asarray(d["x"], float)
     if x.shape != (pm.rom.order,):
         raise ValueError(f"pose-aware state of {x.size} values for a model of order {pm.rom.order}")
-    w = d.get("weights")
+    from hybridcomp.rom.poses import HistoryWindow
+
+    h = d.get("history")
     return _track(pm, float(d["time_s"]), x, np.asarray(u, float), horizon_s,
-                  None if w is None else np.asarray(w, float), float(d.get("weights_s", 0.0)))
+                  None if h is None else HistoryWindow.from_dict(h))
 
 
 # ---------------------------------------------------------------------------------------------- the drives' gains

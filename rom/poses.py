@@ -24,11 +24,19 @@ reads a reduced model reads this one), then per further support pose its drift `
 the screws.  ``meta["poses"]``
 holds the grid, ``meta["feedback"]`` the drives; :func:`drift_along` gives the drift, TCP minus table, at the axis
 positions of every time: the support poses interpolated plus every drive's added error at its axis' position.
+
+The pose history: each block runs as if the machine stood at its support pose all along.  Where the machine was
+decides the field, so the model keeps a state transfer between the blocks (:func:`pose_transfer`, built with them
+from their bases carried with the bodies) and, at a move, every block takes the field the blocks gave where the
+machine had been (:func:`blend_history`); :func:`integrate_along` runs a path so (the monitor's model step does the
+same, :func:`hybridcomp.monitor.volumetric.advance`).  ``benchmarks/pose_path.py`` checks it against FE carried
+along paths with moves.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as la
@@ -285,9 +293,69 @@ def drift_along(rom: ReducedModel, Y: np.ndarray, positions_mm: np.ndarray, feed
 
 #: how :func:`integrate_along` follows the poses the machine visits (:func:`blend_history`)
 HISTORIES = ("moves", "steps", "none")
-#: a move, for the pose history: a step's interpolation weights that differ from the time-weighted weights since
-#: the last blend by more than this (any support pose's) [-]; 0.1 is a tenth of an axis' half travel
+#: a move, for the pose history: interpolation weights that differ by more than this (any support pose's) [-];
+#: 0.1 is a tenth of an axis' half travel
 MOVE_WEIGHT_TOL = 0.1
+#: the pose history's clock [s]: the blocks are blended at most at these ticks, with the time-weighted weights of
+#: where the machine was since the last tick; the same ticks whatever the model's step (60 s, 5 min), so the
+#: history does not depend on it, and at most 96 blends a day
+HISTORY_TICK_S = 900.0
+
+
+@dataclass(frozen=True)
+class HistoryWindow:
+    """Where the machine was since the pose history's last tick (:func:`history_step`).
+
+    Attributes
+    ----------
+    since_s : time since the tick [s]
+    weights : the time-weighted interpolation weights over it (None before the first step)
+    first : the weights of its first step
+    moved : whether a step's weights differed from ``first`` by more than the tolerance
+    """
+
+    since_s: float = 0.0
+    weights: np.ndarray | None = None
+    first: np.ndarray | None = None
+    moved: bool = False
+
+    def as_dict(self) -> dict:
+        return {"since_s": self.since_s, "moved": self.moved,
+                "weights": None if self.weights is None else [float(v) for v in self.weights],
+                "first": None if self.first is None else [float(v) for v in self.first]}
+
+    @staticmethod
+    def from_dict(d: dict) -> HistoryWindow:
+        def arr(v):
+            return None if v is None else np.asarray(v, float)
+
+        return HistoryWindow(float(d["since_s"]), arr(d["weights"]), arr(d["first"]), bool(d["moved"]))
+
+
+def history_step(window: HistoryWindow, step_weights: np.ndarray, step_s: float, tol: float = MOVE_WEIGHT_TOL,
+                 tick_s: float = HISTORY_TICK_S, step_spread: float = 0.0) -> tuple[np.ndarray | None, HistoryWindow]:
+    """Before a step of weights ``step_weights`` and ``step_s`` seconds: blend or not, and the window after it.
+
+    At a tick (``tick_s`` since the last one) the blocks are blended with the window's time-weighted weights when
+    the machine moved in it or moves on now (the step's weights differ from the window's by more than ``tol``);
+    a machine that held its pose all along is left alone, so each block keeps its own heat paths there.
+    ``step_spread``: how far the weights of the step's own samples went from its mean (a step with motion in it
+    is a move however long the step).  Returns the weights to blend with (None: no blend) and the window with this
+    step in it.
+    """
+    w = np.asarray(step_weights, float)
+    within = step_spread > tol
+    blend = None
+    if window.weights is not None and window.since_s >= tick_s - 1e-9:
+        if window.moved or np.abs(w - window.weights).max() > tol:
+            blend = window.weights
+        window = HistoryWindow()
+    if window.weights is None:
+        return blend, HistoryWindow(step_s, w, w, within)
+    total = window.since_s + step_s
+    avg = w if total <= 0 else (window.weights * window.since_s + w * step_s) / total
+    return blend, HistoryWindow(total, avg, window.first,
+                                window.moved or within or np.abs(w - window.first).max() > tol)
 
 
 def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -316,6 +384,8 @@ def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.
     w = np.asarray(weights, float)
     if w.shape != (len(grid.poses),):
         raise ValueError(f"{w.shape} weights for {len(grid.poses)} support poses")
+    if not (np.all(np.isfinite(w)) and abs(w.sum() - 1.0) <= 1e-9):
+        raise ValueError(f"the support poses' weights must be finite and sum to 1, got sum {float(w.sum())!r}")
     orders = prom.meta["poses"]["orders"][:len(grid.poses)]
     o = np.cumsum([0] + list(orders))
     xs = np.asarray(x[:o[-1]], float)
@@ -327,28 +397,29 @@ def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.
     return y
 
 
-def history_cuts(time_s: np.ndarray, weights: np.ndarray, tol: float = MOVE_WEIGHT_TOL) -> list[tuple[int, np.ndarray]]:
+def history_cuts(time_s: np.ndarray, weights: np.ndarray, tol: float = MOVE_WEIGHT_TOL,
+                 tick_s: float = HISTORY_TICK_S, spread: np.ndarray | None = None) -> list[tuple[int, np.ndarray]]:
     """Where a path's pose history blends its blocks, and with which weights: (row, weights) in time order.
 
-    ``weights`` (nt × poses): row k's weights hold over the step from ``time_s[k]`` to the next row.  The weights
-    since the last blend are averaged with the time spent at each; where the next step's weights differ from that
-    average by more than ``tol``, the machine moved: the blocks are blended with the average at that row.
+    ``weights`` (nt × poses): row k's weights hold over the step from ``time_s[k]`` to the next row (``spread``:
+    how far its samples' weights went from them, default 0); the blends are those of :func:`history_step` before
+    each step.
     """
     t = np.asarray(time_s, float)
     W = np.asarray(weights, float)
-    cuts, acc, acc_s = [], np.zeros(W.shape[1]), 0.0
-    for k in range(1, t.size):
-        dt = t[k] - t[k - 1]
-        acc, acc_s = acc + dt * W[k - 1], acc_s + dt
-        if k < t.size - 1 and np.abs(W[k] - acc / acc_s).max() > tol:
-            cuts.append((k, acc / acc_s))
-            acc, acc_s = np.zeros(W.shape[1]), 0.0
+    cuts, window = [], HistoryWindow()
+    for k in range(t.size - 1):
+        blend, window = history_step(window, W[k], t[k + 1] - t[k], tol, tick_s,
+                                     0.0 if spread is None else float(spread[k]))
+        if blend is not None:
+            cuts.append((k, blend))
     return cuts
 
 
 def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, positions_mm: np.ndarray,
                     initial: str | np.ndarray = "steady", history: str = "moves", hold: str = "linear",
-                    weights: np.ndarray | None = None, tol: float = MOVE_WEIGHT_TOL) -> tuple[np.ndarray, np.ndarray]:
+                    weights: np.ndarray | None = None, tol: float = MOVE_WEIGHT_TOL,
+                    tick_s: float = HISTORY_TICK_S, spread: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A pose-aware model's outputs along a path, following the poses the machine visits (:func:`blend_history`).
 
     Parameters
@@ -357,12 +428,14 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
     time_s, inputs, initial, hold : as :meth:`~hybridcomp.rom.reduced.ReducedModel.integrate`
     positions_mm : axis positions per row (nt × axes, machine order) [mm]; row k's pose holds from ``time_s[k]``
         to the next row (the step into row k ran at row k − 1's pose)
-    history : ``"moves"``: the blocks blended at every move (:func:`history_cuts`) with the time-weighted weights
-        since the last one; ``"steps"``: at every step with that step's weights; ``"none"``: every block as if
-        the machine stood at its pose all along
+    history : ``"moves"``: the blocks blended at the history's ticks where the machine moved (:func:`history_cuts`)
+        with the time-weighted weights since the last tick; ``"steps"``: at every step with that step's weights
+        (a comparison: it replaces each block's own heat paths by the blend every step); ``"none"``: every block
+        as if the machine stood at its pose all along
     weights : the support poses' weights per row (nt × poses) instead of those of ``positions_mm``: over a step in
         which the machine moved, the time-weighted weights of where it was (e.g. of a trace's samples)
-    tol : what counts as a move (:data:`MOVE_WEIGHT_TOL`)
+    tol, tick_s, spread : what counts as a move, the history's clock, and how far each row's samples' weights went
+        from ``weights`` (:func:`history_cuts`)
 
     Returns
     -------
@@ -386,7 +459,7 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
             Y[k] = prom.outputs(x)
         return Y, x
     x, i0 = initial, 0
-    for k, w in history_cuts(t, W, tol):
+    for k, w in history_cuts(t, W, tol, tick_s, spread):
         Y[i0:k + 1], x = prom.integrate(t[i0:k + 1], U[i0:k + 1], x, hold=hold)
         x = blend_history(prom, x, w)
         Y[k], i0 = prom.outputs(x), k

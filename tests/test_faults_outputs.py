@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_faults_files import refused, tree  # the same checks of a refusal and of what is on disk
 
 from hybridcomp.cli import build_parser, main
 from hybridcomp.safeio import AppendOnlyFile, OutputPathError
@@ -46,7 +47,8 @@ INPUTS = {
     ("simulate", "--loads"), ("simulate", "--rom"), ("histogram", "input"), ("cd fit", "data"), ("cd eval", "cds"),
     ("cd eval", "--data"), ("cd db import", "files"), ("table", "--rom"), ("table", "--loads"),
     ("reduce", "--matrices"), ("reduce", "--check-loads"), ("diagnose", "--data"), ("diagnose", "--map"),
-    ("diagnose", "--rom"), ("data fetch", "--from"), ("batch run", "loads_dir"), ("monitor run", "--config"),
+    ("diagnose", "--rom"), ("diagnose", "--probes"), ("diagnose", "--pose-rom"), ("cd fit-grid", "--pose-rom"),
+    ("data fetch", "--from"), ("batch run", "loads_dir"), ("monitor run", "--config"),
     ("monitor status", "--config"), ("monitor example-trace", "--rom"),
 }
 
@@ -67,6 +69,8 @@ OUTPUTS = {
     ("cd fit", "--out"): (["cd", "fit", "{table}", "--out", "{out}", "--no-plot"], "cd_X.xml"),
     ("cd eval", "--out"): (["cd", "eval", "{cds}", "--point", "T1=22,T2=22.5,T3=21", "--out", "{out}"], "file"),
     ("cd db export", "--out"): (["cd", "db", "export", "1", "--db", "{db}", "--out", "{out}"], "cd_1_X.xml"),
+    ("cd fit-grid", "--out"): (["cd", "fit-grid", "--pose-rom", "{rom}", "--out", "{out}"], "grid.json"),
+    ("cd db grid-export", "--out"): (["cd", "db", "grid-export", "1", "--db", "{db}", "--out", "{out}"], "grid.json"),
     ("table", "--out"): (["table", "--rom", "{rom}", "--loads", "{loads}", "--at-hours", "0", "--form", "csv", "--out", "{out}"],
                          "file"),
     ("reduce", "--out"): (["reduce", "--machine", "vmc800", "--out", "{out}"], "file"),
@@ -97,28 +101,6 @@ def test_every_command_with_an_output_has_force(command):
 
 
 # --------------------------------------------------------------------------- fixtures
-
-
-def tree(root: Path) -> dict[str, object]:
-    """Every entry under ``root``: a file's bytes, a link's target, a folder's marker."""
-    out = {}
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            p = Path(dirpath) / name
-            rel = str(p.relative_to(root))
-            out[rel] = ("link", os.readlink(p)) if p.is_symlink() else "dir" if p.is_dir() else p.read_bytes()
-    return out
-
-
-def refused(capsys, argv, *names) -> str:
-    """Run ``argv``; assert exit code 2 and one line on stderr naming each of ``names``; return that line."""
-    rc = main([str(a) for a in argv])
-    err = capsys.readouterr().err.strip()
-    assert rc == 2, err
-    assert "\n" not in err, err
-    for n in names:
-        assert str(n) in err, err
-    return err
 
 
 def reached_work(capsys, argv) -> None:

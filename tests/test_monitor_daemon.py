@@ -848,3 +848,43 @@ def test_a_pending_request_submitted_again_after_a_restart_adopts_the_stored_res
     with CDDatabase(tmp_path / "cd.db") as db:
         stored = MonitorStore(db).get_state(generation_key(request))
     assert stored and json.loads(stored)["ids"] == {"X": 1, "Y": 2, "Z": 3}
+
+
+def test_opcua_source_reads_the_probing_cycles_of_the_control(machine, tmp_path):
+    """A control that writes each probing cycle's drift into three nodes (NaN between probes): the source hands every
+    probe to the reading of its sample, none elsewhere, and not the nodes' first values."""
+    from hybridcomp.monitor.simulator import node_ids
+    from hybridcomp.monitor.sources import OpcUaSource
+
+    path = tmp_path / "trace.csv"
+    probes = {12.0: (1.5, -2.25, 3.0), 30.0: (0.5, float("nan"), -1.0)}  # a probe need not measure every direction
+    with path.open("w") as fh:
+        fh.write("time_s,x_mm,y_mm,z_mm,spindle_rpm,Tamb_degC,probe_dx_um,probe_dy_um,probe_dz_um\n")
+        for k in range(41):
+            t = float(k)
+            p = probes.get(t, (float("nan"),) * 3)
+            fh.write(",".join([f"{t:g}", f"{10 * k:g}", "0", "-5", "1000", "20.5",
+                               *("" if v != v else f"{v:g}" for v in p)]) + "\n")
+    header = path.read_text().split("\n", 1)[0].split(",")
+    port = free_port()
+    server = start_server(path, port, speed=5.0)  # a row every 0.2 s, a publish every 0.05 s: one row per batch
+
+    async def collect():
+        src = OpcUaSource(f"opc.tcp://127.0.0.1:{port}/", node_ids(header), machine, publishing_interval_ms=50,
+                          stale_s=2.0, timeout_s=2.0)
+        got = []
+        async for r in src.readings():
+            got.append(r)
+            if r.time_s >= 40.0:
+                break
+        return got
+
+    try:
+        got = asyncio.run(asyncio.wait_for(collect(), 60))
+    finally:
+        stop_server(server)
+    seen = {r.time_s: r.probe_um for r in got if r.probe_um is not None}
+    assert set(seen) == set(probes)
+    for t, p in probes.items():
+        np.testing.assert_array_equal(seen[t], p)
+    assert len(got) >= 35 and got[-1].position_mm == (400.0, 0.0, -5.0)

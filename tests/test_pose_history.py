@@ -10,17 +10,25 @@ from hybridcomp.rom.poses import blend_history, grid_of, history_cuts, integrate
 from hybridcomp.rom.reduced import RomInputError, load_rom, save_rom
 
 
-def test_a_move_is_a_change_of_the_weights_beyond_the_time_weighted_ones_since_the_last():
-    t = np.array([0.0, 60.0, 120.0, 300.0, 360.0, 420.0, 480.0])
+def test_the_history_blends_at_its_ticks_where_the_machine_moved():
+    """Ticks every 300 s, steps of 60 s: a hold is left alone, a move at a tick blends with the pose left, a move
+    within a window blends at the next tick with where the machine was in it; a wiggle below the tolerance is none."""
     a, b = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.5, 0.5])
-    wiggle = np.array([0.05, -0.05, 0.0])
-    W = np.array([a, a + wiggle, a, b, b, a, a])
-    cuts = history_cuts(t, W, tol=0.1)
-    assert [k for k, _ in cuts] == [3, 5]  # the wiggle is no move
-    # the first blend: the weights of steps 0-2, by their durations (60, 60, 180 s)
-    assert np.allclose(cuts[0][1], (60 * a + 60 * (a + wiggle) + 180 * a) / 300)
-    assert np.allclose(cuts[1][1], b)
-    assert [k for k, _ in history_cuts(t, W, tol=0.01)] == [1, 2, 3, 5]
+    t = np.arange(21) * 60.0
+    hold_then_move = np.array([a] * 10 + [b] * 11)  # the move at 600 s, a tick
+    cuts = history_cuts(t, hold_then_move, tol=0.1, tick_s=300.0)
+    assert [k for k, _ in cuts] == [10] and np.allclose(cuts[0][1], a)
+    mid = np.array([a] * 7 + [b] * 14)  # the move at 420 s, within the window 300-600 s
+    cuts = history_cuts(t, mid, tol=0.1, tick_s=300.0)
+    assert [k for k, _ in cuts] == [10] and np.allclose(cuts[0][1], (2 * a + 3 * b) / 5)
+    wiggle = np.array([a] * 21)
+    wiggle[3] = a + np.array([0.05, -0.05, 0.0])
+    assert history_cuts(t, wiggle, tol=0.1, tick_s=300.0) == []
+    # the same path on 5 min steps: the same blends (the clock, not the step, decides)
+    t5, mid5 = t[::5], mid[::5]
+    assert [(t5[k], w.round(12).tolist()) for k, w in history_cuts(t5, np.array([a, b, b, b, b]), 0.1, 300.0)] == \
+        [(300.0, a.tolist())]
+    assert [t5[k] for k, _ in history_cuts(t5, mid5, 0.1, 300.0)] == [600.0]  # as on the 1 min steps
 
 
 def _blocks(prom):
@@ -76,6 +84,8 @@ def test_at_a_support_pose_its_block_is_kept_and_the_others_take_its_field(pose_
         assert np.allclose(z[b], x[b] + T[b, blocks[4]] @ x[blocks[4]] - T[b, b] @ x[b], rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="weights for 7 support poses"):
         blend_history(prom, x, w[:3])
+    with pytest.raises(ValueError, match="sum to 1, got sum 2"):
+        blend_history(prom, x, 2 * w)
 
 
 @pytest.mark.slow
@@ -126,8 +136,36 @@ def test_the_monitors_steps_follow_the_poses_as_the_path_integration_does(pose_r
     ignored, _ = integrate_along(prom, t, U, P, initial=prom.steady_state(U[0]), history="none", hold="step")
     assert not np.allclose(ignored[-1], Y[-1], rtol=1e-3)  # the moves did change the state
     back = volumetric.state_in(pm, volumetric.state_out(track), U[-1], dt)
-    assert np.array_equal(back.weights, track.weights) and np.array_equal(back.x, track.x)
-    assert back.weights_s == track.weights_s == 4 * dt  # the steps from rows 20-23: since the last move
+    assert back.history.as_dict() == track.history.as_dict() and np.array_equal(back.x, track.x)
+    assert 0 < track.history.since_s < 900.0 + dt  # since the last tick
     w = volumetric.step_weights(pm, np.array(stops[:2]), dt_s=np.array([1.0, 3.0]))
     assert np.allclose(w, 0.25 * grid_of(prom).weights(dict(zip("XYZ", stops[0])))
                        + 0.75 * grid_of(prom).weights(dict(zip("XYZ", stops[1]))))
+
+
+@pytest.mark.slow
+def test_weeks_of_continuous_motion_stay_bounded(pose_rom_200mm, machine):
+    """A month of a machine that moves on every 5 min step (random poses over the whole workspace, the example
+    day's loads over and over): the blends (at most one a quarter hour, with the occupancy) stay within the range
+    of the model that ignores the history, and nothing builds up."""
+    from hybridcomp.fem.loads import example_loads
+
+    prom = pose_rom_200mm
+    day = example_loads(machine, 16.0, 300.0)
+    U_day = prom.layout().inputs(day.names, day.values)
+    days = 30
+    U = np.vstack([U_day[:-1]] * days + [U_day[-1:]])
+    t = np.arange(U.shape[0]) * 300.0
+    rng = np.random.default_rng(7)
+    grid = grid_of(prom)
+    lo = np.array([lv[0] for lv in grid.levels_mm])
+    hi = np.array([lv[2] for lv in grid.levels_mm])
+    P = lo + (hi - lo) * rng.random((t.size, 3))
+    Y, _ = integrate_along(prom, t, U, P)
+    Y0, _ = integrate_along(prom, t, U, P, history="none")
+    assert np.all(np.isfinite(Y))
+    scale = np.abs(Y0).max(axis=0)
+    assert np.all(np.abs(Y).max(axis=0) <= 1.5 * scale + 1e-12)
+    early, late = slice(5 * 192, 10 * 192), slice(25 * 192, 30 * 192)  # (the loads repeat every 192 steps)
+    growth = np.abs(Y[late]).max(axis=0) / np.abs(Y[early]).max(axis=0)  # nothing builds up over weeks
+    assert growth.max() <= 1.1, growth.max()

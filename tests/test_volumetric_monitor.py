@@ -126,9 +126,10 @@ def test_a_replay_with_a_pose_aware_model_writes_tables_and_offsets_at_the_comma
         again = Monitor(cfg, machine, prom, db, "X=0,Y=0,Z=0")
         assert again.track is not None and again.track.time_s == saved["pose_track"]["time_s"]
         # the pose history: the weights of where the machine was since its last move, as the trace's positions give
-        w = np.asarray(saved["pose_track"]["weights"])
-        assert w.shape == (7,) and w.sum() == pytest.approx(1.0) and 0 < saved["pose_track"]["weights_s"]
-        assert np.array_equal(again.track.weights, w)
+        h = saved["pose_track"]["history"]
+        w = np.asarray(h["weights"])
+        assert w.shape == (7,) and w.sum() == pytest.approx(1.0) and 0 < h["since_s"]
+        assert np.array_equal(again.track.history.weights, w)
         assert again.table is not None and again.table.grid.shape == (3, 3, 3)
     finally:
         db.close()
