@@ -49,6 +49,28 @@ def add_fit_options(p) -> None:
     p.add_argument("--max-full-dims", type=int, default=3,
                    help="up to this many active inputs one full grid; above, an additive CD (default %(default)s)")
 
+
+def fit_options(args):
+    """The :class:`~hybridcomp.chardiag.fit.FitOptions` of :func:`add_fit_options`' arguments."""
+    from hybridcomp.chardiag.fit import FitOptions
+
+    return FitOptions(n_support=args.support, smoothing=args.smoothing, min_range_K=args.min_range_K,
+                      select=args.select, max_inputs=args.max_inputs, max_full_dims=args.max_full_dims)
+
+
+def load_cases_of(machine, items, heat_hours: float, cool_hours: float) -> dict:
+    """The load cases named in ``--cases``: bundled ones by name, the others read from their files."""
+    from hybridcomp.chardiag.training import STANDARD_CASES, load_case_from_file, standard_load_cases
+
+    cases = {}
+    for item in items:
+        if item in STANDARD_CASES:
+            cases.update(standard_load_cases(machine, [item], heat_hours, cool_hours))
+        else:
+            lc = load_case_from_file(machine, item)
+            cases[lc.name] = lc
+    return cases
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``hybridcomp cd`` actions and their options."""
     sub = p.add_subparsers(dest="cd_command", metavar="ACTION")
@@ -199,9 +221,7 @@ def _unused_rules(args) -> list:
 def _train_data(args) -> int:
     from hybridcomp.chardiag.training import (
         STANDARD_CASES,
-        load_case_from_file,
         simulate_load_cases,
-        standard_load_cases,
         write_training_csv,
     )
     from hybridcomp.models.loader import load_machine
@@ -213,13 +233,7 @@ def _train_data(args) -> int:
     items = [c.strip() for c in args.cases.split(",") if c.strip()]
     check_output_path(args.out, inputs=[machine.source, *(i for i in items if i not in STANDARD_CASES)],
                       force=args.force)
-    cases = {}
-    for item in items:
-        if item in STANDARD_CASES:
-            cases.update(standard_load_cases(machine, [item], args.heat_hours, args.cool_hours))
-        else:
-            lc = load_case_from_file(machine, item)
-            cases[lc.name] = lc
+    cases = load_cases_of(machine, items, args.heat_hours, args.cool_hours)
     print(f"simulating {len(cases)} load case(s) on {machine.name} at {pose}: {', '.join(cases)}", file=sys.stderr)
     data = simulate_load_cases(machine, cases, pose, args.element_size_mm, args.dt, theta, scheme=scheme,
                                progress=not args.no_progress,
@@ -232,7 +246,7 @@ def _train_data(args) -> int:
 
 def _fit(args) -> int:
     from hybridcomp.chardiag.cd import DIRECTIONS, pose_key
-    from hybridcomp.chardiag.fit import FitOptions, candidate_inputs, fit_cd
+    from hybridcomp.chardiag.fit import candidate_inputs, fit_cd
     from hybridcomp.chardiag.training import read_training_csv
     from hybridcomp.chardiag.xmlio import check_machine, write_cd
     from hybridcomp.models.loader import load_machine
@@ -242,8 +256,7 @@ def _fit(args) -> int:
     data = read_training_csv(args.data)
     if args.cases:
         data = data.subset([c.strip() for c in args.cases.split(",") if c.strip()])
-    opts = FitOptions(n_support=args.support, smoothing=args.smoothing, min_range_K=args.min_range_K,
-                      select=args.select, max_inputs=args.max_inputs, max_full_dims=args.max_full_dims)
+    opts = fit_options(args)
     cands = candidate_inputs(list(data.columns), positions=args.with_positions)
     sensors = {s.name for s in machine.sensors}
     unknown = [n for n, u in cands if u == "degC" and n not in sensors]

@@ -130,9 +130,8 @@ def _summary(grid, residuals=None) -> dict:
 
 def fit_grid_command(args) -> int:
     """Run ``cd fit-grid``; returns the exit code."""
-    from hybridcomp.chardiag.fit import FitOptions
     from hybridcomp.chardiag.grid import fit_grid, grid_residuals, grid_training_data
-    from hybridcomp.chardiag.training import STANDARD_CASES, load_case_from_file, standard_load_cases
+    from hybridcomp.chardiag.training import STANDARD_CASES
     from hybridcomp.chardiag.xmlio import check_machine
     from hybridcomp.models.loader import load_machine
     from hybridcomp.rom.poses import grid_of
@@ -143,7 +142,7 @@ def fit_grid_command(args) -> int:
     items = [c.strip() for c in args.cases.split(",") if c.strip()]
     if not items:
         raise ValueError("--cases is empty")
-    from hybridcomp.chardiag.cli import _db_file
+    from hybridcomp.chardiag.cli import _db_file, fit_options, load_cases_of
 
     inputs = (args.pose_rom, machine.source, _db_file(args.db), *(Path(i) for i in items if i not in STANDARD_CASES))
     check_output_dir(args.out, ["grid.json"], inputs=inputs, force=args.force)  # before any work
@@ -151,15 +150,8 @@ def fit_grid_command(args) -> int:
     grid_of(prom)  # a one-pose model: refused with its message
     grid = default_grid(prom, args.grid_points)
     check_output_dir(args.out, _grid_files(grid.n_points, True), inputs=inputs, force=args.force)
-    opts = FitOptions(n_support=args.support, smoothing=args.smoothing, min_range_K=args.min_range_K,
-                      select=args.select, max_inputs=args.max_inputs, max_full_dims=args.max_full_dims)
-    cases = {}
-    for item in items:
-        if item in STANDARD_CASES:
-            cases.update(standard_load_cases(machine, [item], args.heat_hours, args.cool_hours))
-        else:
-            lc = load_case_from_file(machine, item)
-            cases[lc.name] = lc
+    opts = fit_options(args)
+    cases = load_cases_of(machine, items, args.heat_hours, args.cool_hours)
     print(f"running {len(cases)} load case(s) on {args.pose_rom} at {grid.n_points} support points "
           f"{'x'.join(map(str, grid.shape))}: {', '.join(cases)}", file=sys.stderr)
     data = grid_training_data(prom, cases, grid)

@@ -11,7 +11,6 @@ one of its inputs, never a link, and on a full disk raise an error naming the fi
 
 from __future__ import annotations
 
-import argparse
 import csv
 import errno
 import json
@@ -20,22 +19,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_faults_files import refused, tree  # the same checks of a refusal and of what is on disk
+from test_cli_conventions import walk  # every option of the parser
+from test_faults_files import cd_set, refused, tree  # the same CDs and checks of a refusal and of the disk
 
 from hybridcomp.cli import build_parser, main
 from hybridcomp.safeio import AppendOnlyFile, OutputPathError
 
 # --------------------------------------------------------------------------- the registry
-
-
-def walk(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
-    """(command path, action) of every option and positional of ``parser`` and its sub-subcommands."""
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for name, sub in action.choices.items():
-                yield from walk(sub, (*path, name))
-        else:
-            yield path, action
 
 
 def _name(action) -> str:
@@ -126,19 +116,6 @@ def no_work(monkeypatch):
                    "hybridcomp.diagnose.core.read_measured", "hybridcomp.rom.reduced.load_rom",
                    "hybridcomp.rom.load_rom", "hybridcomp.chardiag.training.simulate_load_cases"):
         monkeypatch.setattr(target, fail)
-
-
-def cd_set(seed: int = 1):
-    """Three small CDs of vmc800 (sensors T1..T3)."""
-    from hybridcomp.chardiag.fit import FitOptions, fit_cd_set
-
-    rng = np.random.default_rng(seed)
-    T = 22.0 + rng.uniform(-2, 2, (200, 3))
-    tab = {f"T{i + 1}_degC": T[:, i] for i in range(3)}
-    for k, d in enumerate(("dx_um", "dy_um", "dz_um")):
-        tab[d] = (T - 22) @ rng.normal(size=3) + k
-    return fit_cd_set(tab, machine="vmc800", pose_mm={"X": 0.0, "Y": 0.0, "Z": 0.0}, signature=np.zeros(3),
-                      load_case=f"case{seed}", options=FitOptions(n_support=3))
 
 
 @pytest.fixture(scope="module")
