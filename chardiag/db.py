@@ -791,11 +791,17 @@ class CDDatabase:
         return CDGrid(SupportGrid.from_dict(rec["grid"]), sets, int(grid_id), rec["load_case"])
 
     def activate_grid(self, grid_id: int, reason: str = "", machine_time_s: float | None = None,
-                      event_key: str | None = None) -> int | None:
+                      event_key: str | None = None, lease_owner: str | None = None) -> int | None:
         """Make a stored grid its machine's active grid and every point's set the active set of its pose, atomically.
 
         A ``grid activation`` event is logged in the same transaction.  Returns the event id (None when
-        ``event_key`` was already logged: then nothing changes).
+        ``event_key`` was already logged: then nothing changes).  A point whose pose a monitoring daemon holds
+        refuses it for anyone but that daemon (``lease_owner``, as :meth:`activate`).
+
+        Raises
+        ------
+        CDDatabaseError
+            a daemon other than ``lease_owner`` holds one of the grid's poses
         """
         sa = self._sa
         act, ag, ev = self.t["active"], self.t["active_grid"], self.t["events"]
@@ -809,6 +815,7 @@ class CDDatabase:
         def run(conn):
             self.lock(conn, f"active grid {machine}")
             for key in keys:
+                self._refuse_held(conn, machine, key, lease_owner)
                 self.lock(conn, f"active {machine}\0{key}")
             self.lock(conn, EVENTS_LOCK)
             if event_key is not None and conn.execute(sa.select(ev.c.id).where(ev.c.key == event_key)).first():

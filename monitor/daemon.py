@@ -284,10 +284,10 @@ class Monitor:
 
     def _record_grid_activation(self, a: T.ActivateGrid) -> None:
         """The database's record of a grid switch, written in order with the events."""
-        gid, t, reason = int(a.grid_id), a.t, a.reason
+        gid, t, reason, owner = int(a.grid_id), a.t, a.reason, self.lease_owner
         key = f"grid activation@{self.machine.name}@{_t(t)}@{gid}"
-        self.store.call(lambda: self.db.activate_grid(gid, reason=reason, machine_time_s=t, event_key=key),
-                        f"activating CD grid {gid}")
+        self.store.call(lambda: self.db.activate_grid(gid, reason=reason, machine_time_s=t, event_key=key,
+                                                      lease_owner=owner), f"activating CD grid {gid}")
 
     def _record_activation(self, a: T.Activate) -> None:
         """The database's record of a switch, written in order with the events, off the compensation path."""

@@ -232,3 +232,34 @@ def test_a_database_in_a_folder_that_does_not_exist_is_refused_not_created(tmp_p
     cfg = monitor_toml(trace, missing / "cd.db")
     refused(capsys, ["monitor", "run", "--config", cfg], "monitor.database", str(missing), "does not exist")
     assert not (tmp_path / "no").exists()
+
+
+def test_a_cd_grid_activation_is_refused_while_a_daemon_holds_one_of_its_poses(tmp_path, capsys, db_two_sets):
+    """A grid is activated point by point: a point at the pose a daemon holds refuses anyone but that daemon (the
+    command and the API), and nothing of the grid becomes active."""
+    import numpy as np
+
+    from hybridcomp.chardiag.cd import CDSet
+    from hybridcomp.chardiag.db import CDDatabase, CDDatabaseError
+    from hybridcomp.chardiag.fit import fit_cd_set
+    from hybridcomp.chardiag.grid import CDGrid, point_pose
+    from hybridcomp.rom.volumetric import SupportGrid
+
+    path, one, _ = db_two_sets
+    grid = SupportGrid(("X", "Y", "Z"), ((0.0, 100.0), (0.0, 50.0), (0.0, 40.0)))  # point 0: the held pose
+    rng = np.random.default_rng(1)
+    T1 = 20.0 + rng.uniform(-2.0, 2.0, 40)
+    sets = tuple(CDSet(fit_cd_set({"T1_degC": T1, "dx_um": (i + 1) * (T1 - 20.0), "dy_um": -(T1 - 20.0),
+                                   "dz_um": 0.5 * (T1 - 20.0)}, machine="vmc800", pose_mm=point_pose(grid, i),
+                                  load_case="grid")) for i in range(grid.n_points))
+    with CDDatabase(path) as db:
+        gid = db.add_grid(CDGrid(grid, sets, load_case="grid"))
+    owner = _hold(path)
+    refused(capsys, ["cd", "db", "grid-activate", str(gid), "--db", path], "held by a monitoring daemon",
+            "vmc800 X=0,Y=0,Z=0")
+    with CDDatabase(path) as db:
+        with pytest.raises(CDDatabaseError, match="held by a monitoring daemon"):
+            db.activate_grid(gid, "by hand")
+        assert db.active_ids("vmc800", PKEY) == one and db.active_grid_id("vmc800") is None
+        db.activate_grid(gid, "the daemon's switch", lease_owner=owner["owner"])  # the daemon itself may
+        assert db.active_grid_id("vmc800") == gid
