@@ -644,29 +644,31 @@ def _summary(scenario: Scenario, models: Models, real_machine, day: _Day, metric
 PATH_STRATEGY = "ROM direct along the path"
 
 
-def trace_positions(machine, trace: Path, t: np.ndarray) -> np.ndarray:
-    """The commanded axis positions of a trace at the times ``t`` (the last sample at or before each) (nt × axes)."""
+def trace_samples(machine, trace: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A trace's sample times [s] (ns,) and commanded axis positions [mm] (ns × axes), read once."""
     from hybridcomp.histogram.trace import read_trace_chunks
 
     chunks = list(read_trace_chunks(trace, machine))
-    ts = np.concatenate([c.time_s for c in chunks])
-    P = np.vstack([c.position_mm for c in chunks])
+    return np.concatenate([c.time_s for c in chunks]), np.vstack([c.position_mm for c in chunks])
+
+
+def trace_positions(ts: np.ndarray, P: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The commanded axis positions (nt × axes) of a trace's samples (:func:`trace_samples`) at the times ``t``.
+
+    The last sample at or before each time.
+    """
     k = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 1)
     return P[k]
 
 
-def trace_step_weights(grid, machine, trace: Path, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def trace_step_weights(grid, ts: np.ndarray, P: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The support poses' weights of every step of ``t`` (nt × poses), where the machine was weighted by the time.
 
-    Row k: over the step from ``t[k]`` on, the weights of the trace's samples in it, each for the time until the
-    next sample (:func:`hybridcomp.rom.poses.integrate_along`); a step with no sample: the last sample's.  Also
-    how far the samples' weights went from each row's (nt,).
+    Row k: over the step from ``t[k]`` on, the weights of the trace's samples (:func:`trace_samples`) in it, each
+    for the time until the next sample (:func:`hybridcomp.rom.poses.integrate_along`); a step with no sample: the
+    last sample's.  Also how far the samples' weights went from each row's (nt,).
     """
-    from hybridcomp.histogram.trace import read_trace_chunks
-
-    chunks = list(read_trace_chunks(trace, machine))
-    ts = np.concatenate([c.time_s for c in chunks])
-    Ws = grid.weights_along(np.vstack([c.position_mm for c in chunks]))
+    Ws = grid.weights_along(P)
     dts = np.diff(ts, append=ts[-1])
     W = np.empty((t.size, Ws.shape[1]))
     spread = np.zeros(t.size)
@@ -689,7 +691,8 @@ class PathTruth:
     machine's OWN pose-aware structure model (its machine file, disturbance and all, reduced at the support
     poses like the models' one; the models' own when the real machine is the model) driven by the real machine's
     loads along the poses it visits (its pose history, :func:`hybridcomp.rom.poses.integrate_along`), at the pose
-    less at the model's pose.  ``positions`` and ``added`` are at the day's times ``t``.
+    less at the model's pose.  ``positions``, ``added`` and the support poses' ``weights`` (and their ``spread``,
+    :func:`trace_step_weights`) are at the day's times ``t``.
     """
 
     pose_mm: dict
@@ -700,6 +703,8 @@ class PathTruth:
     positions: np.ndarray
     added: np.ndarray
     own: bool
+    weights: np.ndarray
+    spread: np.ndarray
 
     def at(self, t_s: float, positions_mm: np.ndarray) -> np.ndarray:
         """The real machine's drift [µm] (m × 3) at the time ``t_s`` at the poses ``positions_mm`` (m × axes)."""
@@ -717,18 +722,19 @@ def _path_truth(models: Models, real_machine, day: _Day) -> PathTruth:
     from hybridcomp.rom.poses import drift_along, grid_of, integrate_along
 
     prom, machine, t = models.pose_rom, models.machine, day.t
-    positions = trace_positions(machine, day.controller, t)
+    ts, P = trace_samples(machine, day.controller)
+    positions = trace_positions(ts, P, t)
     own = real_machine.sha256 != machine.sha256
     real_prom = real_pose_model(day.real_model, models.rom.order) if own else prom
     values = np.column_stack([np.interp(t, day.real_loads.time_s, day.real_loads.values[:, j])
                               for j in range(len(day.real_loads.names))])
     U_real = real_prom.layout().inputs(list(day.real_loads.names), values, "real machine")
-    weights, spread = trace_step_weights(grid_of(real_prom), machine, day.controller, t)
+    weights, spread = trace_step_weights(grid_of(real_prom), ts, P, t)
     Y_real, _ = integrate_along(real_prom, t, U_real, positions, weights=weights, spread=spread)  # its pose history
     added = drift_along(real_prom, Y_real, positions) - _tcp_um(real_prom, Y_real)
     log.info("real machine along the path: its %s pose-aware model, position-dependent part up to %.1f µm",
              "own" if own else "models'", np.abs(added).max())
-    return PathTruth(dict(models.pose_mm), t, day.truth, real_prom, Y_real, positions, added, own)
+    return PathTruth(dict(models.pose_mm), t, day.truth, real_prom, Y_real, positions, added, own, weights, spread)
 
 
 def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, path: PathTruth) -> dict:
@@ -743,7 +749,9 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
 
     prom, machine, t, positions = models.pose_rom, models.machine, day.t, path.positions
     truth_path = day.truth + path.added
-    weights, spread = trace_step_weights(grid_of(prom), machine, day.controller, t)
+    weights, spread = path.weights, path.spread  # where the trace's machine was (the same support poses)
+    if grid_of(prom) != grid_of(path.rom):
+        weights, spread = trace_step_weights(grid_of(prom), *trace_samples(machine, day.controller), t)
     Y, _ = integrate_along(prom, t, prom.layout().inputs(day.loads.names, day.loads.values, "loads"), positions,
                            weights=weights, spread=spread)
     path_preds = {}

@@ -818,7 +818,7 @@ def _step_weights(ctx: Context, st: State, end_s: float) -> tuple[np.ndarray | N
     dt = np.clip(np.diff(ts, append=max(end_s, ts[-1])), 0.0, None)
     if dt.sum() <= 0:
         dt = np.ones(len(b))
-    return volumetric.step_weights_spread(ctx.pose, np.array([x.position_mm for x in b], float), dt)
+    return volumetric.step_weights(ctx.pose, np.array([x.position_mm for x in b], float), dt)
 
 
 def _after_update(ctx: Context, st: State, t: float, u: np.ndarray) -> State:

@@ -85,8 +85,8 @@ def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizo
             weights: np.ndarray | None = None, spread: float = 0.0) -> PoseTrack:
     """One model step to ``end_s`` with the inputs ``u`` held over it (as the observer steps), and the forecast.
 
-    ``weights``: the support poses' interpolation weights over this step (time-weighted where the machine moved,
-    :func:`step_weights`; ``spread`` how far its samples' weights went from them).  The pose history's clock
+    ``weights``, ``spread``: the support poses' interpolation weights over this step (time-weighted where the
+    machine moved) and how far its samples' weights went from them (:func:`step_weights`).  The pose history's clock
     (:func:`hybridcomp.rom.poses.history_step`) decides whether the support poses' blocks are first blended with
     where the machine was since its last tick
     (:func:`hybridcomp.rom.poses.blend_history`), as :func:`~hybridcomp.rom.poses.integrate_along` does.  A model
@@ -104,18 +104,13 @@ def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizo
     return _track(pm, end_s, x, u, horizon_s, window)
 
 
-def step_weights(pm: PoseModel, positions_mm: np.ndarray, dt_s: np.ndarray | None = None) -> np.ndarray:
-    """The support poses' weights over a model step, averaged over the time spent at each pose.
+def step_weights(pm: PoseModel, positions_mm: np.ndarray,
+                 dt_s: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """The support poses' weights over a model step (time-weighted) and how far the readings' own went from them.
 
-    ``positions_mm``: the readings' axis positions (m × axes, machine order) [mm]; ``dt_s``: the time each
-    reading stands for (default: equal).
+    The spread is the largest difference: motion within the step.  ``positions_mm``: the readings' axis positions
+    (m × axes, machine order) [mm]; ``dt_s``: the time each reading stands for (default: equal).
     """
-    return step_weights_spread(pm, positions_mm, dt_s)[0]
-
-
-def step_weights_spread(pm: PoseModel, positions_mm: np.ndarray,
-                        dt_s: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """:func:`step_weights` and how far the readings' own weights went from them (the largest difference)."""
     from hybridcomp.rom.poses import grid_of
 
     W = grid_of(pm.rom).weights_along(positions_mm)

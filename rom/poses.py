@@ -359,16 +359,16 @@ def history_step(window: HistoryWindow, step_weights: np.ndarray, step_s: float,
 
 
 def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The state after the machine spent a step at a pose of interpolation weights ``weights``: the pose history.
+    """The state after the machine was where the interpolation weights ``weights`` say: the pose history.
 
     Every support pose's block runs as if the machine stood at that pose (its heat paths).  The field the machine
     has is the one the blocks give where it was: their fields ``F_j`` (carried to the model's mesh) blended with the
-    weights ``w_j`` of the pose it held (time-weighted over a step with motion).  Every block ``k`` takes the
-    difference between that field and its own, carried onto its pose: ``x_k ← x_k + P_k (Σ_j w_j F_j − F_k)``,
-    with ``T_kj = P_k F_j`` (:attr:`ReducedModel.pose_transfer`).  At a support pose (one weight 1) its block is
-    unchanged and every other takes its field; blocks that agree are left as they are (a uniform rise, any
-    weights); what a block holds beyond the trip between the meshes is kept.  The screws' blocks (after the
-    support poses') are not touched.
+    weights ``w_j`` of where it was (time-weighted since the history's last tick, :func:`history_step`).  Every
+    block ``k`` takes the difference between that field and its own, carried onto its pose:
+    ``x_k ← x_k + P_k (Σ_j w_j F_j − F_k)``, with ``T_kj = P_k F_j`` (:attr:`ReducedModel.pose_transfer`).  At a
+    support pose (one weight 1) its block is unchanged and every other takes its field; blocks that agree are left
+    as they are (a uniform rise, any weights); what a block holds beyond the trip between the meshes is kept.  The
+    screws' blocks (after the support poses') are not touched.
 
     Parameters
     ----------

@@ -131,16 +131,17 @@ def test_the_monitors_steps_follow_the_poses_as_the_path_integration_does(pose_r
     Y, x = integrate_along(prom, t, U, P, initial=prom.steady_state(U[0]), history="moves", hold="step")
     track = volumetric.start(pm, U[0], 0.0, dt)
     for k in range(1, n + 1):  # the step ending at t[k] ran at row k − 1's pose, with the inputs of row k
-        track = volumetric.advance(pm, track, U[k], t[k], dt, weights=volumetric.step_weights(pm, P[k - 1:k]))
+        track = volumetric.advance(pm, track, U[k], t[k], dt, weights=volumetric.step_weights(pm, P[k - 1:k])[0])
     assert np.allclose(track.x, x, rtol=1e-9, atol=1e-12 * np.abs(x).max())
     ignored, _ = integrate_along(prom, t, U, P, initial=prom.steady_state(U[0]), history="none", hold="step")
     assert not np.allclose(ignored[-1], Y[-1], rtol=1e-3)  # the moves did change the state
     back = volumetric.state_in(pm, volumetric.state_out(track), U[-1], dt)
     assert back.history.as_dict() == track.history.as_dict() and np.array_equal(back.x, track.x)
     assert 0 < track.history.since_s < 900.0 + dt  # since the last tick
-    w = volumetric.step_weights(pm, np.array(stops[:2]), dt_s=np.array([1.0, 3.0]))
-    assert np.allclose(w, 0.25 * grid_of(prom).weights(dict(zip("XYZ", stops[0])))
-                       + 0.75 * grid_of(prom).weights(dict(zip("XYZ", stops[1]))))
+    w, spread = volumetric.step_weights(pm, np.array(stops[:2]), dt_s=np.array([1.0, 3.0]))
+    w0, w1 = (grid_of(prom).weights(dict(zip("XYZ", p))) for p in stops[:2])
+    assert np.allclose(w, 0.25 * w0 + 0.75 * w1)
+    assert spread == pytest.approx(0.75 * np.abs(w0 - w1).max())  # the first reading, 3/4 of the way off
 
 
 @pytest.mark.slow
