@@ -20,7 +20,7 @@ from hybridcomp.monitor.decisions import SensorState
 from hybridcomp.monitor.sources import Reading
 from hybridcomp.rom.observer import ObserverState
 
-STATE_VERSION = 5
+STATE_VERSION = 6
 ZERO_OFFSETS = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
 NO_DROPS = {"repeated": 0, "backwards": 0, "jump": 0, "invalid": 0}
 
