@@ -78,14 +78,14 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse._SubParsersAction:
     t.add_argument("--force", action="store_true", help=FORCE_HELP)
     v = sub.add_parser("serve", help="serve a live web page of the daemon and Prometheus /metrics (read-only)",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description="Serve the monitor's live view: one web page (no network needed: its plots are drawn "
+                       description=_wrap("Serve the monitor's live view: one web page (no network needed: its plots are drawn "
                        "by the page itself) with the offsets per axis, the active CD set's predicted error and its "
                        "limits, the sensors against the observer's estimate, the probes, the events of the last shift "
                        "and the health, updated every --interval-s; /api/live gives the same as JSON and /metrics the "
                        "figures for Prometheus (extra 'live': pip install 'hybridcomp[live]'; a Grafana dashboard is "
                        "monitor/grafana_dashboard.json). It reads the daemon's record (its CD database, opened "
                        "read-only, its heartbeat and its offsets file) and works for a running daemon, a stopped one "
-                       "and a replay ('monitor scenario --out DIR': --database DIR).",
+                       "and a replay ('monitor scenario --out DIR': --database DIR)."),
                        epilog="safety:\n  read-only: GET only; nothing on the page changes the machine or the database\n"
                        "  bound to 127.0.0.1 by default; another --host needs --token (or HYBRIDCOMP_MONITOR_TOKEN),\n"
                        "  then the page is opened as http://HOST:PORT/?token=... and Prometheus sends\n"
@@ -110,6 +110,13 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse._SubParsersAction:
     v.add_argument("--shift-hours", type=float, default=8.0, help="the curves and events of the last this many "
                    "hours of machine time (default 8)")
     return sub
+
+
+def _wrap(text: str, width: int = 100) -> str:
+    """A paragraph wrapped for a raw-formatted help text."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -258,6 +258,9 @@ def event_summary(kind: str, p: Mapping) -> str:
     """One line for an event (no file names: a sink event says what failed, not where)."""
     from hybridcomp.monitor.cli import _summary
 
+    if kind == "activation":
+        ids = p.get("ids") or {}
+        return f"CD set {', '.join(f'{k} {v}' for k, v in sorted(ids.items()))} activated ({p.get('reason')})"
     if kind == "sink":
         return f"the offsets could not be written ({p.get('status')}: {p.get('error')})"
     if kind == "probe":
@@ -399,8 +402,18 @@ class LiveReader:
         off = decimate(off)
         history = [h for h in (state.get("history") or []) if h and h[0] >= t0]
         ns = len(sensors)
-        drift = decimate([(h[0], *h[1 + ns:4 + ns]) for h in history if len(h) == 4 + ns])
-        measured = decimate([(h[0], *h[1:1 + ns]) for h in history if len(h) == 4 + ns])
+        drift = [(h[0], *h[1 + ns:4 + ns]) for h in history if len(h) == 4 + ns]
+        measured = [(h[0], *h[1:1 + ns]) for h in history if len(h) == 4 + ns]
+        # after the last boundary's history: the heartbeats seen since (a running daemon)
+        t_hist = history[-1][0] if history else -math.inf
+        for b in c.beats:
+            lv = b.get("live") or {}
+            if b["last_time_s"] > t_hist and b["last_time_s"] >= t0:
+                if lv.get("drift_um"):
+                    drift.append((b["last_time_s"], *lv["drift_um"]))
+                if lv.get("measured_degC"):
+                    measured.append((b["last_time_s"], *(lv["measured_degC"].get(n) for n in sensors)))
+        drift, measured = decimate(drift), decimate(measured)
 
         decisions = [e for e in c.events if e.kind == "decision" and _within(e.machine_time_s, t0)]
         err = [(e.machine_time_s, (e.payload.get("error_um") or {}).get("interval_um"),

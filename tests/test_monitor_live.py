@@ -321,3 +321,26 @@ def test_the_page_in_a_headless_browser(replay, server, tmp_path):
     assert shot.stat().st_size > 20_000
     if os.environ.get("HYBRIDCOMP_UPDATE_FIGURES") == "1":
         shutil.copyfile(shot, FIGURE)
+
+
+@pytest.mark.slow
+def test_a_replay_folder_is_read_from_its_database(replay, tmp_path):
+    from hybridcomp.monitor.live import LiveError, LiveReader, source_from_database
+
+    db_file = Path(replay["cfg"].database)
+    for name in ("cd_hybrid.db", "cd_observer.db"):  # what 'monitor scenario --out' leaves, one per strategy
+        shutil.copyfile(db_file, tmp_path / name)
+    src = source_from_database(tmp_path)
+    assert (src.machine, src.pose_key, Path(src.database).name, src.sink_path) == ("vmc800", PKEY, "cd_hybrid.db", None)
+    reader = LiveReader(src)
+    try:
+        d = reader.snapshot()
+    finally:
+        reader.close()
+    # no offsets file: the heartbeat's offsets, the daemon's last ones
+    assert d["latest"]["offsets_um"] == {c: replay["rows"][-1][c] for c in DRIFT_COLUMNS}
+    assert len(d["series"]["drift"]["t_h"]) >= 12 and d["series"]["error"]["t_h"][-1] == 1.0
+    (tmp_path / "cd_hybrid.db").unlink()
+    (tmp_path / "other.sqlite").write_bytes(b"")
+    with pytest.raises(LiveError, match="2 CD databases"):
+        source_from_database(tmp_path)
