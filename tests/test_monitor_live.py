@@ -1,7 +1,7 @@
 """``hybridcomp monitor serve``: the live view's JSON, /metrics, the page in a headless browser, its refusals.
 
-One short replay (the first hour of the job-shop day at 0.1 Hz on the shared coarse reduced model, a CD set that
-predicts 0.8 × the drift, two probes, a JSON-lines sink) is the daemon's record. The server runs on loopback
+One short replay (an hour at 0.1 Hz, axis X and the spindle busy for 40 min, on the shared coarse reduced model, a CD
+set that predicts 0.8 × the drift, two probes, a JSON-lines sink) is the daemon's record. The server runs on loopback
 (port 0) in this process; what it shows is checked against what the daemon wrote (the sink's last line, the
 database's events) and against the daemon's own state after the run, not against the server's own reading.
 """
@@ -83,6 +83,20 @@ def test_ep95_window_labels_read_as_a_person_says_them():
 
 
 # --------------------------------------------------------------------------- the replay
+def busy_hour(machine):
+    """1 h at 0.1 Hz: axis X and the spindle busy for 40 min, then standstill; the air 20 → 20.3 °C."""
+    import numpy as np
+
+    from hybridcomp.histogram.trace import samples
+
+    t = np.arange(0.0, 3600.0 + 5.0, 10.0)
+    busy = t < 2400.0
+    x = np.where(busy, 300.0 * np.sin(2 * np.pi * t / 97.0), 0.0)
+    spindle = np.where(busy, 0.6 * machine.spindle_max_speed_rpm, 0.0)
+    return samples(machine, t, {"X": x, "Y": np.full_like(t, -100.0), "Z": np.zeros_like(t)}, spindle,
+                   air_degC={"Tamb_degC": 20.0 + 0.3 * t / t[-1]})
+
+
 @pytest.fixture(scope="module")
 def replay(machine, small_rom, tmp_path_factory):
     """The daemon's record of a 1 h replay: database, heartbeat file, JSON-lines sink; and the daemon itself."""
@@ -90,14 +104,14 @@ def replay(machine, small_rom, tmp_path_factory):
     from hybridcomp.chardiag.fit import FitOptions, fit_cd_set
     from hybridcomp.monitor.config import parse_config
     from hybridcomp.monitor.daemon import Monitor, run_monitor
-    from hybridcomp.monitor.example import jobshop_samples, rom_outputs
+    from hybridcomp.monitor.example import rom_outputs
     from hybridcomp.monitor.sinks import make_sink
     from hybridcomp.monitor.sources import ReplaySource
     from hybridcomp.rom import save_rom
 
     out = tmp_path_factory.mktemp("live-replay")
     rom_file = save_rom(out / "vmc800.rom.npz", small_rom)
-    s = jobshop_samples(machine, hours=1.0, rate_hz=0.1)
+    s = busy_hour(machine)
     T, drift = rom_outputs(machine, small_rom, s, 60.0)
     names = [n.name for n in machine.sensors]
     probes = {150: 0.4, 300: -0.3}  # rows probed, with an offset the sensors cannot see [µm]
