@@ -234,7 +234,12 @@ class Handler(BaseHTTPRequestHandler):
                 self._send(200, json.dumps({**snap, "interval_s": self.server.interval_s},
                                            allow_nan=False).encode(), "application/json")
             elif url.path == "/metrics":
-                body, ctype = self.server.metrics_text()
+                try:
+                    body, ctype = self.server.metrics_text()
+                except ImportError:
+                    self._send(503, b"/metrics needs prometheus_client: pip install 'hybridcomp[live]'\n",
+                               "text/plain; charset=utf-8")
+                    return
                 self._send(200, body, ctype)
             else:
                 self._send(404, b"not found\n", "text/plain; charset=utf-8")

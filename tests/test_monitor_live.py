@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import importlib.util
 import json
 import math
 import os
@@ -29,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 POSE = {"X": 0.0, "Y": 0.0, "Z": 0.0}
 PKEY = "X=0,Y=0,Z=0"
 TOKEN = "a-test-token-of-32-characters-xx"
+OK = {"": 200, "api/live": 200, "metrics": 200 if importlib.util.find_spec("prometheus_client") else 503}
 FIGURE = ROOT / "benchmarks" / "figures" / "live_view.png"  # the README's picture (HYBRIDCOMP_UPDATE_FIGURES=1)
 
 
@@ -50,6 +52,22 @@ def test_scrub_removes_paths_and_urls_and_keeps_units():
     out = scrub({"msg": text, "n": [1.5, math.nan]})
     assert "/srv" not in out["msg"] and "secret" not in out["msg"] and "monitor\\cds" not in out["msg"]
     assert "0.4 µm/K at X=0,Y=0,Z=0, 1/√h" in out["msg"] and out["n"] == [1.5, None]
+
+
+def test_the_support_point_table_is_shown_point_by_point():
+    import numpy as np
+
+    from hybridcomp.monitor.live import _table
+    from hybridcomp.rom.volumetric import FeedbackTable, SupportGrid, VolumetricTable, table_to_dict
+
+    grid = SupportGrid(("X", "Y", "Z"), ((-400.0, 0.0, 400.0), (-250.0, 250.0), (-300.0, 0.0, 300.0)))
+    S = np.arange(3 * 2 * 3 * 3, dtype=float).reshape(3, 2, 3, 3) / 10.0
+    fb = (FeedbackTable("X", np.linspace(-400.0, 400.0, 17), np.linspace(0.0, -3.0, 17), 0, 1.0),)
+    t = _table(table_to_dict(VolumetricTable(grid, 7200.0, S, fb)))
+    assert t["axes"] == ["X", "Y", "Z"] and t["time_h"] == 2.0 and len(t["points"]) == 18
+    i, j, k = 2, 1, 0  # X = 400, Y = 250, Z = -300: row (i * 2 + j) * 3 + k in the order of the axes
+    assert t["points"][(i * 2 + j) * 3 + k] == [400.0, 250.0, -300.0, *S[i, j, k]]
+    assert t["drives"] == [{"axis": "X", "direction": 0, "max_abs_um": 3.0}]
 
 
 def test_binding_refusals():
@@ -216,6 +234,7 @@ def test_the_json_shows_what_the_daemon_wrote(replay, server):
 
 @pytest.mark.slow
 def test_metrics_parse_and_carry_the_figures(replay, server):
+    pytest.importorskip("prometheus_client", reason="/metrics needs prometheus_client (extra live, in the test extra)")
     from prometheus_client.parser import text_string_to_metric_families
 
     srv = server()
@@ -287,7 +306,7 @@ def test_read_only_token_and_no_paths(replay, server):
     for path in ("", "api/live", "metrics"):
         assert get(srv.url + path)[0] == 401
         assert get(srv.url + path, {"Authorization": "Bearer " + TOKEN[:-1] + "y"})[0] == 401
-        assert get(srv.url + path, {"Authorization": "Bearer " + TOKEN})[0] == 200
+        assert get(srv.url + path, {"Authorization": "Bearer " + TOKEN})[0] == OK[path]
     assert get(srv.url + "api/live?token=" + TOKEN)[0] == 200
     for method in ("POST", "PUT", "DELETE", "PATCH"):
         code, _, headers = get(srv.url + "api/live", {"Authorization": "Bearer " + TOKEN}, method)
@@ -297,7 +316,7 @@ def test_read_only_token_and_no_paths(replay, server):
     for path in ("", "api/live", "metrics"):
         code, body, headers = get(srv.url + path, {"Authorization": "Bearer " + TOKEN})
         text = body.decode()
-        assert code == 200 and not [s for s in secret if s in text], path
+        assert code == OK[path] and not [s for s in secret if s in text], path
         assert "default-src 'none'" in headers["Content-Security-Policy"]
     assert db_file.read_bytes() == before  # nothing was written
 
@@ -358,3 +377,26 @@ def test_a_replay_folder_is_read_from_its_database(replay, tmp_path):
     (tmp_path / "other.sqlite").write_bytes(b"")
     with pytest.raises(LiveError, match="2 CD databases"):
         source_from_database(tmp_path)
+
+
+@pytest.mark.slow
+def test_the_command_serves_until_sigterm(replay):
+    import signal
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env.pop("HYBRIDCOMP_MONITOR_TOKEN", None)
+    proc = subprocess.Popen([sys.executable, "-m", "hybridcomp", "monitor", "serve", "--database",
+                             str(replay["cfg"].database), "--offsets", str(replay["dir"] / "offsets.jsonl"),
+                             "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = proc.stdout.readline()
+        url = re.search(r"on (http://127\.0\.0\.1:\d+/)", line).group(1)
+        d = json.loads(get(url + "api/live")[1])
+        assert d["latest"]["offsets_um"]["dy_um"] == replay["rows"][-1]["dy_um"]
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate()
