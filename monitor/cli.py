@@ -17,6 +17,9 @@ import time
 from pathlib import Path
 
 from hybridcomp.models import jsonio
+from hybridcomp.monitor.health import daemon_alive as _alive
+from hybridcomp.monitor.health import event_summary as _summary
+from hybridcomp.monitor.health import health
 from hybridcomp.safeio import FORCE_HELP
 
 log = logging.getLogger(__name__)
@@ -340,66 +343,10 @@ def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dic
         "regeneration_running": None if beat is None else beat.get("regeneration_running"),
         "pending_generation": None if state is None or not state.get("pending") else state["pending"]["machine_time_s"],
         "recent_events": [{"kind": e.kind, "machine_time_s": e.machine_time_s, "created": e.created,
-                           "summary": _summary(e)} for e in ev[-n_events:]],
+                           "summary": _summary(e.kind, e.payload)} for e in ev[-n_events:]],
     }
     out["health"], out["health_reason"] = health(out, cfg.stale_after_s)
     return out
-
-
-def _alive(beat: dict) -> bool | None:
-    """Whether the daemon of a heartbeat runs: asked of the process on this host, None for another host."""
-    import socket
-
-    pid = beat.get("pid")
-    if beat.get("host") != socket.gethostname() or not isinstance(pid, int):
-        return None
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def health(st: dict, stale_after_s: float) -> tuple[str, str]:
-    """Whether an offset is being applied now: ``("healthy" | "unhealthy", why)`` from a status dict.
-
-    A daemon on this host that no longer runs (killed with -9: its last heartbeat says running) is unhealthy at
-    once; on another host, once no offset was applied for ``stale_after_s``. The freshness of the offsets comes from
-    the newer of the database's heartbeat and this host's copy (a locked database delays the one, not the other).
-    """
-    if st["running"] is None:
-        return "unhealthy", "no daemon has run on this machine and pose"
-    if not st["running"]:
-        return "unhealthy", "the daemon stopped: no offsets are applied"
-    if st.get("daemon_alive") is False:
-        return "unhealthy", f"the daemon (pid {st.get('daemon_pid')}) is not running: killed or crashed, no offsets " \
-                            "are applied"
-    age = st["seconds_since_offset"]
-    if age is None:
-        return "unhealthy", "no offset applied yet"
-    if age > stale_after_s:
-        return "unhealthy", f"no offset applied for {age:.0f} s (limit {stale_after_s:g} s)"
-    said = f"last offset applied {age:.1f} s ago"
-    if (st["store_backlog"] or 0) > 1000:  # the offsets do not wait for the database: healthy, and said
-        return "healthy", f"{said}; {st['store_backlog']} database writes queued (the database does not take writes)"
-    return "healthy", said
-
-
-def _summary(e) -> str:
-    p = e.payload
-    if e.kind == "decision":
-        return f"{p.get('action')}: {p.get('reason')}"
-    if e.kind == "activation":
-        return f"active {p.get('ids')} ({p.get('reason')})"
-    if e.kind == "generation":
-        return f"{p.get('status')} {p.get('ids') or p.get('error') or ''}".strip()
-    if e.kind == "model_drift":
-        return f"structure model and sensors differ by {p.get('max_abs_K', float('nan')):.2f} K at {p.get('sensor')}"
-    if e.kind == "sensor":
-        return p.get("message", "")
-    return str(p.get("message") or p)[:160]
 
 
 def _status(args) -> int:

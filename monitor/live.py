@@ -256,7 +256,7 @@ def _hours(t_s) -> float | None:
 
 def event_summary(kind: str, p: Mapping) -> str:
     """One line for an event (no file names: a sink event says what failed, not where)."""
-    from hybridcomp.monitor.cli import _summary
+    from hybridcomp.monitor.health import event_summary
 
     if kind == "activation":
         ids = p.get("ids") or {}
@@ -269,12 +269,7 @@ def event_summary(kind: str, p: Mapping) -> str:
             + " µm" + (f"; {p['message']}" if p.get("message") else "")
     if kind == "observer":
         return str(p.get("message") or " ".join(str(p.get(k)) for k in ("status", "sensor", "reason") if p.get(k)))
-
-    class _E:
-        payload = p
-
-    _E.kind = kind
-    return _summary(_E)
+    return event_summary(kind, p)
 
 
 def _fmt(x) -> str:
@@ -371,7 +366,7 @@ class LiveReader:
 
     # ------------------------------------------------------------------ building the snapshot
     def _build(self, now: float) -> dict:
-        from hybridcomp.monitor.cli import _alive, health
+        from hybridcomp.monitor.health import daemon_alive, health
 
         c, src = self._c, self.source
         state, beat = c.state or {}, c.beat or {}
@@ -386,7 +381,7 @@ class LiveReader:
         model_drift_K = src.model_drift_K or live.get("model_drift_K") or 1.0
 
         # health, as `monitor status` judges it
-        st = {"running": beat.get("running", True) if beat else None, "daemon_alive": _alive(beat) if beat else None,
+        st = {"running": beat.get("running", True) if beat else None, "daemon_alive": daemon_alive(beat) if beat else None,
               "daemon_pid": beat.get("pid"), "store_backlog": beat.get("store_backlog"),
               "seconds_since_offset": None if beat.get("applied_unix") is None else now - beat["applied_unix"]}
         status, reason = health(st, src.stale_after_s)
