@@ -266,6 +266,10 @@ def _run(args) -> int:
     from hybridcomp.monitor.sources import OpcUaSource, ReplaySource, WallClock
 
     cfg = load_config(args.config)
+    if cfg.prometheus_port:  # refused before anything is opened
+        from hybridcomp.monitor.metrics import require_client
+
+        require_client(f"{args.config}: [monitor] prometheus_port = {cfg.prometheus_port}")
     if args.speed is not None and cfg.source.kind != "replay":
         raise ConfigError(f"--speed applies to a replay source only; {args.config} reads source.kind = "
                           f"{cfg.source.kind!r}")

@@ -8,7 +8,8 @@ A :class:`http.server.ThreadingHTTPServer` (the standard library, no web framewo
   shift and the health;
 * ``/api/live``: :meth:`hybridcomp.monitor.live.LiveReader.snapshot` as JSON;
 * ``/metrics``: the figures for Prometheus, written by the official client library (``prometheus_client``, extra
-  ``live``); ``monitor/grafana_dashboard.json`` shows them in Grafana.
+  ``live``; :func:`hybridcomp.monitor.metrics.live_families`); ``monitor/grafana_dashboard.json`` shows them in
+  Grafana.
 
 Safe by default: only GET (anything else is 405; nothing on the page changes the machine or the database, which is
 opened read-only), bound to 127.0.0.1 unless told otherwise, a token required when bound to any other address
@@ -22,15 +23,14 @@ import hmac
 import ipaddress
 import json
 import logging
-import math
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from urllib.parse import parse_qs, urlsplit
 
 from hybridcomp.errors import HybridcompError
-from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.monitor.live import LiveReader
+from hybridcomp.monitor.metrics import INSTALL
 
 log = logging.getLogger(__name__)
 
@@ -79,80 +79,9 @@ def page_html() -> str:
 # ============================================================================================ metrics
 def metrics_registry(reader: LiveReader):
     """A ``prometheus_client`` registry whose collector reads :meth:`LiveReader.snapshot` at every scrape."""
-    from prometheus_client.core import CollectorRegistry, CounterMetricFamily, GaugeMetricFamily
+    from hybridcomp.monitor.metrics import live_families, registry
 
-    class Collector:
-        def collect(self):
-            snap = reader.snapshot()
-            counts = reader.event_counts()
-            h, latest, lim = snap["health"], snap["latest"], snap["limits"]
-
-            def gauge(name, doc, value, labels=None):
-                g = GaugeMetricFamily(f"hybridcomp_monitor_{name}", doc, labels=list(labels or {}))
-                if value is not None and math.isfinite(float(value)):
-                    g.add_metric(list((labels or {}).values()), float(value))
-                return g
-
-            g = GaugeMetricFamily("hybridcomp_monitor_offset_micrometers",
-                                  "compensation offset written last (predicted TCP drift; the control subtracts it) [µm]",
-                                  labels=["axis"])
-            for c in DRIFT_COLUMNS:
-                v = latest["offsets_um"].get(c)
-                if v is not None:
-                    g.add_metric([c.removesuffix("_um")], v)
-            yield g
-            g = GaugeMetricFamily("hybridcomp_monitor_predicted_error_micrometers",
-                                  "the active CD set's predicted compensation error at the last decision [µm]",
-                                  labels=["horizon"])
-            for k in ("interval", "forecast"):
-                v = latest["error_um"].get(f"{k}_um")
-                if v is not None:
-                    g.add_metric([k], v)
-            yield g
-            g = GaugeMetricFamily("hybridcomp_monitor_error_limit_micrometers",
-                                  "limits of the predicted error: keep (interval), forecast, hard, reject [µm]",
-                                  labels=["limit"])
-            for k in ("keep", "forecast", "hard", "reject"):
-                if lim.get(f"{k}_um") is not None:
-                    g.add_metric([k], lim[f"{k}_um"])
-            yield g
-            g = GaugeMetricFamily("hybridcomp_monitor_sensor_residual_kelvin",
-                                  "sensor as measured minus the observer's estimate [K]", labels=["sensor"])
-            for s in snap["sensors_now"]:
-                if s["residual_K"] is not None:
-                    g.add_metric([s["name"]], s["residual_K"])
-            yield g
-            yield gauge("model_drift_limit_kelvin", "|sensor - estimate| above which the model has drifted [K]",
-                        lim.get("model_drift_K"))
-            yield gauge("delta_t_kelvin", "last |T_actual - T_reference| of the active CD set [K]", latest["delta_T_K"])
-            c = CounterMetricFamily("hybridcomp_monitor_events", "events the monitor logged, by kind",
-                                    labels=["kind"])
-            for kind, n in sorted(counts.items()):
-                c.add_metric([kind], n)
-            yield c
-            yield gauge("seconds_since_applied_offset", "wall time since a sink last took an offset [s]",
-                        h["seconds_since_offset"])
-            yield gauge("seconds_since_heartbeat", "wall time since the daemon's last heartbeat [s]",
-                        h["seconds_since_heartbeat"])
-            yield gauge("store_queue_length", "database writes the daemon has queued (0: the database keeps up)",
-                        h["store_backlog"])
-            yield gauge("healthy", "1 while an offset was applied within stale_after_s, else 0",
-                        1.0 if h["status"] == "healthy" else 0.0)
-            yield gauge("running", "1 while the daemon runs (its last heartbeat says so), else 0",
-                        None if h["running"] is None else float(bool(h["running"])))
-            yield gauge("degraded_sensors", "number of degraded sensors", len(h["degraded"] or []))
-            yield gauge("observer_flagged", "1 while the observer is not trusted, else 0", float(bool(snap["observer_flag"])))
-            yield gauge("failsafe", "1 while the active set is known wrong and not applied, else 0",
-                        float(bool(snap["failsafe"])))
-            yield gauge("machine_time_seconds", "machine time of the last sample [s]",
-                        None if latest["t_h"] is None else latest["t_h"] * 3600.0)
-
-        def describe(self):
-            return []
-
-    reg = CollectorRegistry(auto_describe=False)
-    reg.register(Collector())
-    return reg
+    return registry(lambda: live_families(reader.snapshot(), reader.event_counts()))
 
 
 # ============================================================================================ the server
@@ -177,11 +106,12 @@ class LiveServer(ThreadingHTTPServer):
         return f"http://{host}:{port}/"
 
     def metrics_text(self) -> tuple[bytes, str]:
-        from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+        """The ``/metrics`` text and its content type (ImportError without ``prometheus_client``)."""
+        from hybridcomp.monitor.metrics import exposition
 
         if self.registry is None:
             self.registry = metrics_registry(self.reader)
-        return generate_latest(self.registry), CONTENT_TYPE_LATEST
+        return exposition(self.registry)
 
 
 class Handler(BaseHTTPRequestHandler):
@@ -237,8 +167,7 @@ class Handler(BaseHTTPRequestHandler):
                 try:
                     body, ctype = self.server.metrics_text()
                 except ImportError:
-                    self._send(503, b"/metrics needs prometheus_client: pip install 'hybridcomp[live]'\n",
-                               "text/plain; charset=utf-8")
+                    self._send(503, f"/metrics needs prometheus_client: {INSTALL}\n".encode(), "text/plain; charset=utf-8")
                     return
                 self._send(200, body, ctype)
             else:
