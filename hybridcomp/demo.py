@@ -206,47 +206,32 @@ def _ep95_plot(path: Path, rows: dict) -> Path | None:
     """E_P95(range) against the window length, one curve per strategy, on log axes.
 
     The y axis is logarithmic (the compensated strategies lie one to two decades below no compensation) and the
-    window ticks are the windows themselves, as a person says them (15 min, 1 h, 4 h, 15 h).
+    window ticks are the windows themselves, as a person says them (15 min, 1 h, 4 h, 15 h):
+    :func:`hybridcomp.plotaxes.window_axes`, as the diagnosis report draws its own.
     """
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-        from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter, NullLocator
     except ImportError:
         return None
+    from hybridcomp.plotaxes import positive, window_axes
+
     fig, ax = plt.subplots(figsize=(8, 4.5))
     windows_h: set[float] = set()
     for name, m in rows.items():
         w = [float(k) / 3600.0 for k in m["p95_range_um"]]
-        v = [float(x) if x is not None and float(x) > 0 else math.nan for x in m["p95_range_um"].values()]
         windows_h.update(w)
-        ax.plot(w, v, marker="o", ms=3, label=name, lw=2.0 if name.startswith("hybrid") else 1.0)
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ticks = sorted(windows_h)
-    ax.xaxis.set_minor_locator(NullLocator())
-    ax.set_xticks(ticks, [_window_label(h) for h in ticks])
-    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
-    ax.yaxis.set_minor_formatter(NullFormatter())
-    ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
-    ax.set_xlabel("window length")
+        ax.plot(w, positive(m["p95_range_um"].values()), marker="o", ms=3, label=name,
+                lw=2.0 if name.startswith("hybrid") else 1.0)
+    window_axes(ax, windows_h, ticks_h=sorted(windows_h))
     ax.set_ylabel("E_P95(range) of the 3D residual [µm]")
-    ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
-
-
-def _window_label(hours: float) -> str:
-    """A window length as a person says it: ``15 min``, ``1 h``, ``1.5 h``, ``15 h``."""
-    minutes = hours * 60.0
-    if minutes < 60.0 - 1e-9:
-        return f"{minutes:.0f} min"
-    return f"{hours:g} h"
 
 
 def _cd_table(db_path: Path) -> list[str]:

@@ -94,10 +94,10 @@ def test_the_command_refuses_another_address_without_a_token(capsys, monkeypatch
 
 
 def test_ep95_window_labels_read_as_a_person_says_them():
-    from hybridcomp.demo import _window_label
     from hybridcomp.metrics import WINDOWS_S
+    from hybridcomp.plotaxes import window_label
 
-    assert [_window_label(w / 3600.0) for w in WINDOWS_S] == ["15 min", "30 min", "1 h", "2 h", "4 h", "8 h", "15 h"]
+    assert [window_label(w / 3600.0) for w in WINDOWS_S] == ["15 min", "30 min", "1 h", "2 h", "4 h", "8 h", "15 h"]
 
 
 # --------------------------------------------------------------------------- the replay
