@@ -46,7 +46,7 @@ def test_the_report_draws_ep95_on_log_axes_with_windows_a_person_reads(tmp_path)
     pytest.importorskip("matplotlib", reason="the report's plots need matplotlib (extra plot)")
     import matplotlib.pyplot as plt
 
-    from hybridcomp.diagnose.report import ep95_figure, ep95_plot
+    from hybridcomp.diagnose.report import ep95_figure
     from hybridcomp.plotaxes import readable_ticks, window_label
 
     assert [window_label(h) for h in (10 / 3600, 0.25, 0.5, 1.0, 1.5, 15.0)] == ["10 s", "15 min", "30 min", "1 h",
@@ -63,7 +63,7 @@ def test_the_report_draws_ep95_on_log_axes_with_windows_a_person_reads(tmp_path)
         ep[c] = {"window_s": w.tolist(), "before": before.tolist(), "after": after.tolist()}
     fig = ep95_figure(ep, ["T7_degC", "dz_um"])
     try:
-        fig.canvas.draw()  # (the tick labels are written when drawn)
+        fig.savefig(tmp_path / "ep95.png", dpi=90)  # as the report writes it (the tick labels are set when drawn)
         for ax in fig.axes:
             assert ax.get_xscale() == "log" and ax.get_yscale() == "log"
             assert [x.get_text() for x in ax.get_xticklabels()] == ["1 min", "5 min", "15 min", "1 h", "4 h", "15 h"]
@@ -76,7 +76,7 @@ def test_the_report_draws_ep95_on_log_axes_with_windows_a_person_reads(tmp_path)
             assert lo < min(after[1:]) and hi > max(ax.lines[0].get_ydata())
     finally:
         plt.close(fig)
-    assert ep95_plot(tmp_path / "ep95.png", ep, ["T7_degC", "dz_um"]).stat().st_size > 10_000
+    assert (tmp_path / "ep95.png").stat().st_size > 10_000
 
 
 def test_cross_correlation_finds_the_lag():

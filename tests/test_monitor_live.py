@@ -321,18 +321,15 @@ def test_read_only_token_and_no_paths(replay, server):
     assert db_file.read_bytes() == before  # nothing was written
 
 
-@pytest.mark.slow
-def test_the_page_in_a_headless_browser(replay, server, tmp_path):
+def render(url: str, tmp_path: Path, interval_s: float, shot: Path | None = None) -> str:
+    """The page's DOM after two intervals of its time in headless Chromium, checked for console lines and errors."""
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         pytest.skip("chromium is not installed (Debian: apt-get install chromium; .ci/run installs it as root)")
-    interval_s = 0.5
-    srv = server(interval_s=interval_s)
-    shot = tmp_path / "live_view.png"
     cmd = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--no-first-run",
            f"--user-data-dir={tmp_path / 'profile'}", "--enable-logging=stderr", "--v=0", "--dump-dom",
-           f"--screenshot={shot}", "--window-size=1400,1250",
-           f"--virtual-time-budget={int(2 * interval_s * 1000)}", srv.url]
+           *([f"--screenshot={shot}"] if shot else []), "--window-size=1400,1250",
+           f"--virtual-time-budget={int(2 * interval_s * 1000)}", url]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr[-2000:]
     console = [line for line in res.stderr.splitlines() if ":CONSOLE" in line]
@@ -341,6 +338,15 @@ def test_the_page_in_a_headless_browser(replay, server, tmp_path):
     errors = re.search(r'<pre id="page-errors">(.*?)</pre>', dom, re.S)
     assert errors is not None and errors.group(1).strip() == ""
     assert int(re.search(r'data-updates="(\d+)"', dom).group(1)) >= 1
+    return dom
+
+
+@pytest.mark.slow
+def test_the_page_in_a_headless_browser(replay, server, tmp_path):
+    interval_s = 0.5
+    srv = server(interval_s=interval_s)
+    shot = tmp_path / "live_view.png"
+    dom = render(srv.url, tmp_path, interval_s, shot)
     last = replay["rows"][-1]
     for c in DRIFT_COLUMNS:  # the offsets plot's legend: the replay's last offsets
         m = re.search(rf'id="latest-offsets-{c}" data-value="([^"]+)" data-t="([^"]+)">([^<]*)<', dom)
@@ -354,6 +360,54 @@ def test_the_page_in_a_headless_browser(replay, server, tmp_path):
     assert shot.stat().st_size > 20_000
     if os.environ.get("HYBRIDCOMP_UPDATE_FIGURES") == "1":
         shutil.copyfile(shot, FIGURE)
+
+
+def js_fixed(v: float, digits: int) -> str:
+    """The page's ``fmt``: ``toFixed`` without the sign of a negative zero."""
+    s = f"{v:.{digits}f}"
+    return s[1:] if re.fullmatch(r"-0\.?0*", s) else s
+
+
+@pytest.mark.slow
+def test_the_browser_shows_the_support_point_table_point_by_point(tmp_path):
+    """A heartbeat that carries a support-point table (written by hand, no replay): every point's row in the page."""
+    import numpy as np
+
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.daemon import state_key
+    from hybridcomp.monitor.live import LiveReader, LiveSource
+    from hybridcomp.monitor.serve import LiveServer, serve_in_thread
+    from hybridcomp.monitor.store import MonitorStore
+    from hybridcomp.rom.volumetric import FeedbackTable, SupportGrid, VolumetricTable, table_to_dict
+
+    positions = ((-400.0, 0.0, 400.0), (-250.0, 250.0), (-300.0, 0.0, 300.0))
+    grid = SupportGrid(("X", "Y", "Z"), positions)
+    S = (np.arange(3 * 2 * 3 * 3, dtype=float).reshape(3, 2, 3, 3) - 20.0) / 7.0  # [µm], negatives and fractions
+    fb = (FeedbackTable("X", np.linspace(-400.0, 400.0, 17), np.linspace(0.0, -3.0, 17), 0, 1.0),)
+    key = state_key("vmc800", PKEY)
+    with CDDatabase(tmp_path / "cd.sqlite") as db:
+        MonitorStore(db).put_state(key + ":heartbeat", json.dumps({
+            "key": key, "unix": time.time(), "running": False, "last_time_s": 7200.0,
+            "offsets_um": {c: 0.5 for c in DRIFT_COLUMNS},
+            "live": {"table": table_to_dict(VolumetricTable(grid, 7200.0, S, fb))}}))
+    interval_s = 0.5
+    srv = LiveServer(LiveReader(LiveSource(str(tmp_path / "cd.sqlite"), "vmc800", PKEY), refresh_s=0.2), "127.0.0.1",
+                     0, None, interval_s)
+    serve_in_thread(srv)
+    try:
+        dom = render(srv.url, tmp_path, interval_s)
+    finally:
+        srv.shutdown()
+        srv.server_close()
+        srv.reader.close()
+    box = re.search(r'<div id="support-table"[^>]*>(.*?)</div>', dom, re.S).group(1)
+    rows = [re.findall(r"<t[hd]>([^<]*)</t[hd]>", r) for r in re.findall(r"<tr>(.*?)</tr>", box, re.S)]
+    assert rows[0] == ["X [mm]", "Y [mm]", "Z [mm]", "dx [µm]", "dy [µm]", "dz [µm]"]
+    want = [[js_fixed(x, 0), js_fixed(y, 0), js_fixed(z, 0), *(js_fixed(v, 2) for v in S[i, j, k])]
+            for i, x in enumerate(positions[0]) for j, y in enumerate(positions[1]) for k, z in enumerate(positions[2])]
+    assert rows[1:] == want  # 18 points, the last axis fastest, as the grid's positions are ordered
+    assert "feed drives, largest error over the axis: X 3.00 µm" in box
+    assert re.search(r'id="table-note"[^>]*>\(at 2\.000 h\)<', dom)
 
 
 @pytest.mark.slow
