@@ -4,7 +4,8 @@ The demo's ``ep95.png`` (:func:`hybridcomp.demo._ep95_plot`) and the diagnosis r
 (:func:`hybridcomp.diagnose.report.ep95_plot`) draw their curves on the same axes (:func:`window_axes`): the window
 length on a log x axis whose ticks are windows as a person says them (15 min, 1 h, 4 h, 15 h; not 3×10⁻¹ h) and a
 log y axis (compensated or extended models lie one to two decades below the others) with its ticks at 1, 2, 5 of
-each decade written as plain numbers. Only matplotlib's axes are touched: the caller makes the figure.
+each decade (more when the curves span less than two decades) written as plain numbers. Only matplotlib's axes are
+touched: the caller makes the figure.
 """
 
 from __future__ import annotations
@@ -45,9 +46,24 @@ def positive(values: Iterable) -> list[float]:
     return out
 
 
+def y_subs(lo: float, hi: float) -> tuple[float, ...]:
+    """The mantissas labelled on a log axis from ``lo`` to ``hi``: 1, 2, 5 over two decades or more, more below.
+
+    A curve within one decade would otherwise carry one or two labels (0.1 and 0.2).
+    """
+    decades = math.log10(hi / lo) if 0 < lo < hi and math.isfinite(hi / lo) else math.inf
+    if decades >= 2.0:
+        return (1.0, 2.0, 5.0)
+    if decades >= 1.0:
+        return (1.0, 2.0, 3.0, 5.0)
+    return (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 7.0)
+
+
 def window_axes(ax, windows_h: Iterable[float], ticks_h: Sequence[float] | None = None,
                 xlabel: str = "window length") -> list[float]:
-    """Log x (the window length) with readable window ticks, log y with 1-2-5 ticks as plain numbers, a grid.
+    """Log x (the window length) with readable window ticks, log y with ticks as plain numbers (1, 2, 5, ...), a grid.
+
+    Call it after the curves are drawn: the y ticks are chosen for their range (:func:`y_subs`).
 
     Parameters
     ----------
@@ -67,7 +83,7 @@ def window_axes(ax, windows_h: Iterable[float], ticks_h: Sequence[float] | None 
     ax.set_yscale("log")
     ax.xaxis.set_minor_locator(NullLocator())
     ax.set_xticks(ticks, [window_label(h) for h in ticks])
-    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=y_subs(*ax.get_ylim())))
     ax.yaxis.set_minor_formatter(NullFormatter())
     ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
     ax.set_xlabel(xlabel)
@@ -75,4 +91,4 @@ def window_axes(ax, windows_h: Iterable[float], ticks_h: Sequence[float] | None 
     return ticks
 
 
-__all__ = ["READABLE_WINDOWS_H", "positive", "readable_ticks", "window_axes", "window_label"]
+__all__ = ["READABLE_WINDOWS_H", "positive", "readable_ticks", "window_axes", "window_label", "y_subs"]

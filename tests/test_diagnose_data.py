@@ -47,7 +47,7 @@ def test_the_report_draws_ep95_on_log_axes_with_windows_a_person_reads(tmp_path)
     import matplotlib.pyplot as plt
 
     from hybridcomp.diagnose.report import ep95_figure
-    from hybridcomp.plotaxes import readable_ticks, window_label
+    from hybridcomp.plotaxes import readable_ticks, window_axes, window_label, y_subs
 
     assert [window_label(h) for h in (10 / 3600, 0.25, 0.5, 1.0, 1.5, 15.0)] == ["10 s", "15 min", "30 min", "1 h",
                                                                                "1.5 h", "15 h"]
@@ -77,6 +77,18 @@ def test_the_report_draws_ep95_on_log_axes_with_windows_a_person_reads(tmp_path)
     finally:
         plt.close(fig)
     assert (tmp_path / "ep95.png").stat().st_size > 10_000
+    # curves within one decade (a model that is nearly right): more labels than 0.1 and 0.2
+    assert y_subs(0.06, 0.25) == (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 7.0) and y_subs(0.5, 8.0) == (1.0, 2.0, 3.0, 5.0)
+    fig, ax = plt.subplots()
+    try:
+        ax.plot([0.1, 1.0, 6.0], [0.06, 0.12, 0.25])
+        window_axes(ax, [0.1, 1.0, 6.0])
+        fig.canvas.draw()
+        labels = [x.get_text() for x in ax.get_yticklabels() if x.get_text()]
+        lo, hi = ax.get_ylim()
+        assert [float(x) for x in labels if lo <= float(x) <= hi] == [0.07, 0.1, 0.15, 0.2], labels
+    finally:
+        plt.close(fig)
 
 
 def test_cross_correlation_finds_the_lag():
