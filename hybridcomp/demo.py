@@ -203,7 +203,12 @@ def _summary(options, nominal, after, diag_summary: dict, total_s: float, stage_
 
 
 def _ep95_plot(path: Path, rows: dict) -> Path | None:
-    """E_P95(range) against the window length, one curve per strategy."""
+    """E_P95(range) against the window length, one curve per strategy, on log axes.
+
+    The y axis is logarithmic (the compensated strategies lie one to two decades below no compensation) and the
+    window ticks are the windows themselves, as a person says them (15 min, 1 h, 4 h, 15 h):
+    :func:`hybridcomp.plotaxes.window_axes`, as the diagnosis report draws its own.
+    """
     try:
         import matplotlib
 
@@ -211,15 +216,17 @@ def _ep95_plot(path: Path, rows: dict) -> Path | None:
         import matplotlib.pyplot as plt
     except ImportError:
         return None
+    from hybridcomp.plotaxes import positive, window_axes
+
     fig, ax = plt.subplots(figsize=(8, 4.5))
+    windows_h: set[float] = set()
     for name, m in rows.items():
         w = [float(k) / 3600.0 for k in m["p95_range_um"]]
-        v = list(m["p95_range_um"].values())
-        ax.plot(w, v, marker="o", ms=3, label=name, lw=2.0 if name.startswith("hybrid") else 1.0)
-    ax.set_xscale("log")
-    ax.set_xlabel("window length [h]")
+        windows_h.update(w)
+        ax.plot(w, positive(m["p95_range_um"].values()), marker="o", ms=3, label=name,
+                lw=2.0 if name.startswith("hybrid") else 1.0)
+    window_axes(ax, windows_h, ticks_h=sorted(windows_h))
     ax.set_ylabel("E_P95(range) of the 3D residual [µm]")
-    ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -17,6 +17,9 @@ import time
 from pathlib import Path
 
 from hybridcomp.models import jsonio
+from hybridcomp.monitor.health import daemon_alive as _alive
+from hybridcomp.monitor.health import event_summary as _summary
+from hybridcomp.monitor.health import health
 from hybridcomp.safeio import FORCE_HELP
 
 log = logging.getLogger(__name__)
@@ -76,7 +79,47 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse._SubParsersAction:
     t.add_argument("--rate-hz", type=float, default=1.0, help="sampling rate of the trace [Hz] (default 1)")
     t.add_argument("--out", type=Path, required=True, help="trace CSV to write")
     t.add_argument("--force", action="store_true", help=FORCE_HELP)
+    v = sub.add_parser("serve", help="serve a live web page of the daemon and Prometheus /metrics (read-only)",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description=_wrap("Serve the monitor's live view: one web page (no network needed: its plots are drawn "
+                       "by the page itself) with the offsets per axis, the active CD set's predicted error and its "
+                       "limits, the sensors against the observer's estimate, the probes, the events of the last shift "
+                       "and the health, updated every --interval-s; /api/live gives the same as JSON and /metrics the "
+                       "figures for Prometheus (extra 'live': pip install 'hybridcomp[live]'; a Grafana dashboard is "
+                       "monitor/grafana_dashboard.json). It reads the daemon's record (its CD database, opened "
+                       "read-only, its heartbeat and its offsets file) and works for a running daemon, a stopped one "
+                       "and a replay ('monitor scenario --out DIR': --database DIR)."),
+                       epilog="safety:\n  read-only: GET only; nothing on the page changes the machine or the database\n"
+                       "  bound to 127.0.0.1 by default; another --host needs --token (or HYBRIDCOMP_MONITOR_TOKEN),\n"
+                       "  then the page is opened as http://HOST:PORT/?token=... and Prometheus sends\n"
+                       "  'Authorization: Bearer ...'\n  no file path or database URL is shown\n\nexamples:\n"
+                       "  hybridcomp monitor serve --config monitor.toml\n"
+                       "  hybridcomp monitor serve --database scenario/ --port 8080\n"
+                       "  hybridcomp monitor serve --config monitor.toml --host 0.0.0.0 --token \"$(cat token.txt)\"")
+    src = v.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", type=Path, help="monitor TOML file of the daemon (its database, pose, offsets file)")
+    src.add_argument("--database", help="CD database (SQLite file or URL) a daemon wrote, or a replay's output "
+                     "folder ('monitor scenario --out': its cd_hybrid.db)")
+    v.add_argument("--pose", default=None, help="with --database holding several monitors: the pose key "
+                   "(e.g. X=0,Y=0,Z=0)")
+    v.add_argument("--offsets", type=Path, default=None, help="with --database: the daemon's offsets file "
+                   "(sink .jsonl or .csv) to plot every offset written")
+    v.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine "
+                   "only; any other needs --token)")
+    v.add_argument("--port", type=int, default=8765, help="port (default 8765; 0: any free one, printed)")
+    v.add_argument("--token", default=None, help="access token (at least 16 characters), required when --host is "
+                   "not loopback (default: the environment variable HYBRIDCOMP_MONITOR_TOKEN)")
+    v.add_argument("--interval-s", type=float, default=2.0, help="how often the page updates [s] (default 2)")
+    v.add_argument("--shift-hours", type=float, default=8.0, help="the curves and events of the last this many "
+                   "hours of machine time (default 8)")
     return sub
+
+
+def _wrap(text: str, width: int = 100) -> str:
+    """A paragraph wrapped for a raw-formatted help text."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -102,10 +145,53 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.monitor_command == "example-trace":
             return _example_trace(args)
+        if args.monitor_command == "serve":
+            return _serve(args)
     except (ConfigError, ValueError, OSError, HybridcompError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     return 2
+
+
+def _serve(args) -> int:
+    """``monitor serve``: the live view until Ctrl-C / SIGTERM."""
+    import signal
+    import threading
+
+    from hybridcomp.monitor.live import LiveReader, source_from_config, source_from_database
+    from hybridcomp.monitor.serve import LiveServer, check_binding
+
+    token = args.token or os.environ.get("HYBRIDCOMP_MONITOR_TOKEN") or None
+    check_binding(args.host, token)  # before anything is read
+    if not (math.isfinite(args.interval_s) and args.interval_s >= 0.2):
+        raise ValueError(f"--interval-s {args.interval_s}: at least 0.2 s")
+    if not (math.isfinite(args.shift_hours) and args.shift_hours > 0):
+        raise ValueError(f"--shift-hours {args.shift_hours}: a positive number of hours")
+    if args.config is not None:
+        from hybridcomp.monitor.config import load_config
+
+        if args.pose is not None or args.offsets is not None:
+            raise ValueError("--pose and --offsets apply with --database (a configuration names both)")
+        src = source_from_config(load_config(args.config))
+    else:
+        src = source_from_database(args.database, args.pose, args.offsets)
+    reader = LiveReader(src, args.shift_hours, refresh_s=min(1.0, args.interval_s / 2))
+    try:
+        server = LiveServer(reader, args.host, args.port, token, args.interval_s)
+    except OSError as exc:
+        reader.close()
+        raise ValueError(f"--host {args.host} --port {args.port}: cannot listen ({exc.strerror or exc})") from None
+    signal.signal(signal.SIGTERM, lambda *_: threading.Thread(target=server.shutdown, daemon=True).start())
+    print(f"live view of {src.machine} {src.pose_key} on {server.url}" + ("?token=..." if token else "")
+          + f" (metrics {server.url}metrics; Ctrl-C stops)", flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.server_close()
+        reader.close()
+    return 0
 
 
 def _example_trace(args) -> int:
@@ -180,6 +266,10 @@ def _run(args) -> int:
     from hybridcomp.monitor.sources import OpcUaSource, ReplaySource, WallClock
 
     cfg = load_config(args.config)
+    if cfg.prometheus_port:  # refused before anything is opened
+        from hybridcomp.monitor.metrics import require_client
+
+        require_client(f"{args.config}: [monitor] prometheus_port = {cfg.prometheus_port}")
     if args.speed is not None and cfg.source.kind != "replay":
         raise ConfigError(f"--speed applies to a replay source only; {args.config} reads source.kind = "
                           f"{cfg.source.kind!r}")
@@ -257,66 +347,10 @@ def status_dict(cfg, db, machine_name: str, pkey: str, n_events: int = 5) -> dic
         "regeneration_running": None if beat is None else beat.get("regeneration_running"),
         "pending_generation": None if state is None or not state.get("pending") else state["pending"]["machine_time_s"],
         "recent_events": [{"kind": e.kind, "machine_time_s": e.machine_time_s, "created": e.created,
-                           "summary": _summary(e)} for e in ev[-n_events:]],
+                           "summary": _summary(e.kind, e.payload)} for e in ev[-n_events:]],
     }
     out["health"], out["health_reason"] = health(out, cfg.stale_after_s)
     return out
-
-
-def _alive(beat: dict) -> bool | None:
-    """Whether the daemon of a heartbeat runs: asked of the process on this host, None for another host."""
-    import socket
-
-    pid = beat.get("pid")
-    if beat.get("host") != socket.gethostname() or not isinstance(pid, int):
-        return None
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def health(st: dict, stale_after_s: float) -> tuple[str, str]:
-    """Whether an offset is being applied now: ``("healthy" | "unhealthy", why)`` from a status dict.
-
-    A daemon on this host that no longer runs (killed with -9: its last heartbeat says running) is unhealthy at
-    once; on another host, once no offset was applied for ``stale_after_s``. The freshness of the offsets comes from
-    the newer of the database's heartbeat and this host's copy (a locked database delays the one, not the other).
-    """
-    if st["running"] is None:
-        return "unhealthy", "no daemon has run on this machine and pose"
-    if not st["running"]:
-        return "unhealthy", "the daemon stopped: no offsets are applied"
-    if st.get("daemon_alive") is False:
-        return "unhealthy", f"the daemon (pid {st.get('daemon_pid')}) is not running: killed or crashed, no offsets " \
-                            "are applied"
-    age = st["seconds_since_offset"]
-    if age is None:
-        return "unhealthy", "no offset applied yet"
-    if age > stale_after_s:
-        return "unhealthy", f"no offset applied for {age:.0f} s (limit {stale_after_s:g} s)"
-    said = f"last offset applied {age:.1f} s ago"
-    if (st["store_backlog"] or 0) > 1000:  # the offsets do not wait for the database: healthy, and said
-        return "healthy", f"{said}; {st['store_backlog']} database writes queued (the database does not take writes)"
-    return "healthy", said
-
-
-def _summary(e) -> str:
-    p = e.payload
-    if e.kind == "decision":
-        return f"{p.get('action')}: {p.get('reason')}"
-    if e.kind == "activation":
-        return f"active {p.get('ids')} ({p.get('reason')})"
-    if e.kind == "generation":
-        return f"{p.get('status')} {p.get('ids') or p.get('error') or ''}".strip()
-    if e.kind == "model_drift":
-        return f"structure model and sensors differ by {p.get('max_abs_K', float('nan')):.2f} K at {p.get('sensor')}"
-    if e.kind == "sensor":
-        return p.get("message", "")
-    return str(p.get("message") or p)[:160]
 
 
 def _status(args) -> int:

@@ -136,7 +136,7 @@ class MonitorConfig:
     stale_after_s : ``monitor status`` reports unhealthy when no offset was applied for this long [s of wall time]
     source, sink, regeneration : see their classes
     reconnect : backoff schedule for a dropped data source or sink
-    prometheus_port : serve Prometheus text metrics on 127.0.0.1 at this port (0: off)
+    prometheus_port : serve Prometheus metrics on 127.0.0.1 at this port (0: off; needs prometheus_client, extra ``live``)
     source_file : the file the configuration was read from
     """
 
@@ -390,7 +390,7 @@ increment_s = 20                   # histogram increment = step of the structure
 max_gap_s = 10                     # samples farther apart are a recording gap (standstill) [s]
 threshold_K = 0.5                  # the seeds' test, reported: |T_actual - T_reference| of the active set [K]
 model_drift_K = 1.0                # |observer - measured| at a sensor that raises a model-drift event [K]
-prometheus_port = 0                # 0: off; else Prometheus text metrics on 127.0.0.1:port/metrics
+prometheus_port = 0                # 0: off; else Prometheus metrics on 127.0.0.1:port/metrics (extra live)
 lease_s = 30                       # one daemon per machine and pose: it holds the pose this long, renewed [s]
 stale_after_s = 20                 # 'monitor status' is unhealthy when no offset was applied this long [s]
 

@@ -583,7 +583,7 @@ async def run_monitor(
                       "active": monitor.s.active_ids, "degraded": monitor.status()["degraded"],
                       "regeneration_running": monitor.regeneration_running, "store_backlog": monitor.store.backlog(),
                       "stale_after_s": cfg.stale_after_s, "heartbeat_s": heartbeat_s, "pid": os.getpid(),
-                      "host": socket.gethostname()}
+                      "host": socket.gethostname(), "live": live_record(monitor)}
             monitor.store.put_state(monitor.key + ":heartbeat", jsonio.dumps(record))
             if db_url is not None:
                 _write_heartbeat_file(db_url, monitor.key, record)
@@ -701,6 +701,33 @@ async def run_monitor(
         monitor.store.close()
         monitor.store = sync_store
     return RunResult(monitor.status(), stopped_by)
+
+
+def live_record(monitor: Monitor) -> dict:
+    """What the live view (``hybridcomp monitor serve``) reads from the heartbeat beyond its freshness.
+
+    The sensors as the observer reads them (NaN: degraded) and as it estimates them at its last model step [°C], its
+    drift estimate [µm], the last predicted error [µm] with the limits it is judged by, the strategy, why the observer
+    or the active set is not trusted, and the support-point table written last (None without one).
+    """
+    from hybridcomp.rom.volumetric import table_to_dict
+
+    cfg, st = monitor.cfg, monitor.state
+    v = cfg.validity
+    try:
+        estimate = T._estimate_degC(monitor.ctx, st)
+        table = None if st.written_table is None else table_to_dict(st.written_table)
+    except Exception as exc:  # noqa: BLE001 - a view never stops compensation
+        log.debug("live record: %s", exc)
+        estimate, table = {}, None
+    return {
+        "strategy": cfg.strategy, "measured_degC": dict(st.measured), "estimate_degC": estimate,
+        "drift_um": st.saved.drift_um, "error_um": st.saved.last_error, "observer_flag": st.saved.observer_flag,
+        "failsafe": st.saved.failsafe, "limits_um": {"keep": v.keep_um, "forecast": v.forecast_um, "hard": v.hard_um,
+                                                     "reject": v.reject_um},
+        "threshold_K": cfg.threshold_K, "model_drift_K": cfg.model_drift_K,
+        "table": table,
+    }
 
 
 def check_offset(off: Offset, max_abs_um: float) -> str:

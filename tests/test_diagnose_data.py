@@ -41,6 +41,56 @@ def test_ep95_against_brute_force():
     assert w[0] == 60.0 and e[-1] == pytest.approx(np.ptp(r))
 
 
+def test_the_report_draws_ep95_on_log_axes_with_windows_a_person_reads(tmp_path):
+    """The diagnosis report's E_P95 plot: log y, window ticks 1 min … 15 h over a 20 h record at 60 s, as the demo's."""
+    pytest.importorskip("matplotlib", reason="the report's plots need matplotlib (extra plot)")
+    import matplotlib.pyplot as plt
+
+    from hybridcomp.diagnose.report import ep95_figure
+    from hybridcomp.plotaxes import readable_ticks, window_axes, window_label, y_subs
+
+    assert [window_label(h) for h in (10 / 3600, 0.25, 0.5, 1.0, 1.5, 15.0)] == ["10 s", "15 min", "30 min", "1 h",
+                                                                               "1.5 h", "15 h"]
+    assert readable_ticks([0.5, 6.0]) == [1.0, 4.0] and readable_ticks([]) == []
+    rng = np.random.default_rng(3)
+    t = np.arange(1200) * 60.0  # 20 h
+    ep = {}
+    for c, scale in (("T7_degC", 0.05), ("dz_um", 2.0)):
+        r = np.cumsum(rng.normal(0.0, scale, t.size))
+        w, before = ep95_curve(t, r)
+        _, after = ep95_curve(t, r / 30.0)  # an extended model 30 times better: 1.5 decades below
+        after[0] = 0.0  # a range of zero: a gap on the log axis, not a point at 1e-6
+        ep[c] = {"window_s": w.tolist(), "before": before.tolist(), "after": after.tolist()}
+    fig = ep95_figure(ep, ["T7_degC", "dz_um"])
+    try:
+        fig.savefig(tmp_path / "ep95.png", dpi=90)  # as the report writes it (the tick labels are set when drawn)
+        for ax in fig.axes:
+            assert ax.get_xscale() == "log" and ax.get_yscale() == "log"
+            assert [x.get_text() for x in ax.get_xticklabels()] == ["1 min", "5 min", "15 min", "1 h", "4 h", "15 h"]
+            assert ax.get_xticks().tolist() == pytest.approx([1 / 60, 5 / 60, 0.25, 1.0, 4.0, 15.0])
+            after = ax.lines[1].get_ydata()
+            assert np.isnan(after[0]) and np.all(after[1:] > 0)
+            labels = [x.get_text() for x in ax.get_yticklabels() if x.get_text()]
+            assert labels and all("10^" not in x and "times" not in x for x in labels), labels
+            lo, hi = ax.get_ylim()
+            assert lo < min(after[1:]) and hi > max(ax.lines[0].get_ydata())
+    finally:
+        plt.close(fig)
+    assert (tmp_path / "ep95.png").stat().st_size > 10_000
+    # curves within one decade (a model that is nearly right): more labels than 0.1 and 0.2
+    assert y_subs(0.06, 0.25) == (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 7.0) and y_subs(0.5, 8.0) == (1.0, 2.0, 3.0, 5.0)
+    fig, ax = plt.subplots()
+    try:
+        ax.plot([0.1, 1.0, 6.0], [0.06, 0.12, 0.25])
+        window_axes(ax, [0.1, 1.0, 6.0])
+        fig.canvas.draw()
+        labels = [x.get_text() for x in ax.get_yticklabels() if x.get_text()]
+        lo, hi = ax.get_ylim()
+        assert [float(x) for x in labels if lo <= float(x) <= hi] == [0.07, 0.1, 0.15, 0.2], labels
+    finally:
+        plt.close(fig)
+
+
 def test_cross_correlation_finds_the_lag():
     rng = np.random.default_rng(1)
     s = rng.normal(size=500)

@@ -167,15 +167,58 @@ def test_request_loads_keep_each_increments_heat():
 # --------------------------------------------------------------------------- metrics text and CLI
 
 
+def metric_samples(text: str) -> dict:
+    """{(sample name, sorted labels): value} of a Prometheus exposition text, read by the client's own parser."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value
+            for fam in text_string_to_metric_families(text) for s in fam.samples}
+
+
 def test_prometheus_text():
+    pytest.importorskip("prometheus_client", reason="the metrics need prometheus_client (extra live, in the test extra)")
+    from prometheus_client.parser import text_string_to_metric_families
+
     from hybridcomp.monitor.metrics import metrics_text
 
     txt = metrics_text({"last_time_s": 900.0, "last_delta_T_K": 0.25, "offsets_um": {"dz_um": -3.5}, "readings": 10,
-                        "degraded": ["T1"], "regeneration_running": False, "max_decision_s": 0.01})
-    assert "hybridcomp_monitor_delta_t_kelvin 0.25\n" in txt
-    assert "hybridcomp_monitor_offset_dz_um -3.5\n" in txt
-    assert "# TYPE hybridcomp_monitor_readings_total counter\nhybridcomp_monitor_readings_total 10\n" in txt
-    assert "hybridcomp_monitor_degraded_sensors 1\n" in txt
+                        "degraded": ["T1"], "regeneration_running": False, "max_decision_s": 0.01,
+                        "last_error_um": {"interval_um": 0.7, "forecast_um": math.inf}})
+    s = metric_samples(txt)
+    assert s[("hybridcomp_monitor_delta_t_kelvin", ())] == 0.25
+    assert s[("hybridcomp_monitor_offset_micrometers", (("axis", "dz"),))] == -3.5
+    assert ("hybridcomp_monitor_offset_micrometers", (("axis", "dx"),)) not in s  # an offset it has not: no sample
+    assert s[("hybridcomp_monitor_predicted_error_micrometers", (("horizon", "interval"),))] == 0.7
+    assert ("hybridcomp_monitor_predicted_error_micrometers", (("horizon", "forecast"),)) not in s  # inf: none
+    assert s[("hybridcomp_monitor_readings_total", ())] == 10
+    assert s[("hybridcomp_monitor_degraded_sensors", ())] == 1
+    assert s[("hybridcomp_monitor_decision_seconds_max", ())] == 0.01
+    assert s[("hybridcomp_monitor_regeneration_running", ())] == 0
+    assert s[("hybridcomp_monitor_machine_time_seconds", ())] == 900.0
+    assert ("hybridcomp_monitor_switches_total", ()) not in s  # a counter the status has not: none
+    types = {f.name: f.type for f in text_string_to_metric_families(txt)}
+    assert types["hybridcomp_monitor_readings"] == "counter" and types["hybridcomp_monitor_delta_t_kelvin"] == "gauge"
+
+
+def test_prometheus_port_refused_without_the_client(monkeypatch, capsys, tmp_path):
+    import asyncio
+    import sys
+
+    from hybridcomp.cli import main
+    from hybridcomp.monitor.metrics import MetricsUnavailable, serve_metrics
+
+    monkeypatch.setitem(sys.modules, "prometheus_client", None)  # import prometheus_client raises ImportError
+    with pytest.raises(MetricsUnavailable, match=r'prometheus_port = 9109 needs prometheus_client.*pip install -e "\.\[live\]"'):
+        asyncio.run(serve_metrics(object(), 9109))
+    assert main(["monitor", "example-config", "--out", str(tmp_path / "m.toml")]) == 0
+    text = (tmp_path / "m.toml").read_text()
+    assert "prometheus_port = 0 " in text
+    (tmp_path / "m.toml").write_text(text.replace("prometheus_port = 0 ", "prometheus_port = 9109 "))
+    capsys.readouterr()
+    assert main(["monitor", "run", "--config", str(tmp_path / "m.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {tmp_path / 'm.toml'}: [monitor] prometheus_port = 9109 needs prometheus_client")
+    assert 'pip install -e ".[live]"' in err
 
 
 def test_cli_help_and_example_config(capsys, tmp_path):
@@ -193,6 +236,8 @@ def test_cli_help_and_example_config(capsys, tmp_path):
 
 def test_metrics_endpoint_serves_the_status_on_localhost():
     import asyncio
+
+    pytest.importorskip("prometheus_client", reason="the metrics need prometheus_client (extra live, in the test extra)")
 
     from hybridcomp.monitor.metrics import serve_metrics
 
@@ -215,8 +260,11 @@ def test_metrics_endpoint_serves_the_status_on_localhost():
         return body.decode()
 
     text = asyncio.run(main())
-    assert text.startswith("HTTP/1.1 200 OK") and "hybridcomp_monitor_switches_total 2\n" in text
-    assert "hybridcomp_monitor_machine_time_seconds 1800\n" in text
+    head, _, body = text.partition("\r\n\r\n")
+    assert head.startswith("HTTP/1.1 200 OK") and "Content-Type: text/plain; version=" in head
+    s = metric_samples(body)
+    assert s[("hybridcomp_monitor_switches_total", ())] == 2
+    assert s[("hybridcomp_monitor_machine_time_seconds", ())] == 1800.0
 
 
 def test_example_trace_needs_a_readable_structure_model(capsys, tmp_path):
