@@ -39,7 +39,8 @@ INPUTS = {
     ("reduce", "--matrices"), ("reduce", "--check-loads"), ("diagnose", "--data"), ("diagnose", "--map"),
     ("diagnose", "--rom"), ("diagnose", "--probes"), ("diagnose", "--pose-rom"), ("cd fit-grid", "--pose-rom"),
     ("data fetch", "--from"), ("batch run", "loads_dir"), ("monitor run", "--config"),
-    ("monitor status", "--config"), ("monitor example-trace", "--rom"),
+    ("monitor status", "--config"), ("monitor example-trace", "--rom"), ("monitor serve", "--config"),
+    ("monitor serve", "--offsets"),
 }
 
 #: every output option: (argv with {out} and the inputs of the ``inputs`` fixture, "file" or the name of a file the
