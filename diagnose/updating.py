@@ -122,3 +122,173 @@ def choose_settings(time_s: np.ndarray, y: np.ndarray, cv_blocks: list[tuple[np.
         if sse < best_sse:
             best, best_sse = s, sse
     return best, float(np.sqrt(best_sse / max(n, 1)))
+
+
+# ------------------------------------------------------------------------------------------ coefficient updating
+# Coefficient updating (recursive least squares with forgetting, as a Kalman filter over the model's coefficients).
+#
+# The regularised model (:mod:`hybridcomp.diagnose.regularised`) predicts ``ŷ = zᵀθ`` with ``z`` the standardised
+# regressors and an intercept. Its coefficients are the filter's states: the prior is the training fit, ``θ₀`` with
+# covariance ``prior_scale · s² A⁻¹`` (``A = ZᵀZ + λR`` of the training rows, ``s²`` the cross-validation's mean
+# squared error); between probes every coefficient follows a random walk of ``walk · s² / p`` per hour (forgetting:
+# old probes count less), and every hour a regressor spends outside its training range adds
+# ``range_walk · s² / p · e²`` to its coefficient's variance (``e`` the excursion beyond the range in standard
+# deviations): a speed the training never ran makes the model's weights there uncertain, so the next probe counts more.
+# At a probe the states are updated by the Kalman gain. The predicted spread ``√(zᵀPz)`` of every row is returned too.
+COEF_PRIOR_SCALES = (1.0, 10.0, 100.0)
+COEF_WALKS = (0.0, 0.01, 0.1, 1.0)  # × s²/p per hour
+COEF_RANGE_WALKS = (0.0, 1.0, 10.0)  # × s²/p per hour and (standard deviations beyond the training range)²
+
+
+@dataclass(frozen=True)
+class CoefficientSettings:
+    """A coefficient filter: a probe every ``every_h`` hours, the prior's scale and the random walks."""
+
+    every_h: float
+    probe_sd_um: float
+    prior_scale: float
+    walk: float
+    range_walk: float
+
+    def describe(self) -> str:
+        return (f"probe every {self.every_h:g} h (repeatability {self.probe_sd_um:g} µm); coefficients from the "
+                f"training fit, covariance {self.prior_scale:g} × the fit's; random walk {self.walk:g} s²/p per h, "
+                f"{self.range_walk:g} s²/p per h and (σ beyond the training range)²")
+
+
+@dataclass(frozen=True)
+class FilterState:
+    """The coefficient filter between rows.
+
+    Coefficients, their covariance at the last probe, the time of the last probe and of the last row [s], and the
+    accumulated (excursion² · h) per coefficient since the last probe.
+    """
+
+    theta: np.ndarray
+    P: np.ndarray
+    t_probe_s: float
+    t_last_s: float
+    excess: np.ndarray
+
+
+def filter_start(coef: np.ndarray, A: np.ndarray, s2_um2: float, prior_scale: float, t_s: float) -> FilterState:
+    """The filter's state before the first row: the training fit's coefficients and covariance."""
+    P = prior_scale * s2_um2 * np.linalg.inv(A)
+    return FilterState(np.asarray(coef, float).copy(), 0.5 * (P + P.T), float(t_s), float(t_s), np.zeros(len(coef)))
+
+
+def excursion(z: np.ndarray, z_lo: np.ndarray, z_hi: np.ndarray) -> np.ndarray:
+    """How far standardised regressors lie outside their training range [standard deviations] (0 inside).
+
+    The intercept column (first) never does. Works on one row or a rows × columns array.
+    """
+    zr = z[..., 1:]
+    e = np.maximum(0.0, np.maximum(zr - z_hi, z_lo - zr))
+    return np.concatenate([np.zeros(e.shape[:-1] + (1,)), e], axis=-1)
+
+
+def _effective_P(st: FilterState, t_s: float, q_walk: float, q_range: float) -> np.ndarray:
+    """The covariance at ``t_s``: the last probe's, the random walk since it and the range excursions."""
+    P = st.P + np.eye(len(st.theta)) * q_walk * (t_s - st.t_probe_s) / 3600.0
+    return P + np.diag(q_range * st.excess)
+
+
+def filter_step(st: FilterState, z: np.ndarray, t_s: float, s: CoefficientSettings, s2_um2: float,
+                z_lo: np.ndarray, z_hi: np.ndarray, y_um: float | None = None) -> tuple[FilterState, float, float]:
+    """One row of the coefficient filter (a pure function): the new state, the prediction [µm] and its spread [µm].
+
+    The prediction ``zᵀθ`` and its spread come from the state before the row; then, if ``y_um`` was probed at this
+    row, the update.
+
+    ``z``: the row's standardised regressors with the intercept (:meth:`RidgeModel.design`); ``s2_um2`` the model's
+    mean squared error that scales the walks; ``z_lo`` / ``z_hi`` the training range of ``z[1:]``.
+    """
+    p = len(st.theta)
+    q_walk, q_range = s.walk * s2_um2 / p, s.range_walk * s2_um2 / p
+    e = excursion(z, z_lo, z_hi)
+    excess = st.excess + e**2 * max(t_s - st.t_last_s, 0.0) / 3600.0
+    st = FilterState(st.theta, st.P, st.t_probe_s, float(t_s), excess)
+    P = _effective_P(st, t_s, q_walk, q_range)
+    pred = float(z @ st.theta)
+    spread = float(np.sqrt(max(z @ P @ z, 0.0)))
+    if y_um is None:
+        return st, pred, spread
+    Pz = P @ z
+    k = Pz / (z @ Pz + s.probe_sd_um**2)
+    theta = st.theta + k * (y_um - pred)
+    P = P - np.outer(k, Pz)
+    return FilterState(theta, 0.5 * (P + P.T), float(t_s), float(t_s), np.zeros(p)), pred, spread
+
+
+def coefficient_updating(Z: np.ndarray, y: np.ndarray, time_s: np.ndarray, probes: np.ndarray, coef: np.ndarray,
+                         A: np.ndarray, s2_um2: float, z_lo: np.ndarray, z_hi: np.ndarray,
+                         s: CoefficientSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The coefficient filter over rows (vectorised between probes; the same as :func:`filter_step` row by row).
+
+    Parameters
+    ----------
+    Z : standardised regressors with the intercept, rows × (1 + columns)
+    y : measured drift [µm]; only the values at ``probes`` are read
+    probes : sorted row indices of the measurements
+
+    Returns
+    -------
+    the prediction at every row (from the probes before it), its spread [µm], and the coefficients per row
+    """
+    n, p = Z.shape
+    q_walk, q_range = s.walk * s2_um2 / p, s.range_walk * s2_um2 / p
+    st = filter_start(coef, A, s2_um2, s.prior_scale, time_s[0])
+    out, spread, thetas = np.empty(n), np.empty(n), np.empty((n, p))
+    e2 = excursion(Z, z_lo, z_hi) ** 2
+    dt_h = np.r_[0.0, np.diff(time_s)] / 3600.0
+    probe_set = set(np.asarray(probes, int).tolist())
+    cuts = np.unique(np.r_[0, np.asarray(probes, int) + 1, n])
+    excess = np.zeros(p)
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        if b <= a:
+            continue
+        seg = slice(a, b)
+        acc = excess + np.cumsum(e2[seg] * dt_h[seg, None], axis=0)  # accumulated up to and including each row
+        Zs = Z[seg]
+        out[seg] = Zs @ st.theta
+        thetas[seg] = st.theta
+        walk = q_walk * (time_s[seg] - st.t_probe_s) / 3600.0
+        var = np.einsum("ij,jk,ik->i", Zs, st.P, Zs) + walk * np.einsum("ij,ij->i", Zs, Zs) \
+            + q_range * np.einsum("ij,ij->i", Zs * Zs, acc)
+        spread[seg] = np.sqrt(np.clip(var, 0.0, None))
+        k = b - 1
+        if k in probe_set:
+            z = Z[k]
+            P = st.P + np.eye(p) * q_walk * (time_s[k] - st.t_probe_s) / 3600.0 + np.diag(q_range * acc[-1])
+            Pz = P @ z
+            g = Pz / (z @ Pz + s.probe_sd_um**2)
+            theta = st.theta + g * (y[k] - z @ st.theta)
+            P = P - np.outer(g, Pz)
+            st = FilterState(theta, 0.5 * (P + P.T), float(time_s[k]), float(time_s[k]), np.zeros(p))
+            excess = np.zeros(p)
+        else:
+            excess = acc[-1]
+    return out, spread, thetas
+
+
+def choose_coefficient_settings(blocks: list[dict], every_h: float, probe_sd_um: float
+                                ) -> tuple[CoefficientSettings, float]:
+    """The coefficient filter that predicts the training blocks best when they are probed every ``every_h`` hours.
+
+    ``blocks``: per block of the training rows (contiguous in time), a dict with ``time_s``, ``y``, ``Z`` and the
+    model fitted on the other blocks (``coef``, ``A``, ``s2_um2``, ``z_lo``, ``z_hi``). Returns the settings and
+    their pooled RMS error [µm] on the blocks.
+    """
+    probes = [probe_rows(b["time_s"], np.ones(b["time_s"].size, bool), every_h) for b in blocks]
+    n = sum(b["time_s"].size for b in blocks)
+    best, best_sse = None, np.inf
+    for ps, w, rw in itertools.product(COEF_PRIOR_SCALES, COEF_WALKS, COEF_RANGE_WALKS):
+        s = CoefficientSettings(every_h, probe_sd_um, ps, w, rw)
+        sse = 0.0
+        for b, pr in zip(blocks, probes):
+            u, _, _ = coefficient_updating(b["Z"], b["y"], b["time_s"], pr, b["coef"], b["A"], b["s2_um2"],
+                                           b["z_lo"], b["z_hi"], s)
+            sse += float(np.sum((b["y"] - u) ** 2))
+        if sse < best_sse:
+            best, best_sse = s, sse
+    return best, float(np.sqrt(best_sse / max(n, 1)))
