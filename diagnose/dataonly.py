@@ -683,6 +683,7 @@ def _coefficient_updating(fam, y: np.ndarray, t: np.ndarray, tr: np.ndarray, va:
     u, sd, theta = coefficient_updating(m.design(fam.X[rows]), y[rows], t[rows], probes, m.coef, m.A, m.s2_um2,
                                         m.z_lo, m.z_hi, settings)
     return {"settings": settings, "cv_rms_updated_um": cv_rms, "probe_rows": rows[probes], "y_hat": u,
+            "scored": scored_mask(rows.size, probes),
             "spread_um": sd, "coef_change": float(np.linalg.norm(theta[-1] - m.coef) / np.linalg.norm(m.coef))}
 
 
@@ -696,7 +697,14 @@ def _post_process_updating(cv: _BlockedCV, best: _State, t: np.ndarray, y: np.nd
     restarts = np.flatnonzero(np.isin(rows, starts))
     u, theta = updated_prediction(yh[rows], y[rows], t[rows], probes, settings, restarts)
     return {"settings": settings, "cv_rms_updated_um": cv_rms, "probe_rows": rows[probes], "y_hat": u,
-            "gain": theta[:, 0], "offset_um": theta[:, 1]}
+            "scored": scored_mask(rows.size, probes), "gain": theta[:, 0], "offset_um": theta[:, 1]}
+
+
+def scored_mask(n: int, probes: np.ndarray) -> np.ndarray:
+    """Of ``n`` validation rows, those that score an updated prediction: every row but the probes."""
+    m = np.ones(n, bool)
+    m[np.asarray(probes, int)] = False
+    return m
 
 
 def _structure_name(tm: Term) -> str:
@@ -757,6 +765,8 @@ def summary(d: DataOnlyDiagnosis) -> dict:
         "runs": None if d.runs is None else _per_run_metrics(d),
         "selection_check": d.selection_check,
         "post_process_updating": _updating_summary(d),
+        "regularised": _regularised_summary(d),
+        "coefficient_updating": _coefficient_summary(d),
         "timings_s": d.timings_s,
     }
 
@@ -774,8 +784,9 @@ def _updating_summary(d: DataOnlyDiagnosis) -> dict | None:
     out = {}
     for c, u in d.updating.items():
         st = u["settings"]
-        out[c] = {"fit": _headline(channel_metrics(d.Y[c][va], u["y_hat"])),
-                  "without_updating": _headline(channel_metrics(d.Y[c][va], d.extended[c].y_hat[va])),
+        sc = u["scored"]  # the validation rows without the probes
+        out[c] = {"fit": _headline(channel_metrics(d.Y[c][va][sc], u["y_hat"][sc])),
+                  "without_updating": _headline(channel_metrics(d.Y[c][va][sc], d.extended[c].y_hat[va][sc])),
                   "probes": int(u["probe_rows"].size), "final_gain": float(u["gain"][-1]),
                   "final_offset_um": float(u["offset_um"][-1]), "settings": {
                       "gain_walk_per_sqrt_h": st.gain_walk_per_sqrt_h,
@@ -784,7 +795,55 @@ def _updating_summary(d: DataOnlyDiagnosis) -> dict | None:
     st = next(iter(d.updating.values()))["settings"]
     return {"every_h": st.every_h, "probe_sd_um": st.probe_sd_um,
             "how": "the extended model's gain and offset updated by a Kalman filter at each probe of the validation "
-                   "rows; each row uses earlier probes only; the filter's random walks chosen on the training rows",
+                   "rows; each row uses earlier probes only; the filter's random walks chosen on the training rows; "
+                   "scored on the validation rows without the probe rows",
+            "channels": out}
+
+
+def _regularised_summary(d: DataOnlyDiagnosis) -> dict | None:
+    """The regularised families per channel: choice, held-out fit, its spread over fold counts and seeds.
+
+    Also the family fitted on every row (NOT held out), with the gap between the two.
+    """
+    if not d.regularised:
+        return None
+    out = {}
+    for c, r in d.regularised.items():
+        ho = r["held_out"]["fit_percent"]
+        out[c] = {"family": r["family"], "lambda": r["lam"], "effective_dof": r["effective_dof"], "votes": r["votes"],
+                  "repeats": r["repeats"], "cv_rms": r["cv_rms"], "held_out": _headline(r["held_out"]),
+                  "spread_over_folds_and_seeds": r["spread"],
+                  "every_row_NOT_held_out": r["every_row"], "every_row_best_family_NOT_held_out": r["every_row_best"],
+                  "gap_to_every_row_points": float(r["every_row"]["fit_percent"] - ho)}
+    return {"how": "ridge regressions of the families below, family and λ chosen on the training rows by a repeated "
+                   f"blocked {d.folds}-fold cross-validation (three phases of the blocks, pooled) with the "
+                   "one-standard-error rule (the fewest effective degrees of freedom within one standard error of the "
+                   "best); held out: the validation rows scored the result once",
+            "channels": out}
+
+
+def _coefficient_summary(d: DataOnlyDiagnosis) -> dict | None:
+    """Fits of the regularised model with coefficient updating (scored on the validation rows without the probes)."""
+    if not d.coefficient_updating:
+        return None
+    va = d.split.validation
+    out = {}
+    for c, u in d.coefficient_updating.items():
+        sc = u["scored"]
+        y = d.Y[c][va][sc]
+        st = u["settings"]
+        out[c] = {"fit": _headline(channel_metrics(y, u["y_hat"][sc])),
+                  "without_updating": _headline(channel_metrics(y, d.regularised[c]["y_hat"][va][sc])),
+                  "probes": int(u["probe_rows"].size), "coefficient_change": u["coef_change"],
+                  "spread_um_median": float(np.median(u["spread_um"])),
+                  "settings": {"prior_scale": st.prior_scale, "walk": st.walk, "range_walk": st.range_walk,
+                               "offset_walk": st.offset_walk},
+                  "training_cv_rms_updated_um": u["cv_rms_updated_um"]}
+    st = next(iter(d.coefficient_updating.values()))["settings"]
+    return {"every_h": st.every_h, "probe_sd_um": st.probe_sd_um,
+            "how": "the regularised model's coefficients updated by a Kalman filter at each probe (prior: the training "
+                   "fit; random walks and the inflation outside the training range chosen on the training rows); "
+                   "each row uses earlier probes only; scored on the validation rows without the probe rows",
             "channels": out}
 
 
@@ -797,6 +856,41 @@ def _per_run_metrics(d: DataOnlyDiagnosis) -> dict:
             rows].all() else "both", "hours": float((d.time_s[rows][-1] - d.time_s[rows][0]) / 3600),
             **{c: channel_metrics(d.Y[c][rows], m.y_hat[rows]) for c, m in d.extended.items()}}
     return out
+
+
+def _regularised_report(s: dict) -> list[str]:
+    """The report's section on the regularised families and their coefficient updating."""
+    rg = s.get("regularised")
+    if not rg:
+        return []
+    L = ["## Regularised families beside the search", "",
+         f"Each channel also as a ridge regression, {rg['how']}. The spread is the held-out fit of the choice made with "
+         "3, 5 and 10 folds and seeds 0, 1, 2 (the phases of the blocks); the last columns are the chosen family fitted "
+         "on every row, the validation rows too: NOT held out, what the data allow that family, and how far the "
+         "held-out fit is from it.", "",
+         "| channel | static, all temperatures | search, held out | regularised, held out (RMS) | over folds 3/5/10 × "
+         "seeds: min–max (spread) | family, λ (votes) | fitted on every row, NOT held out | gap |",
+         "|---|---|---|---|---|---|---|---|"]
+    for c, v in rg["channels"].items():
+        ch = s["channels"][c]
+        sp = v["spread_over_folds_and_seeds"]
+        spt = "–" if sp is None else f"{sp['min']:.1f}–{sp['max']:.1f} ({sp['spread']:.1f})"
+        L.append(f"| {c} | {ch['reference_all_temperatures']['fit_percent']:.1f} | {ch['after']['fit_percent']:.1f} | "
+                 f"**{v['held_out']['fit_percent']:.1f}** ({v['held_out']['rms']:.3g}) | {spt} | {v['family']}, "
+                 f"λ = {v['lambda']:.3g} ({v['votes']}/{v['repeats']}) | *{v['every_row_NOT_held_out']['fit_percent']:.1f}* "
+                 f"| {v['gap_to_every_row_points']:.1f} |")
+    L.append("")
+    cu = s.get("coefficient_updating")
+    if cu:
+        L += [f"### Coefficient updating: a probe every {cu['every_h']:g} h", "",
+              f"{cu['how']}.", "",
+              "| channel | regularised, no probes | coefficients updated | probes | coefficients changed by | "
+              "median spread [µm] |", "|---|---|---|---|---|---|"]
+        for c, v in cu["channels"].items():
+            L.append(f"| {c} | {v['without_updating']['fit_percent']:.1f} | **{v['fit']['fit_percent']:.1f}** | "
+                     f"{v['probes']} | {100 * v['coefficient_change']:.0f} % | {v['spread_um_median']:.3g} |")
+        L.append("")
+    return L
 
 
 def _plot_runs(d: DataOnlyDiagnosis, path: Path, plt) -> None:
@@ -914,6 +1008,7 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
         L += ["", "The filter per channel, as chosen on the training rows:", ""]
         L += [f"* {c}: {u['settings'].describe()}" for c, u in d.updating.items()]
         L.append("")
+    L += _regularised_report(s)
     if plots:
         try:
             import matplotlib

@@ -15,10 +15,11 @@ No column is selected: the weight λ decides how far the coefficients are shrunk
 training rows only, by a **repeated blocked cross-validation** (``folds`` contiguous blocks of time; each repetition
 shifts the blocks' boundaries by a phase drawn from ``seed``, the first repetition unshifted) and two rules:
 
-* the **one-standard-error rule**: in each repetition, every (family, λ) whose mean fold error lies within one
-  standard error (over the folds) of the smallest is as good as the best;
-* **selection by stability**: the choice is the (family, λ) that is as good as the best in the most repetitions;
-  ties go to the family with the fewest columns, then the largest λ (the most shrinkage).
+* **stability across folds**: the folds of every repetition are pooled, so no single set of block boundaries decides;
+* the **one-standard-error rule**: every (family, λ) whose mean fold error lies within one standard error (over the
+  folds of one repetition) of the smallest is as good as the best, and the simplest of them is chosen: the fewest
+  effective degrees of freedom ``Σ w/(w + λ)``, i.e. the most shrinkage. In how many repetitions on their own the
+  choice was as good as the best is reported (its votes).
 
 A choice made so moves little when the fold count or the phases change; :func:`fold_spread` measures by how much
 (the held-out fit of the choice made with 3, 5 and 10 folds and three seeds), and :func:`every_row_fits` gives what
@@ -231,28 +232,35 @@ def effective_dof(fams: list[Family], train: np.ndarray) -> np.ndarray:
 
 
 def choose(errors: list[np.ndarray], dof: np.ndarray) -> list[Choice]:
-    """One-standard-error rule per repetition, then the most stable (family, λ); per channel.
+    """The one-standard-error rule on the pooled repetitions, per channel.
 
-    ``errors``: per repetition, :func:`fold_errors`' array; ``dof``: :func:`effective_dof`. Ties in the votes go to
-    the fit with the fewest effective degrees of freedom (the most shrinkage).
+    ``errors``: per repetition (phase of the blocks), :func:`fold_errors`' array; ``dof``: :func:`effective_dof`.
+    The folds of every repetition are pooled: the mean fold error of each (family, λ), and its standard error over the
+    folds of one repetition (the repetitions reuse the same rows, so they do not shrink it). Every (family, λ) within
+    one standard error of the smallest mean is as good as the best; of those, the one with the fewest effective
+    degrees of freedom (the most shrinkage) is chosen. ``votes`` says in how many repetitions on their own the choice
+    was within one standard error of that repetition's best (its stability).
     """
     nch = errors[0].shape[-1]
-    votes = np.zeros(errors[0].shape[1:], int)
-    mean_all = np.zeros(errors[0].shape[1:])
-    for E in errors:
-        m = E.mean(0)
-        se = E.std(0, ddof=1) / np.sqrt(E.shape[0]) if E.shape[0] > 1 else np.zeros_like(m)
-        flat_m = m.reshape(-1, nch)
-        best = flat_m.argmin(0)
-        thr = flat_m[best, np.arange(nch)] + se.reshape(-1, nch)[best, np.arange(nch)]
-        votes += (m <= thr).astype(int)
-        mean_all += m / len(errors)
+    E = np.concatenate(errors, axis=0)
+    k = errors[0].shape[0]
+    m = E.mean(0)
+    se = E.std(0, ddof=1) / np.sqrt(k)
+    votes = np.zeros(m.shape, int)
+    for Er in errors:
+        mr = Er.mean(0)
+        ser = Er.std(0, ddof=1) / np.sqrt(Er.shape[0]) if Er.shape[0] > 1 else np.zeros_like(mr)
+        fl = mr.reshape(-1, nch)
+        best = fl.argmin(0)
+        thr = fl[best, np.arange(nch)] + ser.reshape(-1, nch)[best, np.arange(nch)]
+        votes += (mr <= thr).astype(int)
     out = []
     for c in range(nch):
-        v = votes[..., c]
-        cand = np.argwhere(v == v.max())
+        mc = m[..., c]
+        b = np.unravel_index(int(mc.argmin()), mc.shape)
+        cand = np.argwhere(mc <= mc[b] + se[..., c][b])
         f, li = min(cand, key=lambda fl: dof[fl[0], fl[1]])
-        out.append(Choice(int(f), int(li), int(v.max()), len(errors), float(mean_all[f, li, c])))
+        out.append(Choice(int(f), int(li), int(votes[f, li, c]), len(errors), float(mc[f, li])))
     return out
 
 

@@ -138,6 +138,7 @@ def choose_settings(time_s: np.ndarray, y: np.ndarray, cv_blocks: list[tuple[np.
 COEF_PRIOR_SCALES = (1.0, 10.0, 100.0)
 COEF_WALKS = (0.0, 0.01, 0.1, 1.0)  # × s²/p per hour
 COEF_RANGE_WALKS = (0.0, 1.0, 10.0)  # × s²/p per hour and (standard deviations beyond the training range)²
+COEF_OFFSET_WALKS = (0.0, 1.0)  # the intercept's own random walk, × s² per hour
 
 
 @dataclass(frozen=True)
@@ -149,11 +150,19 @@ class CoefficientSettings:
     prior_scale: float
     walk: float
     range_walk: float
+    offset_walk: float = 0.0
 
     def describe(self) -> str:
         return (f"probe every {self.every_h:g} h (repeatability {self.probe_sd_um:g} µm); coefficients from the "
-                f"training fit, covariance {self.prior_scale:g} × the fit's; random walk {self.walk:g} s²/p per h, "
-                f"{self.range_walk:g} s²/p per h and (σ beyond the training range)²")
+                f"training fit, covariance {self.prior_scale:g} × the fit's; random walk {self.walk:g} s²/p per h "
+                f"(the offset {self.offset_walk:g} s² per h more), {self.range_walk:g} s²/p per h and "
+                "(σ beyond the training range)²")
+
+    def walk_diag(self, s2_um2: float, p: int) -> np.ndarray:
+        """The coefficients' random-walk variance per hour [µm² per unit of each regressor, per h]."""
+        q = np.full(p, self.walk * s2_um2 / p)
+        q[0] += self.offset_walk * s2_um2
+        return q
 
 
 @dataclass(frozen=True)
@@ -187,10 +196,9 @@ def excursion(z: np.ndarray, z_lo: np.ndarray, z_hi: np.ndarray) -> np.ndarray:
     return np.concatenate([np.zeros(e.shape[:-1] + (1,)), e], axis=-1)
 
 
-def _effective_P(st: FilterState, t_s: float, q_walk: float, q_range: float) -> np.ndarray:
+def _effective_P(st: FilterState, t_s: float, q_walk: np.ndarray, q_range: float) -> np.ndarray:
     """The covariance at ``t_s``: the last probe's, the random walk since it and the range excursions."""
-    P = st.P + np.eye(len(st.theta)) * q_walk * (t_s - st.t_probe_s) / 3600.0
-    return P + np.diag(q_range * st.excess)
+    return st.P + np.diag(q_walk * (t_s - st.t_probe_s) / 3600.0 + q_range * st.excess)
 
 
 def filter_step(st: FilterState, z: np.ndarray, t_s: float, s: CoefficientSettings, s2_um2: float,
@@ -204,7 +212,7 @@ def filter_step(st: FilterState, z: np.ndarray, t_s: float, s: CoefficientSettin
     mean squared error that scales the walks; ``z_lo`` / ``z_hi`` the training range of ``z[1:]``.
     """
     p = len(st.theta)
-    q_walk, q_range = s.walk * s2_um2 / p, s.range_walk * s2_um2 / p
+    q_walk, q_range = s.walk_diag(s2_um2, p), s.range_walk * s2_um2 / p
     e = excursion(z, z_lo, z_hi)
     excess = st.excess + e**2 * max(t_s - st.t_last_s, 0.0) / 3600.0
     st = FilterState(st.theta, st.P, st.t_probe_s, float(t_s), excess)
@@ -236,7 +244,7 @@ def coefficient_updating(Z: np.ndarray, y: np.ndarray, time_s: np.ndarray, probe
     the prediction at every row (from the probes before it), its spread [µm], and the coefficients per row
     """
     n, p = Z.shape
-    q_walk, q_range = s.walk * s2_um2 / p, s.range_walk * s2_um2 / p
+    q_walk, q_range = s.walk_diag(s2_um2, p), s.range_walk * s2_um2 / p
     st = filter_start(coef, A, s2_um2, s.prior_scale, time_s[0])
     out, spread, thetas = np.empty(n), np.empty(n), np.empty((n, p))
     e2 = excursion(Z, z_lo, z_hi) ** 2
@@ -252,14 +260,14 @@ def coefficient_updating(Z: np.ndarray, y: np.ndarray, time_s: np.ndarray, probe
         Zs = Z[seg]
         out[seg] = Zs @ st.theta
         thetas[seg] = st.theta
-        walk = q_walk * (time_s[seg] - st.t_probe_s) / 3600.0
-        var = np.einsum("ij,jk,ik->i", Zs, st.P, Zs) + walk * np.einsum("ij,ij->i", Zs, Zs) \
+        h = (time_s[seg] - st.t_probe_s) / 3600.0
+        var = np.einsum("ij,jk,ik->i", Zs, st.P, Zs) + h * ((Zs * Zs) @ q_walk) \
             + q_range * np.einsum("ij,ij->i", Zs * Zs, acc)
         spread[seg] = np.sqrt(np.clip(var, 0.0, None))
         k = b - 1
         if k in probe_set:
             z = Z[k]
-            P = st.P + np.eye(p) * q_walk * (time_s[k] - st.t_probe_s) / 3600.0 + np.diag(q_range * acc[-1])
+            P = st.P + np.diag(q_walk * (time_s[k] - st.t_probe_s) / 3600.0 + q_range * acc[-1])
             Pz = P @ z
             g = Pz / (z @ Pz + s.probe_sd_um**2)
             theta = st.theta + g * (y[k] - z @ st.theta)
@@ -282,8 +290,8 @@ def choose_coefficient_settings(blocks: list[dict], every_h: float, probe_sd_um:
     probes = [probe_rows(b["time_s"], np.ones(b["time_s"].size, bool), every_h) for b in blocks]
     n = sum(b["time_s"].size for b in blocks)
     best, best_sse = None, np.inf
-    for ps, w, rw in itertools.product(COEF_PRIOR_SCALES, COEF_WALKS, COEF_RANGE_WALKS):
-        s = CoefficientSettings(every_h, probe_sd_um, ps, w, rw)
+    for ps, w, rw, ow in itertools.product(COEF_PRIOR_SCALES, COEF_WALKS, COEF_RANGE_WALKS, COEF_OFFSET_WALKS):
+        s = CoefficientSettings(every_h, probe_sd_um, ps, w, rw, ow)
         sse = 0.0
         for b, pr in zip(blocks, probes):
             u, _, _ = coefficient_updating(b["Z"], b["y"], b["time_s"], pr, b["coef"], b["A"], b["s2_um2"],
