@@ -630,7 +630,11 @@ def _regularised(ds: Dataset, d: DataOnlyDiagnosis, folds: int, seed: int, sprea
     tr, va = d.split.train, d.split.validation
     starts = ds.run_starts()
     temps = {n: ds[n] for n in ds.names if n.endswith("_degC") and np.ptp(ds[n][tr]) > 0}
-    fams = reg.families(t, temps, _activity_signals(ds), starts)
+    act = _activity_signals(ds)
+    # what an online evaluation needs to rebuild the regressors: the sensors in order and each activity's scale
+    spec = {"temperatures": list(temps), "activity_max": {n: float(np.abs(ds[n]).max()) for n in act
+                                                          if n.endswith("_rpm")}}
+    fams = reg.families(t, temps, act, starts)
     if ds.runs is not None:
         fams = [reg.Family(f.name, f.columns, reg.zero_runs(f.X, starts)) for f in fams]
     chans = list(d.extended)
@@ -650,7 +654,7 @@ def _regularised(ds: Dataset, d: DataOnlyDiagnosis, folds: int, seed: int, sprea
         f_best = int(np.argmax(every[:, j]))
         out[c] = {"family": fam.name, "lam": float(lam), "votes": ch.votes, "repeats": ch.repeats,
                   "cv_rms": float(np.sqrt(ch.cv_mse)), "effective_dof": float(dof[ch.family, ch.lam_index]),
-                  "columns": len(fam.columns), "y_hat": yh, "model": m,
+                  "columns": len(fam.columns), "y_hat": yh, "model": m, "inputs": spec,
                   "held_out": channel_metrics(d.Y[c][va], yh[va]),
                   "every_row": {"family": fam.name, "fit_percent": float(every[ch.family, j])},
                   "every_row_best": {"family": fams[f_best].name, "fit_percent": float(every[f_best, j])},

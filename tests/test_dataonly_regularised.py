@@ -186,3 +186,42 @@ def test_probes_are_never_in_the_scored_rows():
                            spread=False)
     np.testing.assert_array_equal(e.coefficient_updating["dz_um"]["y_hat"], d.coefficient_updating["dz_um"]["y_hat"])
     np.testing.assert_array_equal(e.regularised["dz_um"]["y_hat"], d.regularised["dz_um"]["y_hat"])
+
+
+def test_monitor_strategy_step_reproduces_the_diagnosis_online():
+    """The online strategy, fed the samples one by one, predicts what the diagnosis's regularised model predicts on
+    the same rows, and with the probes of the validation rows it reproduces the coefficient updating; the model
+    survives its JSON form."""
+    from dataclasses import replace
+
+    from hybridcomp.diagnose.updating import filter_start as fstart
+    from hybridcomp.monitor import dataonly_strategy as ds_strategy
+
+    ds, t, y = _planted(2, hours=16.0, step_s=240.0)
+    split = parse_split("0:50%", t)
+    d = diagnose_data_only(ds, split, beam_width=1, max_terms=0, probe_every_h=2.0, spread=False)
+    model = ds_strategy.model_from_json(ds_strategy.model_to_json(ds_strategy.model_from_diagnosis(d)))
+    assert model.channels[0].family == d.regularised["dz_um"]["family"]
+
+    def sample(k):
+        return {n.removesuffix("_degC"): ds[n][k] for n in ds.names if n.endswith("_degC")}, {"spindle_rpm":
+                                                                                               ds["spindle_rpm"][k]}
+
+    st = ds_strategy.start(model, t[0], *sample(0))
+    va = np.flatnonzero(split.validation)
+    pred = [d.regularised["dz_um"]["y_hat"][0]]
+    cu = d.coefficient_updating["dz_um"]
+    probes = set(cu["probe_rows"].tolist())
+    online = []
+    for k in range(1, t.size):
+        if k == va[0]:  # the diagnosis's filter starts at the first validation row
+            c = model.channels[0]
+            st = replace(st, filters=(fstart(c.coef, c.A, c.s2_um2, c.settings.prior_scale, t[k]),))
+        probe = (np.nan, np.nan, y[k]) if k in probes else None
+        st, off, sd = ds_strategy.step(model, st, t[k], *sample(k), probe_um=probe)
+        if k < va[0]:
+            pred.append(off["dz_um"])
+        else:
+            online.append(off["dz_um"])
+    np.testing.assert_allclose(pred, d.regularised["dz_um"]["y_hat"][:va[0]], atol=1e-8)
+    np.testing.assert_allclose(online, cu["y_hat"], atol=1e-6)
