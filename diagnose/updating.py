@@ -135,10 +135,11 @@ def choose_settings(time_s: np.ndarray, y: np.ndarray, cv_blocks: list[tuple[np.
 # ``range_walk · s² / p · e²`` to its coefficient's variance (``e`` the excursion beyond the range in standard
 # deviations): a speed the training never ran makes the model's weights there uncertain, so the next probe counts more.
 # At a probe the states are updated by the Kalman gain. The predicted spread ``√(zᵀPz)`` of every row is returned too.
-COEF_PRIOR_SCALES = (1.0, 10.0, 100.0)
-COEF_WALKS = (0.0, 0.01, 0.1, 1.0)  # × s²/p per hour
-COEF_RANGE_WALKS = (0.0, 1.0, 10.0)  # × s²/p per hour and (standard deviations beyond the training range)²
+COEF_PRIOR_SCALES = (1.0, 100.0)
+COEF_WALKS = (0.0, 0.1, 1.0)  # × s²/p per hour
+COEF_RANGE_WALKS = (0.0, 10.0)  # × s²/p per hour and (standard deviations beyond the training range)²
 COEF_OFFSET_WALKS = (0.0, 1.0)  # the intercept's own random walk, × s² per hour
+COEF_GAIN_WALKS = (0.0, 0.03, 0.1)  # the gain's random walk [1/√h]: all coefficients in proportion (as g ŷ)
 
 
 @dataclass(frozen=True)
@@ -151,12 +152,14 @@ class CoefficientSettings:
     walk: float
     range_walk: float
     offset_walk: float = 0.0
+    gain_walk_per_sqrt_h: float = 0.0
+    gain_sd: float = GAIN_SD  # prior spread of a common gain on every coefficient
 
     def describe(self) -> str:
         return (f"probe every {self.every_h:g} h (repeatability {self.probe_sd_um:g} µm); coefficients from the "
                 f"training fit, covariance {self.prior_scale:g} × the fit's; random walk {self.walk:g} s²/p per h "
-                f"(the offset {self.offset_walk:g} s² per h more), {self.range_walk:g} s²/p per h and "
-                "(σ beyond the training range)²")
+                f"(the offset {self.offset_walk:g} s² per h more), a common gain 1 ± {self.gain_sd:g} walking "
+                f"{self.gain_walk_per_sqrt_h:g}/√h, {self.range_walk:g} s²/p per h and (σ beyond the training range)²")
 
     def walk_diag(self, s2_um2: float, p: int) -> np.ndarray:
         """The coefficients' random-walk variance per hour [µm² per unit of each regressor, per h]."""
@@ -178,12 +181,18 @@ class FilterState:
     t_probe_s: float
     t_last_s: float
     excess: np.ndarray
+    theta0: np.ndarray  # the training fit's coefficients: the direction of a common gain
 
 
-def filter_start(coef: np.ndarray, A: np.ndarray, s2_um2: float, prior_scale: float, t_s: float) -> FilterState:
-    """The filter's state before the first row: the training fit's coefficients and covariance."""
-    P = prior_scale * s2_um2 * np.linalg.inv(A)
-    return FilterState(np.asarray(coef, float).copy(), 0.5 * (P + P.T), float(t_s), float(t_s), np.zeros(len(coef)))
+def filter_start(coef: np.ndarray, A: np.ndarray, s2_um2: float, s: CoefficientSettings, t_s: float) -> FilterState:
+    """The filter's state before the first row: the training fit's coefficients and covariance.
+
+    The covariance is ``prior_scale · s² A⁻¹`` plus the spread of a common gain on every coefficient
+    (``gain_sd² θ₀θ₀ᵀ``).
+    """
+    c = np.asarray(coef, float).copy()
+    P = s.prior_scale * s2_um2 * np.linalg.inv(A) + s.gain_sd**2 * np.outer(c, c)
+    return FilterState(c, 0.5 * (P + P.T), float(t_s), float(t_s), np.zeros(len(c)), c)
 
 
 def excursion(z: np.ndarray, z_lo: np.ndarray, z_hi: np.ndarray) -> np.ndarray:
@@ -196,9 +205,10 @@ def excursion(z: np.ndarray, z_lo: np.ndarray, z_hi: np.ndarray) -> np.ndarray:
     return np.concatenate([np.zeros(e.shape[:-1] + (1,)), e], axis=-1)
 
 
-def _effective_P(st: FilterState, t_s: float, q_walk: np.ndarray, q_range: float) -> np.ndarray:
-    """The covariance at ``t_s``: the last probe's, the random walk since it and the range excursions."""
-    return st.P + np.diag(q_walk * (t_s - st.t_probe_s) / 3600.0 + q_range * st.excess)
+def _effective_P(st: FilterState, t_s: float, q_walk: np.ndarray, q_range: float, gain_walk: float) -> np.ndarray:
+    """The covariance at ``t_s``: the last probe's, the random walks since it and the range excursions."""
+    h = (t_s - st.t_probe_s) / 3600.0
+    return st.P + np.diag(q_walk * h + q_range * st.excess) + gain_walk**2 * h * np.outer(st.theta0, st.theta0)
 
 
 def filter_step(st: FilterState, z: np.ndarray, t_s: float, s: CoefficientSettings, s2_um2: float,
@@ -215,8 +225,8 @@ def filter_step(st: FilterState, z: np.ndarray, t_s: float, s: CoefficientSettin
     q_walk, q_range = s.walk_diag(s2_um2, p), s.range_walk * s2_um2 / p
     e = excursion(z, z_lo, z_hi)
     excess = st.excess + e**2 * max(t_s - st.t_last_s, 0.0) / 3600.0
-    st = FilterState(st.theta, st.P, st.t_probe_s, float(t_s), excess)
-    P = _effective_P(st, t_s, q_walk, q_range)
+    st = FilterState(st.theta, st.P, st.t_probe_s, float(t_s), excess, st.theta0)
+    P = _effective_P(st, t_s, q_walk, q_range, s.gain_walk_per_sqrt_h)
     pred = float(z @ st.theta)
     spread = float(np.sqrt(max(z @ P @ z, 0.0)))
     if y_um is None:
@@ -225,12 +235,12 @@ def filter_step(st: FilterState, z: np.ndarray, t_s: float, s: CoefficientSettin
     k = Pz / (z @ Pz + s.probe_sd_um**2)
     theta = st.theta + k * (y_um - pred)
     P = P - np.outer(k, Pz)
-    return FilterState(theta, 0.5 * (P + P.T), float(t_s), float(t_s), np.zeros(p)), pred, spread
+    return FilterState(theta, 0.5 * (P + P.T), float(t_s), float(t_s), np.zeros(p), st.theta0), pred, spread
 
 
 def coefficient_updating(Z: np.ndarray, y: np.ndarray, time_s: np.ndarray, probes: np.ndarray, coef: np.ndarray,
                          A: np.ndarray, s2_um2: float, z_lo: np.ndarray, z_hi: np.ndarray,
-                         s: CoefficientSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                         s: CoefficientSettings, spread: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The coefficient filter over rows (vectorised between probes; the same as :func:`filter_step` row by row).
 
     Parameters
@@ -238,6 +248,7 @@ def coefficient_updating(Z: np.ndarray, y: np.ndarray, time_s: np.ndarray, probe
     Z : standardised regressors with the intercept, rows × (1 + columns)
     y : measured drift [µm]; only the values at ``probes`` are read
     probes : sorted row indices of the measurements
+    spread : compute the spread (else NaN: faster, for choosing the settings)
 
     Returns
     -------
@@ -245,8 +256,9 @@ def coefficient_updating(Z: np.ndarray, y: np.ndarray, time_s: np.ndarray, probe
     """
     n, p = Z.shape
     q_walk, q_range = s.walk_diag(s2_um2, p), s.range_walk * s2_um2 / p
-    st = filter_start(coef, A, s2_um2, s.prior_scale, time_s[0])
-    out, spread, thetas = np.empty(n), np.empty(n), np.empty((n, p))
+    st = filter_start(coef, A, s2_um2, s, time_s[0])
+    gw2 = s.gain_walk_per_sqrt_h**2
+    out, sd, thetas = np.empty(n), np.full(n, np.nan), np.empty((n, p))
     e2 = excursion(Z, z_lo, z_hi) ** 2
     dt_h = np.r_[0.0, np.diff(time_s)] / 3600.0
     probe_set = set(np.asarray(probes, int).tolist())
@@ -260,23 +272,25 @@ def coefficient_updating(Z: np.ndarray, y: np.ndarray, time_s: np.ndarray, probe
         Zs = Z[seg]
         out[seg] = Zs @ st.theta
         thetas[seg] = st.theta
-        h = (time_s[seg] - st.t_probe_s) / 3600.0
-        var = np.einsum("ij,jk,ik->i", Zs, st.P, Zs) + h * ((Zs * Zs) @ q_walk) \
-            + q_range * np.einsum("ij,ij->i", Zs * Zs, acc)
-        spread[seg] = np.sqrt(np.clip(var, 0.0, None))
+        if spread:
+            h = (time_s[seg] - st.t_probe_s) / 3600.0
+            var = np.einsum("ij,jk,ik->i", Zs, st.P, Zs) + h * ((Zs * Zs) @ q_walk) \
+                + q_range * np.einsum("ij,ij->i", Zs * Zs, acc) + gw2 * h * (Zs @ st.theta0) ** 2
+            sd[seg] = np.sqrt(np.clip(var, 0.0, None))
         k = b - 1
         if k in probe_set:
             z = Z[k]
-            P = st.P + np.diag(q_walk * (time_s[k] - st.t_probe_s) / 3600.0 + q_range * acc[-1])
+            P = _effective_P(FilterState(st.theta, st.P, st.t_probe_s, float(time_s[k]), acc[-1], st.theta0),
+                             float(time_s[k]), q_walk, q_range, s.gain_walk_per_sqrt_h)
             Pz = P @ z
             g = Pz / (z @ Pz + s.probe_sd_um**2)
             theta = st.theta + g * (y[k] - z @ st.theta)
             P = P - np.outer(g, Pz)
-            st = FilterState(theta, 0.5 * (P + P.T), float(time_s[k]), float(time_s[k]), np.zeros(p))
+            st = FilterState(theta, 0.5 * (P + P.T), float(time_s[k]), float(time_s[k]), np.zeros(p), st.theta0)
             excess = np.zeros(p)
         else:
             excess = acc[-1]
-    return out, spread, thetas
+    return out, sd, thetas
 
 
 def choose_coefficient_settings(blocks: list[dict], every_h: float, probe_sd_um: float
@@ -290,12 +304,13 @@ def choose_coefficient_settings(blocks: list[dict], every_h: float, probe_sd_um:
     probes = [probe_rows(b["time_s"], np.ones(b["time_s"].size, bool), every_h) for b in blocks]
     n = sum(b["time_s"].size for b in blocks)
     best, best_sse = None, np.inf
-    for ps, w, rw, ow in itertools.product(COEF_PRIOR_SCALES, COEF_WALKS, COEF_RANGE_WALKS, COEF_OFFSET_WALKS):
-        s = CoefficientSettings(every_h, probe_sd_um, ps, w, rw, ow)
+    for ps, w, rw, ow, gw in itertools.product(COEF_PRIOR_SCALES, COEF_WALKS, COEF_RANGE_WALKS, COEF_OFFSET_WALKS,
+                                               COEF_GAIN_WALKS):
+        s = CoefficientSettings(every_h, probe_sd_um, ps, w, rw, ow, gw)
         sse = 0.0
         for b, pr in zip(blocks, probes):
             u, _, _ = coefficient_updating(b["Z"], b["y"], b["time_s"], pr, b["coef"], b["A"], b["s2_um2"],
-                                           b["z_lo"], b["z_hi"], s)
+                                           b["z_lo"], b["z_hi"], s, spread=False)
             sse += float(np.sum((b["y"] - u) ** 2))
         if sse < best_sse:
             best, best_sse = s, sse

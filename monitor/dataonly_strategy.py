@@ -136,7 +136,7 @@ def start(model: DataOnlyModel, t_s: float, sensors_degC: Mapping[str, float],
     """The state at the first sample: every lag steady at its input, every filter at its training fit."""
     u = _inputs(model, sensors_degC, spindle)
     lags = np.repeat(u[:, None], _taus_s().size, axis=1)
-    filters = tuple(filter_start(c.coef, c.A, c.s2_um2, c.settings.prior_scale, t_s) for c in model.channels)
+    filters = tuple(filter_start(c.coef, c.A, c.s2_um2, c.settings, t_s) for c in model.channels)
     return StrategyState(float(t_s), u, lags, filters)
 
 
@@ -197,7 +197,8 @@ def model_to_json(model: DataOnlyModel) -> str:
          "A": arr(c.A), "s2_um2": c.s2_um2, "z_lo": arr(c.z_lo), "z_hi": arr(c.z_hi),
          "settings": {"every_h": c.settings.every_h, "probe_sd_um": c.settings.probe_sd_um,
                       "prior_scale": c.settings.prior_scale, "walk": c.settings.walk,
-                      "range_walk": c.settings.range_walk, "offset_walk": c.settings.offset_walk}}
+                      "range_walk": c.settings.range_walk, "offset_walk": c.settings.offset_walk,
+                      "gain_walk_per_sqrt_h": c.settings.gain_walk_per_sqrt_h, "gain_sd": c.settings.gain_sd}}
         for c in model.channels]})
 
 

@@ -124,8 +124,8 @@ def test_uncertainty_grows_outside_the_training_range_and_the_next_probe_counts_
     z_out[2] = m.z_hi[1] + 2.0  # x2 two standard deviations beyond the training range
 
     def run(z_between, range_walk):
-        s = CoefficientSettings(1.0, 0.05, 1.0, 0.0, range_walk)
-        st = filter_start(m.coef, m.A, m.s2_um2, s.prior_scale, 0.0)
+        s = CoefficientSettings(1.0, 0.05, 1.0, 0.0, range_walk, gain_sd=0.0)
+        st = filter_start(m.coef, m.A, m.s2_um2, s, 0.0)
         spreads = []
         for k in range(1, 31):  # half an hour between the probes, at 60 s
             st, _, sd = filter_step(st, z_between, k * 60.0, s, m.s2_um2, m.z_lo, m.z_hi)
@@ -151,9 +151,9 @@ def test_filter_step_row_by_row_equals_the_vectorised_updating():
     rows = np.flatnonzero(~train)
     Z = m.design(X[rows])
     probes = probe_rows(t[rows], np.ones(rows.size, bool), 0.5)
-    s = CoefficientSettings(0.5, 0.1, 10.0, 0.1, 1.0, 0.5)
+    s = CoefficientSettings(0.5, 0.1, 10.0, 0.1, 1.0, 0.5, 0.05)
     u, sd, _ = coefficient_updating(Z, y[rows], t[rows], probes, m.coef, m.A, m.s2_um2, m.z_lo, m.z_hi, s)
-    st = filter_start(m.coef, m.A, m.s2_um2, s.prior_scale, t[rows[0]])
+    st = filter_start(m.coef, m.A, m.s2_um2, s, t[rows[0]])
     is_probe = set(probes.tolist())
     for i, k in enumerate(rows):
         st, p, d = filter_step(st, Z[i], t[k], s, m.s2_um2, m.z_lo, m.z_hi, y[k] if i in is_probe else None)
@@ -216,7 +216,7 @@ def test_monitor_strategy_step_reproduces_the_diagnosis_online():
     for k in range(1, t.size):
         if k == va[0]:  # the diagnosis's filter starts at the first validation row
             c = model.channels[0]
-            st = replace(st, filters=(fstart(c.coef, c.A, c.s2_um2, c.settings.prior_scale, t[k]),))
+            st = replace(st, filters=(fstart(c.coef, c.A, c.s2_um2, c.settings, t[k]),))
         probe = (np.nan, np.nan, y[k]) if k in probes else None
         st, off, sd = ds_strategy.step(model, st, t[k], *sample(k), probe_um=probe)
         if k < va[0]:
