@@ -633,7 +633,8 @@ def _regularised(ds: Dataset, d: DataOnlyDiagnosis, folds: int, seed: int, sprea
     act = _activity_signals(ds)
     # what an online evaluation needs to rebuild the regressors: the sensors in order and each activity's scale
     spec = {"temperatures": list(temps), "activity_max": {n: float(np.abs(ds[n]).max()) for n in act
-                                                          if n.endswith("_rpm")}}
+                                                          if n.endswith("_rpm")},
+            "temp_lags_h": list(reg.TEMP_LAGS_H), "source_lags_h": list(reg.SOURCE_LAGS_H)}
     fams = reg.families(t, temps, act, starts)
     if ds.runs is not None:
         fams = [reg.Family(f.name, f.columns, reg.zero_runs(f.X, starts)) for f in fams]

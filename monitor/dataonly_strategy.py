@@ -3,7 +3,7 @@
 The data-only diagnosis (``diagnose --data-only``) fits per drift channel a ridge regression over the temperatures,
 their first-order lags and the spindle's transfer functions (:mod:`hybridcomp.diagnose.regularised`). This module
 runs that model online, one sample at a time, with its coefficients updated at every probe cycle by the coefficient
-filter of :mod:`hybridcomp.diagnose.updating` (prior: the training fit; random walks; more uncertainty while an
+filter of :mod:`hybridcomp.rom.coefficient_filter` (prior: the training fit; random walks; more uncertainty while an
 input is outside its training range, so the next probe counts more):
 
 * :func:`model_from_diagnosis` takes the fitted model and the filter settings out of a diagnosis;
@@ -26,8 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hybridcomp.diagnose.regularised import SOURCE_LAGS_H, TEMP_LAGS_H
-from hybridcomp.diagnose.updating import CoefficientSettings, FilterState, filter_start, filter_step
+from hybridcomp.rom.coefficient_filter import CoefficientSettings, FilterState, filter_start, filter_step
 
 PROBE_INDEX = {"dx_um": 0, "dy_um": 1, "dz_um": 2}  # a channel's place in a probe (dx, dy, dz)
 
@@ -61,6 +60,8 @@ class DataOnlyModel:
     sensors: tuple[str, ...]
     activity_max: dict
     channels: tuple[ChannelModel, ...]
+    temp_lags_h: tuple[float, ...]  # the temperatures' lag time constants, in the families' column order
+    source_lags_h: tuple[float, ...]  # the activities' lag time constants
 
 
 @dataclass(frozen=True)
@@ -108,11 +109,12 @@ def model_from_diagnosis(d, settings: Mapping[str, CoefficientSettings] | None =
         chans.append(ChannelModel(c, r["family"], sig, n, m.mu, m.sd, m.coef, m.A, m.s2_um2, m.z_lo, m.z_hi,
                                   settings[c]))
     sensors = tuple(s.removesuffix("_degC") for s in spec["temperatures"])
-    return DataOnlyModel(sensors, dict(spec["activity_max"]), tuple(chans))
+    return DataOnlyModel(sensors, dict(spec["activity_max"]), tuple(chans), tuple(spec["temp_lags_h"]),
+                         tuple(spec["source_lags_h"]))
 
 
-def _taus_s() -> np.ndarray:
-    return np.array(sorted(set(TEMP_LAGS_H) | set(SOURCE_LAGS_H))) * 3600.0
+def _taus_s(model: DataOnlyModel) -> np.ndarray:
+    return np.array(sorted(set(model.temp_lags_h) | set(model.source_lags_h))) * 3600.0
 
 
 def _inputs(model: DataOnlyModel, sensors_degC: Mapping[str, float], spindle: Mapping[str, float]) -> np.ndarray:
@@ -135,22 +137,22 @@ def start(model: DataOnlyModel, t_s: float, sensors_degC: Mapping[str, float],
           spindle: Mapping[str, float]) -> StrategyState:
     """The state at the first sample: every lag steady at its input, every filter at its training fit."""
     u = _inputs(model, sensors_degC, spindle)
-    lags = np.repeat(u[:, None], _taus_s().size, axis=1)
+    lags = np.repeat(u[:, None], _taus_s(model).size, axis=1)
     filters = tuple(filter_start(c.coef, c.A, c.s2_um2, c.settings, t_s) for c in model.channels)
     return StrategyState(float(t_s), u, lags, filters)
 
 
 def _regressors(model: DataOnlyModel, c: ChannelModel, u: np.ndarray, lags: np.ndarray) -> np.ndarray:
     """The standardised regressors of a channel with the intercept, in the family's column order."""
-    taus = list(_taus_s())
+    taus = list(_taus_s(model))
     nT = len(model.sensors)
     T = u[:nT]
     cols = []
     if c.signal is not None:
         j = nT + _activities(model).index((c.signal, c.exponent))
-        cols += [lags[j, taus.index(h * 3600.0)] for h in SOURCE_LAGS_H]
+        cols += [lags[j, taus.index(h * 3600.0)] for h in model.source_lags_h]
     cols += list(T)
-    for h in TEMP_LAGS_H:
+    for h in model.temp_lags_h:
         cols += list(lags[:nT, taus.index(h * 3600.0)])
     x = np.array(cols)
     return np.r_[1.0, (x - c.mu) / c.sd]
@@ -169,7 +171,7 @@ def step(model: DataOnlyModel, st: StrategyState, t_s: float, sensors_degC: Mapp
         raise ValueError(f"sample time {t_s!r} s is not after the last one ({st.t_s!r} s)")
     u = _inputs(model, sensors_degC, spindle)
     dt = t_s - st.t_s
-    taus = _taus_s()
+    taus = _taus_s(model)
     a = np.exp(-dt / taus)
     q = taus * (1.0 - a) / dt
     lags = a * st.lags + (q - a) * st.inputs[:, None] + (1.0 - q) * u[:, None]
@@ -192,7 +194,8 @@ def model_to_json(model: DataOnlyModel) -> str:
     def arr(x):
         return np.asarray(x, float).tolist()
 
-    return json.dumps({"sensors": list(model.sensors), "activity_max": model.activity_max, "channels": [
+    return json.dumps({"sensors": list(model.sensors), "activity_max": model.activity_max,
+                       "temp_lags_h": list(model.temp_lags_h), "source_lags_h": list(model.source_lags_h), "channels": [
         {"channel": c.channel, "family": c.family, "mu": arr(c.mu), "sd": arr(c.sd), "coef": arr(c.coef),
          "A": arr(c.A), "s2_um2": c.s2_um2, "z_lo": arr(c.z_lo), "z_hi": arr(c.z_hi),
          "settings": {"every_h": c.settings.every_h, "probe_sd_um": c.settings.probe_sd_um,
@@ -211,4 +214,5 @@ def model_from_json(text: str) -> DataOnlyModel:
         chans.append(ChannelModel(c["channel"], c["family"], sig, n, *(np.array(c[k]) for k in ("mu", "sd", "coef", "A")),
                                   float(c["s2_um2"]), np.array(c["z_lo"]), np.array(c["z_hi"]),
                                   CoefficientSettings(**c["settings"])))
-    return DataOnlyModel(tuple(d["sensors"]), dict(d["activity_max"]), tuple(chans))
+    return DataOnlyModel(tuple(d["sensors"]), dict(d["activity_max"]), tuple(chans), tuple(d["temp_lags_h"]),
+                         tuple(d["source_lags_h"]))
