@@ -188,15 +188,20 @@ def cv_blocks(train: np.ndarray, folds: int, phase: float = 0.0, runs: np.ndarra
     return np.array_split(np.roll(rows, -shift), folds)
 
 
-def fold_errors(fams: list[Family], Y: np.ndarray, train: np.ndarray, blocks: list[np.ndarray]) -> np.ndarray:
+def fold_errors(fams: list[Family], Y: np.ndarray, train: np.ndarray, blocks: list[np.ndarray],
+                cache: dict | None = None) -> np.ndarray:
     """Mean squared error of every block predicted from the other training rows: ``blocks × families × λ × channels``.
 
     Each fold's fit is the training rows' moments less the block's (the same fit as on those rows, exactly).
+    ``cache`` keeps the training rows' moments per family between calls on the same rows.
     """
     out = np.empty((len(blocks), len(fams), len(LAMBDAS), Y.shape[1]))
+    cache = {} if cache is None else cache
     for f, fam in enumerate(fams):
-        Xc = fam.X - fam.X[train].mean(0)
-        m_all = _moments(Xc, Y, train)
+        if f not in cache:
+            Xc = fam.X - fam.X[train].mean(0)
+            cache[f] = (Xc, _moments(Xc, Y, train))
+        Xc, m_all = cache[f]
         for b, rows in enumerate(blocks):
             m_b = _moments(Xc, Y, rows)
             m = tuple(a - c for a, c in zip(m_all, m_b))
@@ -265,14 +270,16 @@ def choose(errors: list[np.ndarray], dof: np.ndarray) -> list[Choice]:
 
 
 def repeated_errors(fams: list[Family], Y: np.ndarray, train: np.ndarray, folds: int, seed: int = 0,
-                    repeats: int = REPEATS, runs: np.ndarray | None = None) -> list[np.ndarray]:
+                    repeats: int = REPEATS, runs: np.ndarray | None = None, cache: dict | None = None
+                    ) -> list[np.ndarray]:
     """:func:`fold_errors` for ``repeats`` phases of the blocks: 0, then drawn from ``seed``."""
     rng = np.random.default_rng(seed)
     phases = [0.0] + list(rng.uniform(0.1, 0.9, repeats - 1))
     out = []
+    cache = {} if cache is None else cache
     for ph in phases:
         blocks = cv_blocks(train, folds, ph, runs)
-        out.append(fold_errors(fams, Y, train, blocks))
+        out.append(fold_errors(fams, Y, train, blocks, cache))
         if runs is not None and np.unique(runs[train]).size >= 2:
             break  # the runs are the folds: no phases
     return out
@@ -300,9 +307,14 @@ def fold_spread(fams: list[Family], Y: np.ndarray, train: np.ndarray, validation
     held = held_out_fits(fams, Y, train, validation) if held is None else held
     dof = effective_dof(fams, train)
     fits, picks = {}, {}
+    cache: dict = {}
+    by_runs = runs is not None and np.unique(runs[train]).size >= 2  # the runs are the folds: one choice
+    once = None
     for k in fold_counts:
         for s in seeds:
-            ch = choose(repeated_errors(fams, Y, train, k, s, runs=runs), dof)
+            if once is None or not by_runs:
+                once = choose(repeated_errors(fams, Y, train, k, s, runs=runs, cache=cache), dof)
+            ch = once
             fits[(k, s)] = [float(held[c.family, c.lam_index, j]) for j, c in enumerate(ch)]
             picks[(k, s)] = [(fams[c.family].name, LAMBDAS[c.lam_index]) for c in ch]
     F = np.array(list(fits.values()))
