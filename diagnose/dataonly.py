@@ -820,10 +820,11 @@ def _regularised_summary(d: DataOnlyDiagnosis) -> dict | None:
                   "spread_over_folds_and_seeds": r["spread"],
                   "every_row_NOT_held_out": r["every_row"], "every_row_best_family_NOT_held_out": r["every_row_best"],
                   "gap_to_every_row_points": float(r["every_row"]["fit_percent"] - ho)}
-    return {"how": "ridge regressions of the families below, family and λ chosen on the training rows by a repeated "
-                   f"blocked {d.folds}-fold cross-validation (three phases of the blocks, pooled) with the "
-                   "one-standard-error rule (the fewest effective degrees of freedom within one standard error of the "
-                   "best); held out: the validation rows scored the result once",
+    return {"how": "ridge regressions over the temperatures, their first-order lags and the activities' transfer "
+                   "functions (families T+lagT and S<n>(signal)+T+lagT), no column selected; family and λ chosen on "
+                   f"the training rows by a repeated blocked {d.folds}-fold cross-validation (three phases of the "
+                   "blocks, pooled) with the one-standard-error rule (the fewest effective degrees of freedom within "
+                   "one standard error of the best); held out: the validation rows scored the result once",
             "channels": out}
 
 
@@ -869,7 +870,8 @@ def _regularised_report(s: dict) -> list[str]:
     if not rg:
         return []
     L = ["## Regularised families beside the search", "",
-         f"Each channel also as a ridge regression, {rg['how']}. The spread is the held-out fit of the choice made with "
+         f"Each channel is also fitted as one of the {rg['how']}. The votes say in how many of the repetitions on "
+         "their own the choice was as good as their best. The spread is the held-out fit of the choice made with "
          "3, 5 and 10 folds and seeds 0, 1, 2 (the phases of the blocks); the last columns are the chosen family fitted "
          "on every row, the validation rows too: NOT held out, what the data allow that family, and how far the "
          "held-out fit is from it.", "",
