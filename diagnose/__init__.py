@@ -8,6 +8,8 @@
 * :mod:`hybridcomp.diagnose.selection` — bounded least squares and greedy selection (BIC + validation gain)
 * :mod:`hybridcomp.diagnose.report` — report.md, plots, summary.json, machine_extended.toml
 * :mod:`hybridcomp.diagnose.dataonly` — the same on a dataset alone (a regression compensation model)
+* :mod:`hybridcomp.diagnose.regularised` — its regularised families (ridge), chosen stably on the training rows
+* :mod:`hybridcomp.diagnose.updating` — post-process updating from sparse probes (gain/offset, coefficients)
 * :mod:`hybridcomp.diagnose.datasets` — public measured data sets, fetched and checked (``hybridcomp data fetch``)
 
 ```python

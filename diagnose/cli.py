@@ -155,6 +155,20 @@ def run(args: argparse.Namespace) -> int:
                 pu = summary["post_process_updating"]
                 fits = ", ".join(f"{c} {v['fit']['fit_percent']:.1f} %" for c, v in pu["channels"].items())
                 print(f"with a probe every {pu['every_h']:g} h (gain and offset updated): fit {fits}")
+            if summary["regularised"]:
+                rg = summary["regularised"]["channels"]
+                fits = ", ".join(f"{c} {v['held_out']['fit_percent']:.1f} %" for c, v in rg.items())
+                print(f"regularised families: held-out fit {fits}")
+                fits = ", ".join(f"{c} {v['spread_over_folds_and_seeds']['min']:.1f}–"
+                                 f"{v['spread_over_folds_and_seeds']['max']:.1f}" for c, v in rg.items()
+                                 if v["spread_over_folds_and_seeds"])
+                print(f"  over folds 3/5/10 and seeds 0/1/2: {fits}")
+                fits = ", ".join(f"{c} {v['every_row_NOT_held_out']['fit_percent']:.1f} %" for c, v in rg.items())
+                print(f"  the same family fitted on every row (NOT held out): {fits}")
+            if summary["coefficient_updating"]:
+                cu = summary["coefficient_updating"]
+                fits = ", ".join(f"{c} {v['fit']['fit_percent']:.1f} %" for c, v in cu["channels"].items())
+                print(f"regularised, a probe every {cu['every_h']:g} h (coefficients updated): fit {fits}")
             return 0
         from hybridcomp.diagnose.core import diagnose, prepare_model
         from hybridcomp.diagnose.report import write_report

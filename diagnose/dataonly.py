@@ -33,15 +33,22 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from hybridcomp.diagnose import regularised as reg
 from hybridcomp.diagnose.data import Dataset, DatasetError, Split, check_channels
 from hybridcomp.diagnose.metrics import channel_metrics
 from hybridcomp.diagnose.problem import first_order_lag
-from hybridcomp.diagnose.updating import choose_settings, probe_rows, updated_prediction
+from hybridcomp.diagnose.updating import (
+    choose_coefficient_settings,
+    choose_settings,
+    coefficient_updating,
+    probe_rows,
+    updated_prediction,
+)
 from hybridcomp.models import jsonio
 from hybridcomp.safeio import write_text_atomic
 
@@ -104,6 +111,12 @@ class DataOnlyDiagnosis:
     # post-process gain updating on the validation rows (None without probes): per channel the settings chosen on the
     # training rows, the probe rows, the updated prediction and (gain, offset) per validation row
     updating: dict | None = None
+    # the regularised families beside the search (None when switched off): per channel the chosen family and λ,
+    # its prediction at every row, the held-out fits of the choice made with other fold counts and seeds, and the
+    # family fitted on every row (NOT held out); see :mod:`hybridcomp.diagnose.regularised`
+    regularised: dict | None = None
+    # coefficient updating of the regularised model on the validation rows (None without probes or without it)
+    coefficient_updating: dict | None = None
 
     @property
     def criterion_name(self) -> str:
@@ -467,7 +480,8 @@ def _extension_records(lib: _Library, path, gain_key: str = "validation_fit_poin
 def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_gain: float = MIN_FIT_GAIN,
                        beam_width: int = BEAM_WIDTH, selection_check: bool = True, selection: str = "held-out",
                        folds: int = 3, criterion: str = "bic", probe_every_h: float | None = None,
-                       probe_sd_um: float = 0.5) -> DataOnlyDiagnosis:
+                       probe_sd_um: float = 0.5, regularised: bool = True, spread: bool = True,
+                       seed: int = 0) -> DataOnlyDiagnosis:
     """Diagnose a regression compensation model on a dataset alone (see the module docstring).
 
     Parameters
@@ -488,6 +502,12 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_g
         drift is measured every ``probe_every_h`` hours and the extended model's gain and offset are updated from
         those measurements; the filter's settings are chosen on the training rows. ``None``: no updating
     probe_sd_um : the probe measurement's repeatability [µm]
+    regularised : also fit the regularised families (:mod:`hybridcomp.diagnose.regularised`) beside the search: ridge
+        regressions over the temperatures, their lags and the activities' transfer functions, family and λ chosen
+        on the training rows by a repeated blocked cross-validation (``folds`` blocks, phases drawn from ``seed``)
+        with the one-standard-error rule and selection by stability; with ``probe_every_h`` their coefficients are
+        updated from the probes (:func:`hybridcomp.diagnose.updating.coefficient_updating`)
+    spread : with ``regularised``: the held-out fit of the choice made with 3, 5 and 10 folds and seeds 0, 1, 2
 
     Raises
     ------
@@ -509,9 +529,16 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_g
     if not (np.isfinite(probe_sd_um) and probe_sd_um > 0):
         raise DatasetError(f"the probe repeatability must be a positive number of µm, got {probe_sd_um!r}")
     with single_blas_thread():
-        return _diagnose_data_only(ds, split, max_terms, min_fit_gain, beam_width,
-                                   selection_check and selection == "assisted", selection, folds, criterion,
-                                   probe_every_h, probe_sd_um)
+        d = _diagnose_data_only(ds, split, max_terms, min_fit_gain, beam_width,
+                                selection_check and selection == "assisted", selection, folds, criterion,
+                                probe_every_h, probe_sd_um)
+        if not regularised:
+            return d
+        t0 = time.perf_counter()
+        r, cu = _regularised(ds, d, folds, seed, spread, probe_every_h, probe_sd_um)
+        timings = {**d.timings_s, "regularised": time.perf_counter() - t0}
+        timings["total"] = d.timings_s["total"] + timings["regularised"]
+        return replace(d, regularised=r, coefficient_updating=cu, timings_s=timings)
 
 
 def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain: float, beam_width: int,
@@ -594,6 +621,77 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
                              split_check, selection, folds, ds.runs, criterion, updating or None)
 
 
+def _regularised(ds: Dataset, d: DataOnlyDiagnosis, folds: int, seed: int, spread: bool,
+                 probe_every_h: float | None, probe_sd_um: float) -> tuple[dict, dict | None]:
+    """The regularised families of a diagnosed dataset (the same rows, thinning and zeros as the search)."""
+    t = d.time_s
+    if t.size != ds.time_s.size:  # the search thinned the record: the same rows
+        ds = ds.subset(np.flatnonzero(np.isin(ds.time_s, t)))
+    tr, va = d.split.train, d.split.validation
+    starts = ds.run_starts()
+    temps = {n: ds[n] for n in ds.names if n.endswith("_degC") and np.ptp(ds[n][tr]) > 0}
+    act = _activity_signals(ds)
+    # what an online evaluation needs to rebuild the regressors: the sensors in order and each activity's scale
+    spec = {"temperatures": list(temps), "activity_max": {n: float(np.abs(ds[n]).max()) for n in act
+                                                          if n.endswith("_rpm")},
+            "temp_lags_h": list(reg.TEMP_LAGS_H), "source_lags_h": list(reg.SOURCE_LAGS_H)}
+    fams = reg.families(t, temps, act, starts)
+    if ds.runs is not None:
+        fams = [reg.Family(f.name, f.columns, reg.zero_runs(f.X, starts)) for f in fams]
+    chans = list(d.extended)
+    Y = np.column_stack([d.Y[c] for c in chans])
+    errs = reg.repeated_errors(fams, Y, tr, folds, seed, runs=ds.runs)
+    dof = reg.effective_dof(fams, tr)
+    choice = reg.choose(errs, dof)
+    held = reg.held_out_fits(fams, Y, tr, va)
+    sp = reg.fold_spread(fams, Y, tr, va, held, runs=ds.runs) if spread else None
+    every = reg.every_row_fits(fams, Y, va)
+    out, upd = {}, {}
+    for j, (c, ch) in enumerate(zip(chans, choice)):
+        fam = fams[ch.family]
+        lam = reg.LAMBDAS[ch.lam_index]
+        m = reg.fit_ridge(fam, d.Y[c], tr, lam, s2_um2=ch.cv_mse)
+        yh = m.predict(fam.X)
+        f_best = int(np.argmax(every[:, j]))
+        out[c] = {"family": fam.name, "lam": float(lam), "votes": ch.votes, "repeats": ch.repeats,
+                  "cv_rms": float(np.sqrt(ch.cv_mse)), "effective_dof": float(dof[ch.family, ch.lam_index]),
+                  "columns": len(fam.columns), "y_hat": yh, "model": m, "inputs": spec,
+                  "held_out": channel_metrics(d.Y[c][va], yh[va]),
+                  "every_row": {"family": fam.name, "fit_percent": float(every[ch.family, j])},
+                  "every_row_best": {"family": fams[f_best].name, "fit_percent": float(every[f_best, j])},
+                  "spread": None if sp is None else {
+                      "fits": {f"{k} folds, seed {s}": v[j] for (k, s), v in sp["fits"].items()},
+                      "choices": {f"{k} folds, seed {s}": f"{v[j][0]} λ={v[j][1]:.3g}" for (k, s), v in
+                                  sp["choices"].items()},
+                      "min": float(sp["min"][j]), "max": float(sp["max"][j]), "spread": float(sp["spread"][j])}}
+        if probe_every_h is not None:
+            upd[c] = _coefficient_updating(fam, d.Y[c], t, tr, va, lam, m, ds.runs, folds, probe_every_h, probe_sd_um)
+    return out, (upd or None)
+
+
+def _coefficient_updating(fam, y: np.ndarray, t: np.ndarray, tr: np.ndarray, va: np.ndarray, lam: float, m,
+                          runs: np.ndarray | None, folds: int, every_h: float, probe_sd_um: float) -> dict:
+    """The regularised model with its coefficients updated at the probes of the validation rows.
+
+    The filter's settings are chosen on the training rows (each block probed, the model fitted on the other blocks).
+    """
+    blocks = []
+    for rows in reg.cv_blocks(tr, folds, 0.0, runs):
+        fit_rows = tr.copy()
+        fit_rows[rows] = False
+        mb = reg.fit_ridge(fam, y, fit_rows, lam, s2_um2=m.s2_um2)
+        blocks.append({"time_s": t[rows], "y": y[rows], "Z": mb.design(fam.X[rows]), "coef": mb.coef, "A": mb.A,
+                       "s2_um2": mb.s2_um2, "z_lo": mb.z_lo, "z_hi": mb.z_hi})
+    settings, cv_rms = choose_coefficient_settings(blocks, every_h, probe_sd_um)
+    rows = np.flatnonzero(va)
+    probes = probe_rows(t[rows], np.ones(rows.size, bool), every_h)
+    u, sd, theta = coefficient_updating(m.design(fam.X[rows]), y[rows], t[rows], probes, m.coef, m.A, m.s2_um2,
+                                        m.z_lo, m.z_hi, settings)
+    return {"settings": settings, "cv_rms_updated_um": cv_rms, "probe_rows": rows[probes], "y_hat": u,
+            "scored": scored_mask(rows.size, probes),
+            "spread_um": sd, "coef_change": float(np.linalg.norm(theta[-1] - m.coef) / np.linalg.norm(m.coef))}
+
+
 def _post_process_updating(cv: _BlockedCV, best: _State, t: np.ndarray, y: np.ndarray, yh: np.ndarray,
                            va: np.ndarray, starts: np.ndarray, every_h: float, probe_sd_um: float) -> dict:
     """The chosen model with gain updating on the validation rows; the filter settings chosen on the training blocks."""
@@ -604,7 +702,14 @@ def _post_process_updating(cv: _BlockedCV, best: _State, t: np.ndarray, y: np.nd
     restarts = np.flatnonzero(np.isin(rows, starts))
     u, theta = updated_prediction(yh[rows], y[rows], t[rows], probes, settings, restarts)
     return {"settings": settings, "cv_rms_updated_um": cv_rms, "probe_rows": rows[probes], "y_hat": u,
-            "gain": theta[:, 0], "offset_um": theta[:, 1]}
+            "scored": scored_mask(rows.size, probes), "gain": theta[:, 0], "offset_um": theta[:, 1]}
+
+
+def scored_mask(n: int, probes: np.ndarray) -> np.ndarray:
+    """Of ``n`` validation rows, those that score an updated prediction: every row but the probes."""
+    m = np.ones(n, bool)
+    m[np.asarray(probes, int)] = False
+    return m
 
 
 def _structure_name(tm: Term) -> str:
@@ -665,6 +770,8 @@ def summary(d: DataOnlyDiagnosis) -> dict:
         "runs": None if d.runs is None else _per_run_metrics(d),
         "selection_check": d.selection_check,
         "post_process_updating": _updating_summary(d),
+        "regularised": _regularised_summary(d),
+        "coefficient_updating": _coefficient_summary(d),
         "timings_s": d.timings_s,
     }
 
@@ -682,8 +789,9 @@ def _updating_summary(d: DataOnlyDiagnosis) -> dict | None:
     out = {}
     for c, u in d.updating.items():
         st = u["settings"]
-        out[c] = {"fit": _headline(channel_metrics(d.Y[c][va], u["y_hat"])),
-                  "without_updating": _headline(channel_metrics(d.Y[c][va], d.extended[c].y_hat[va])),
+        sc = u["scored"]  # the validation rows without the probes
+        out[c] = {"fit": _headline(channel_metrics(d.Y[c][va][sc], u["y_hat"][sc])),
+                  "without_updating": _headline(channel_metrics(d.Y[c][va][sc], d.extended[c].y_hat[va][sc])),
                   "probes": int(u["probe_rows"].size), "final_gain": float(u["gain"][-1]),
                   "final_offset_um": float(u["offset_um"][-1]), "settings": {
                       "gain_walk_per_sqrt_h": st.gain_walk_per_sqrt_h,
@@ -692,7 +800,56 @@ def _updating_summary(d: DataOnlyDiagnosis) -> dict | None:
     st = next(iter(d.updating.values()))["settings"]
     return {"every_h": st.every_h, "probe_sd_um": st.probe_sd_um,
             "how": "the extended model's gain and offset updated by a Kalman filter at each probe of the validation "
-                   "rows; each row uses earlier probes only; the filter's random walks chosen on the training rows",
+                   "rows; each row uses earlier probes only; the filter's random walks chosen on the training rows; "
+                   "scored on the validation rows without the probe rows",
+            "channels": out}
+
+
+def _regularised_summary(d: DataOnlyDiagnosis) -> dict | None:
+    """The regularised families per channel: choice, held-out fit, its spread over fold counts and seeds.
+
+    Also the family fitted on every row (NOT held out), with the gap between the two.
+    """
+    if not d.regularised:
+        return None
+    out = {}
+    for c, r in d.regularised.items():
+        ho = r["held_out"]["fit_percent"]
+        out[c] = {"family": r["family"], "lambda": r["lam"], "effective_dof": r["effective_dof"], "votes": r["votes"],
+                  "repeats": r["repeats"], "cv_rms": r["cv_rms"], "held_out": _headline(r["held_out"]),
+                  "spread_over_folds_and_seeds": r["spread"],
+                  "every_row_NOT_held_out": r["every_row"], "every_row_best_family_NOT_held_out": r["every_row_best"],
+                  "gap_to_every_row_points": float(r["every_row"]["fit_percent"] - ho)}
+    return {"how": "ridge regressions over the temperatures, their first-order lags and the activities' transfer "
+                   "functions (families T+lagT and S<n>(signal)+T+lagT), no column selected; family and λ chosen on "
+                   f"the training rows by a repeated blocked {d.folds}-fold cross-validation (three phases of the "
+                   "blocks, pooled) with the one-standard-error rule (the fewest effective degrees of freedom within "
+                   "one standard error of the best); held out: the validation rows scored the result once",
+            "channels": out}
+
+
+def _coefficient_summary(d: DataOnlyDiagnosis) -> dict | None:
+    """Fits of the regularised model with coefficient updating (scored on the validation rows without the probes)."""
+    if not d.coefficient_updating:
+        return None
+    va = d.split.validation
+    out = {}
+    for c, u in d.coefficient_updating.items():
+        sc = u["scored"]
+        y = d.Y[c][va][sc]
+        st = u["settings"]
+        out[c] = {"fit": _headline(channel_metrics(y, u["y_hat"][sc])),
+                  "without_updating": _headline(channel_metrics(y, d.regularised[c]["y_hat"][va][sc])),
+                  "probes": int(u["probe_rows"].size), "coefficient_change": u["coef_change"],
+                  "spread_um_median": float(np.median(u["spread_um"])),
+                  "settings": {"prior_scale": st.prior_scale, "walk": st.walk, "range_walk": st.range_walk,
+                               "offset_walk": st.offset_walk},
+                  "training_cv_rms_updated_um": u["cv_rms_updated_um"]}
+    st = next(iter(d.coefficient_updating.values()))["settings"]
+    return {"every_h": st.every_h, "probe_sd_um": st.probe_sd_um,
+            "how": "the regularised model's coefficients updated by a Kalman filter at each probe (prior: the training "
+                   "fit; random walks and the inflation outside the training range chosen on the training rows); "
+                   "each row uses earlier probes only; scored on the validation rows without the probe rows",
             "channels": out}
 
 
@@ -705,6 +862,42 @@ def _per_run_metrics(d: DataOnlyDiagnosis) -> dict:
             rows].all() else "both", "hours": float((d.time_s[rows][-1] - d.time_s[rows][0]) / 3600),
             **{c: channel_metrics(d.Y[c][rows], m.y_hat[rows]) for c, m in d.extended.items()}}
     return out
+
+
+def _regularised_report(s: dict) -> list[str]:
+    """The report's section on the regularised families and their coefficient updating."""
+    rg = s.get("regularised")
+    if not rg:
+        return []
+    L = ["## Regularised families beside the search", "",
+         f"Each channel is also fitted as one of the {rg['how']}. The votes say in how many of the repetitions on "
+         "their own the choice was as good as their best. The spread is the held-out fit of the choice made with "
+         "3, 5 and 10 folds and seeds 0, 1, 2 (the phases of the blocks); the last columns are the chosen family fitted "
+         "on every row, the validation rows too: NOT held out, what the data allow that family, and how far the "
+         "held-out fit is from it.", "",
+         "| channel | static, all temperatures | search, held out | regularised, held out (RMS) | over folds 3/5/10 × "
+         "seeds: min–max (spread) | family, λ (votes) | fitted on every row, NOT held out | gap |",
+         "|---|---|---|---|---|---|---|---|"]
+    for c, v in rg["channels"].items():
+        ch = s["channels"][c]
+        sp = v["spread_over_folds_and_seeds"]
+        spt = "–" if sp is None else f"{sp['min']:.1f}–{sp['max']:.1f} ({sp['spread']:.1f})"
+        L.append(f"| {c} | {ch['reference_all_temperatures']['fit_percent']:.1f} | {ch['after']['fit_percent']:.1f} | "
+                 f"**{v['held_out']['fit_percent']:.1f}** ({v['held_out']['rms']:.3g}) | {spt} | {v['family']}, "
+                 f"λ = {v['lambda']:.3g} ({v['votes']}/{v['repeats']}) | *{v['every_row_NOT_held_out']['fit_percent']:.1f}* "
+                 f"| {v['gap_to_every_row_points']:.1f} |")
+    L.append("")
+    cu = s.get("coefficient_updating")
+    if cu:
+        L += [f"### Coefficient updating: a probe every {cu['every_h']:g} h", "",
+              f"{cu['how']}.", "",
+              "| channel | regularised, no probes | coefficients updated | probes | coefficients changed by | "
+              "median spread [µm] |", "|---|---|---|---|---|---|"]
+        for c, v in cu["channels"].items():
+            L.append(f"| {c} | {v['without_updating']['fit_percent']:.1f} | **{v['fit']['fit_percent']:.1f}** | "
+                     f"{v['probes']} | {100 * v['coefficient_change']:.0f} % | {v['spread_um_median']:.3g} |")
+        L.append("")
+    return L
 
 
 def _plot_runs(d: DataOnlyDiagnosis, path: Path, plt) -> None:
@@ -822,6 +1015,7 @@ def write_data_only_report(d: DataOnlyDiagnosis, out_dir, dataset_name: str = ""
         L += ["", "The filter per channel, as chosen on the training rows:", ""]
         L += [f"* {c}: {u['settings'].describe()}" for c, u in d.updating.items()]
         L.append("")
+    L += _regularised_report(s)
     if plots:
         try:
             import matplotlib

@@ -19,7 +19,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-GAIN_SD = 0.25  # prior spread of the gain: the model's own gain may be 25 % off on new data
+from hybridcomp.rom.coefficient_filter import (
+    GAIN_SD,
+    CoefficientSettings,
+    FilterState,
+    coefficient_updating,
+    excursion,
+    filter_start,
+    filter_step,
+)
+
+__all__ = ["GAIN_SD", "CoefficientSettings", "FilterState", "coefficient_updating", "excursion", "filter_start",
+           "filter_step", "UpdateSettings", "probe_rows", "updated_prediction", "choose_settings",
+           "choose_coefficient_settings"]
 GAIN_WALK_PER_SQRT_H = (0.0, 0.01, 0.03, 0.1)  # candidate gain random walks [1/√h]
 OFFSET_WALK_FACTORS = (0.3, 1.0, 3.0)  # candidate offset random walks, × the model's cross-validation RMS per √h
 
@@ -119,6 +131,38 @@ def choose_settings(time_s: np.ndarray, y: np.ndarray, cv_blocks: list[tuple[np.
         for (rows, p), pr in zip(cv_blocks, probes):
             u, _ = updated_prediction(p, y[rows], time_s[rows], pr, s)
             sse += float(np.sum((y[rows] - u) ** 2))
+        if sse < best_sse:
+            best, best_sse = s, sse
+    return best, float(np.sqrt(best_sse / max(n, 1)))
+
+
+# coefficient updating (the filter: hybridcomp.rom.coefficient_filter): the settings tried on the training rows
+COEF_PRIOR_SCALES = (1.0, 100.0)
+COEF_WALKS = (0.0, 0.1, 1.0)  # × s²/p per hour
+COEF_RANGE_WALKS = (0.0, 10.0)  # × s²/p per hour and (standard deviations beyond the training range)²
+COEF_OFFSET_WALKS = (0.0, 1.0)  # the intercept's own random walk, × s² per hour
+COEF_GAIN_WALKS = (0.0, 0.03, 0.1)  # the gain's random walk [1/√h]: all coefficients in proportion (as g ŷ)
+
+
+def choose_coefficient_settings(blocks: list[dict], every_h: float, probe_sd_um: float
+                                ) -> tuple[CoefficientSettings, float]:
+    """The coefficient filter that predicts the training blocks best when they are probed every ``every_h`` hours.
+
+    ``blocks``: per block of the training rows (contiguous in time), a dict with ``time_s``, ``y``, ``Z`` and the
+    model fitted on the other blocks (``coef``, ``A``, ``s2_um2``, ``z_lo``, ``z_hi``). Returns the settings and
+    their pooled RMS error [µm] on the blocks.
+    """
+    probes = [probe_rows(b["time_s"], np.ones(b["time_s"].size, bool), every_h) for b in blocks]
+    n = sum(b["time_s"].size for b in blocks)
+    best, best_sse = None, np.inf
+    for ps, w, rw, ow, gw in itertools.product(COEF_PRIOR_SCALES, COEF_WALKS, COEF_RANGE_WALKS, COEF_OFFSET_WALKS,
+                                               COEF_GAIN_WALKS):
+        s = CoefficientSettings(every_h, probe_sd_um, ps, w, rw, ow, gw)
+        sse = 0.0
+        for b, pr in zip(blocks, probes):
+            u, _, _ = coefficient_updating(b["Z"], b["y"], b["time_s"], pr, b["coef"], b["A"], b["s2_um2"],
+                                           b["z_lo"], b["z_hi"], s, spread=False)
+            sse += float(np.sum((b["y"] - u) ** 2))
         if sse < best_sse:
             best, best_sse = s, sse
     return best, float(np.sqrt(best_sse / max(n, 1)))

@@ -238,7 +238,7 @@ def _dataset_csv(ds: Dataset, path: Path) -> Path:
 
 def test_data_only_finds_the_lag_and_gains():
     ds = _spindle_data()
-    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s))
+    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), regularised=False)
     base = d.base["dz_um"]["fit_percent"]
     after = d.extended["dz_um"]
     from hybridcomp.diagnose.metrics import fit_percent as fp
@@ -318,6 +318,10 @@ def test_held_out_selection_never_sees_the_validation_rows():
     assert [x["term"] for x in d.extensions["dz_um"]] == [x["term"] for x in e.extensions["dz_um"]]
     assert np.array_equal(d.extended["dz_um"].coef, e.extended["dz_um"].coef)
     assert d.base["dz_um"]["inputs"] == e.base["dz_um"]["inputs"]
+    # the regularised families too: the same family, weight and prediction (only their scores change)
+    r, q = d.regularised["dz_um"], e.regularised["dz_um"]
+    assert (r["family"], r["lam"]) == (q["family"], q["lam"]) and np.array_equal(r["y_hat"], q["y_hat"])
+    assert r["spread"]["choices"] == q["spread"]["choices"]
     from hybridcomp.diagnose.dataonly import summary
     from hybridcomp.diagnose.metrics import fit_percent as fp
 
@@ -331,8 +335,8 @@ def test_held_out_selection_never_sees_the_validation_rows():
     assert any(x.startswith(("first-order transfer function", "transfer function", "sensor lead")) for x in structures)
     assert len(structures) == len(d.extended["dz_um"].terms) == d.extended["dz_um"].coef.size - 1
     # the assisted selection does look at them: the poisoned rows change its choice
-    a = diagnose_data_only(ds, split, selection="assisted", selection_check=False)
-    b = diagnose_data_only(poisoned, split, selection="assisted", selection_check=False)
+    a = diagnose_data_only(ds, split, selection="assisted", selection_check=False, regularised=False)
+    b = diagnose_data_only(poisoned, split, selection="assisted", selection_check=False, regularised=False)
     assert [x["term"] for x in a.extensions["dz_um"]] != [x["term"] for x in b.extensions["dz_um"]]
     assert summary(a)["held_out"] is None
     with pytest.raises(DatasetError, match="folds must be an integer in 2..20"):
@@ -376,13 +380,14 @@ def test_blocked_cross_validation_scores_equal_refits():
 
 def test_selection_check_scores_rows_the_selection_did_not_see():
     ds = _spindle_data(hours=30.0, dt=120.0)
-    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), selection="assisted")
+    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), selection="assisted", regularised=False)
     sc = d.selection_check
     assert sc["selected_on_h"][1] < sc["scored_on_h"][0]  # disjoint, in time order
     assert sc["selected_on_h"][0] >= d.split.describe(ds.time_s)["validation_h"][0]
     v = sc["channels"]["dz_um"]
     assert v["extended"] > v["base"] + 5.0 and v["terms"]  # the planted lag generalises to unseen rows
-    off = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), selection="assisted", selection_check=False)
+    off = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), selection="assisted", selection_check=False,
+                             regularised=False)
     assert off.selection_check is None
     with pytest.raises(DatasetError, match="beam width"):
         diagnose_data_only(ds, parse_split("0:50%", ds.time_s), beam_width=0)
@@ -394,7 +399,7 @@ def test_long_dataset_is_thinned_and_still_diagnosed(monkeypatch, tmp_path):
 
     ds = _spindle_data(hours=30.0, dt=30.0)  # 3,600 rows
     monkeypatch.setattr(dataonly, "MAX_ROWS", 1000)
-    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), beam_width=2, selection_check=False)
+    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), beam_width=2, selection_check=False, regularised=False)
     assert d.timings_s["row_stride"] == 4 and d.time_s.size == 900 and np.all(np.diff(d.time_s) == 120.0)
     assert d.split.train.sum() + d.split.validation.sum() == 900
     va = d.split.validation
@@ -410,7 +415,8 @@ def test_real_spindle_data_reaches_85_percent_on_every_channel():
     """Train on the first half, validate on the second: the static regression's fits are reproduced exactly; the
     searched extensions reach a validation fit of 85 % on every channel, each extension named and each adding fit."""
     ds = read_dataset(REAL)
-    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), selection="assisted", selection_check=False)
+    d = diagnose_data_only(ds, parse_split("0:50%", ds.time_s), selection="assisted", selection_check=False,
+                           regularised=False)
     ref = [d.reference[f"ch{i}_um"]["fit_percent"] for i in range(1, 6)]
     assert np.round(ref, 1).tolist() == [39.5, 36.1, 70.1, 71.1, -58.2]
     va = d.split.validation
@@ -520,14 +526,14 @@ def test_campaign_diagnosis_holds_out_runs_and_beats_one_series(tmp_path):
     camp = campaign(runs)
     split = parse_split("runs:1-3", camp.time_s, camp.runs)
     aware = diagnose_data_only(camp, split)
-    one = diagnose_data_only(Dataset(camp.time_s, camp.columns), split)
+    one = diagnose_data_only(Dataset(camp.time_s, camp.columns), split, regularised=False)
     s = summary(aware)
     assert s["held_out"]["dz_um"]["fit_percent"] > 85.0
     va = split.validation
     assert s["held_out"]["dz_um"]["fit_percent"] > fit_percent(one.Y["dz_um"][va], one.extended["dz_um"].y_hat[va]) + 20
     assert [v["part"] for v in s["runs"].values()] == ["training"] * 3 + ["validation"] * 2
     # post-process updating over runs: each validation run's offset starts afresh (its own gauge zero)
-    u = diagnose_data_only(camp, split, probe_every_h=3.0).updating["dz_um"]
+    u = diagnose_data_only(camp, split, probe_every_h=3.0, regularised=False).updating["dz_um"]
     run_starts = np.flatnonzero(np.isin(np.flatnonzero(va), camp.run_starts()))
     assert run_starts.size == 2 and np.all(u["offset_um"][run_starts] == 0.0)
     assert fit_percent(aware.Y["dz_um"][va], u["y_hat"]) > s["held_out"]["dz_um"]["fit_percent"] - 2.0
@@ -548,7 +554,7 @@ def test_the_ambient_model_is_found_as_a_transfer_function_of_the_air():
     T1 = first_order_lag(t, amb, 6 * 3600) + rng.normal(0, 0.01, t.size)  # a massive part's sensor
     dz = 8 * (first_order_lag(t, amb, 2 * 3600) - 20) + rng.normal(0, 0.2, t.size)
     ds = Dataset(t, {"Tamb_degC": amb + rng.normal(0, 0.01, t.size), "T1_degC": T1, "dz_um": dz})
-    d = diagnose_data_only(ds, parse_split("0:60%", t))
+    d = diagnose_data_only(ds, parse_split("0:60%", t), regularised=False)
     from hybridcomp.diagnose.dataonly import summary
 
     s = summary(d)
@@ -616,7 +622,7 @@ def test_post_process_updating_recovers_a_changed_gain_from_the_probes_only():
     within 3 % and the held-out fit rises by more than 100 points; the drift between probes is never read (poisoning
     it changes nothing); with no change the updating costs less than 2 fit points."""
     ds, split = _regained(1.4)
-    d = diagnose_data_only(ds, split, probe_every_h=2.0)
+    d = diagnose_data_only(ds, split, probe_every_h=2.0, regularised=False)
     u = d.updating["dz_um"]
     va = split.validation
     y = ds["dz_um"]
@@ -632,16 +638,16 @@ def test_post_process_updating_recovers_a_changed_gain_from_the_probes_only():
     keep[u["probe_rows"]] = True
     rng = np.random.default_rng(4)
     poisoned = Dataset(ds.time_s, {**ds.columns, "dz_um": np.where(va & ~keep, rng.normal(0, 50, y.size), y)})
-    e = diagnose_data_only(poisoned, split, probe_every_h=2.0)
+    e = diagnose_data_only(poisoned, split, probe_every_h=2.0, regularised=False)
     np.testing.assert_array_equal(e.updating["dz_um"]["y_hat"], u["y_hat"])
     same, split = _regained(1.0)
-    d = diagnose_data_only(same, split, probe_every_h=2.0)
+    d = diagnose_data_only(same, split, probe_every_h=2.0, regularised=False)
     y = same["dz_um"]
     assert fit_percent(y[va], d.updating["dz_um"]["y_hat"]) > fit_percent(y[va], d.extended["dz_um"].y_hat[va]) - 2.0
 
 
 def test_post_process_updating_in_the_cli_report_and_summary(tmp_path):
-    ds, _ = _regained(1.4)
+    ds, split = _regained(1.4)
     path = _dataset_csv(ds, tmp_path / "m.csv")
     out = tmp_path / "out"
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(out), "--train", "0:50%",
@@ -651,7 +657,12 @@ def test_post_process_updating_in_the_cli_report_and_summary(tmp_path):
     assert pu["every_h"] == 2.0 and pu["probe_sd_um"] == 0.3
     ch = pu["channels"]["dz_um"]
     assert ch["fit"]["fit_percent"] > ch["without_updating"]["fit_percent"] + 100.0
-    assert ch["without_updating"]["fit_percent"] == pytest.approx(s["held_out"]["dz_um"]["fit_percent"])
+    # scored on the validation rows without the probe rows
+    d = diagnose_data_only(read_dataset(path), split, probe_every_h=2.0, probe_sd_um=0.3, regularised=False)
+    u, va = d.updating["dz_um"], split.validation
+    assert ch["without_updating"]["fit_percent"] == pytest.approx(
+        fit_percent(d.Y["dz_um"][va][u["scored"]], d.extended["dz_um"].y_hat[va][u["scored"]]))
+    assert s["coefficient_updating"]["channels"]["dz_um"]["probes"] == ch["probes"]
     report = (out / "report.md").read_text()
     assert "## Post-process gain updating: a probe every 2 h" in report and (out / "channels.png").is_file()
     assert "* dz_um: probe every 2 h (repeatability 0.3 µm)" in report
