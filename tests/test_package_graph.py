@@ -29,7 +29,7 @@ ORDER = ("models", "histogram", "fem", "rom", "chardiag", "monitor")
 #: a package beside the line and the packages it may import
 BESIDE = {"diagnose": ("models", "histogram", "fem", "rom")}
 #: top-level modules of hybridcomp every package may import (they import none)
-BASE = ("errors", "_lazy", "_version", "_packages", "safeio")
+BASE = ("errors", "_lazy", "_version", "_packages", "safeio", "plotaxes")
 #: top-level modules that compose every package (and the command-line modules, ``cli*``): no package imports them
 COMPOSERS = ("__init__", "__main__", "demo", "scenario", "metrics")
 PACKAGES = ORDER + tuple(BESIDE)
