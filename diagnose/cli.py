@@ -16,8 +16,23 @@ MODEL_FILES = ("report.md", "summary.json", "machine_extended.toml")
 MODEL_PLOTS = ("residuals.png", "ep95.png", "xcorr.png")
 DATA_ONLY_FILES = ("report.md", "summary.json")
 DATA_ONLY_PLOTS = ("channels.png", "runs.png")
+DATA_ONLY_MODEL = "dataonly_model.json"  # with --probe-every-hours: the model the monitor's strategy dataonly runs
 
 log = logging.getLogger(__name__)
+
+
+def _write_dataonly_model(d, path: Path) -> None:
+    """The regularised model with its coefficient filter, for the monitor's strategy ``dataonly`` (or why not)."""
+    from hybridcomp.rom.dataonly_model import model_from_diagnosis, model_to_json
+    from hybridcomp.safeio import write_text_atomic
+
+    try:
+        text = model_to_json(model_from_diagnosis(d))
+    except ValueError as exc:
+        print(f"no {path.name}: {exc}")
+        return
+    write_text_atomic(path, text)
+    print(f"data-only model for 'monitor' ([compensation] strategy = \"dataonly\"): {path}")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -112,7 +127,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {bad}", file=sys.stderr)
         return 2
     try:
-        files = (DATA_ONLY_FILES + DATA_ONLY_PLOTS * (not args.no_plots) if args.data_only
+        files = (DATA_ONLY_FILES + (DATA_ONLY_MODEL,) * (args.probe_every_hours is not None)
+                 + DATA_ONLY_PLOTS * (not args.no_plots) if args.data_only
                  else MODEL_FILES + MODEL_PLOTS * (not args.no_plots))
         inputs = [*args.data, args.map, args.rom, args.probes, args.pose_rom]
         if not args.data_only:
@@ -169,6 +185,7 @@ def run(args: argparse.Namespace) -> int:
                 cu = summary["coefficient_updating"]
                 fits = ", ".join(f"{c} {v['fit']['fit_percent']:.1f} %" for c, v in cu["channels"].items())
                 print(f"regularised, a probe every {cu['every_h']:g} h (coefficients updated): fit {fits}")
+                _write_dataonly_model(d, args.out / DATA_ONLY_MODEL)
             return 0
         from hybridcomp.diagnose.core import diagnose, prepare_model
         from hybridcomp.diagnose.report import write_report

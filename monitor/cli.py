@@ -33,8 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse._SubParsersAction:
     """
     p.description = (
         "The monitoring daemon: compensation offsets every few seconds from the active characteristic diagrams "
-        "(strategy hybrid) or the structure model kept on the machine by a Kalman filter on the sensors (strategy "
-        "observer); every monitoring interval the active set's predicted compensation error in µm decides: keep, "
+        "(strategy hybrid), the structure model kept on the machine by a Kalman filter on the sensors (strategy "
+        "observer) or a data-only model updated by the probes (strategy dataonly, no FE model behind it); every "
+        "monitoring interval the active set's predicted compensation error in µm decides: keep, "
         "switch to a stored set, or generate a new one."
     )
     sub = p.add_subparsers(dest="monitor_command", metavar="ACTION", required=True)

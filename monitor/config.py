@@ -118,7 +118,10 @@ class MonitorConfig:
     model_drift_K : |observer − measured| at a sensor above which a model-drift event is raised [K]
     strategy : ``"hybrid"`` (the active CD set on the measured sensors; the corrected structure model chooses
         and generates sets) or ``"observer"`` (the corrected structure model's drift itself, the CDs standing in
-        while it is flagged)
+        while it is flagged) or ``"dataonly"`` (the data-only regularised model of ``dataonly_model``, its
+        coefficients updated by the probes: :mod:`hybridcomp.monitor.dataonly_strategy`)
+    dataonly_model : strategy ``dataonly``: the model file (``hybridcomp diagnose --data-only --probe-every-hours H
+        --out DIR`` writes ``DIR/dataonly_model.json``); required for that strategy, refused for the others
     sensor_filter_s : time constant of the low-pass on the sensors the CDs read [s] (0: none)
     max_offset_um : largest compensation offset magnitude [µm]
     max_step_um : largest change of an offset per compensation cycle [µm]
@@ -152,6 +155,7 @@ class MonitorConfig:
     threshold_K: float = 0.5
     model_drift_K: float = 1.0
     strategy: str = "hybrid"
+    dataonly_model: Path | None = None
     sensor_filter_s: float = 20.0
     max_offset_um: float = 200.0
     max_step_um: float = 0.2
@@ -177,8 +181,8 @@ _MONITOR_KEYS = {
 }
 _SECTIONS = {
     "monitor": _MONITOR_KEYS,
-    "compensation": {"strategy", "sensor_filter_s", "max_offset_um", "max_step_um", "blend_s", "model_transient_s",
-                     "table_points"},
+    "compensation": {"strategy", "dataonly_model", "sensor_filter_s", "max_offset_um", "max_step_um", "blend_s",
+                     "model_transient_s", "table_points"},
     "validity": {f.name for f in dataclass_fields(Validity)},
     "observer": {f.name for f in dataclass_fields(ObserverSettings)},
     "sensors": {"hold_s", "frozen_s", "frozen_model_K", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
@@ -189,7 +193,7 @@ _SECTIONS = {
     "reconnect": {"initial_s", "factor", "max_s", "jitter"},
 }
 SOURCE_KINDS = ("replay", "opcua")
-STRATEGIES = ("hybrid", "observer")
+STRATEGIES = ("hybrid", "observer", "dataonly")
 SINK_KINDS = ("jsonl", "csv", "opcua", "none")
 
 
@@ -337,6 +341,17 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         raise ConfigError(f"{source}: [reconnect] {exc}") from None
 
     port = m.number("prometheus_port", 0, nonneg=True, integer=True)
+    strategy = c.string("strategy", MonitorConfig.strategy, STRATEGIES)
+    dataonly = c.path("dataonly_model", base)
+    if strategy == "dataonly":
+        if dataonly is None:
+            raise ConfigError(f"{source}: compensation.dataonly_model is missing (strategy 'dataonly' needs the model "
+                              "file: hybridcomp diagnose --data-only --probe-every-hours H --out DIR writes "
+                              "DIR/dataonly_model.json)")
+        read_dataonly_model(dataonly, source)
+    elif dataonly is not None:
+        raise ConfigError(f"{source}: compensation.dataonly_model = {str(dataonly)!r} applies to strategy 'dataonly' "
+                          f"only, not {strategy!r}")
     return MonitorConfig(
         machine=machine,
         database=_database_url(m.string("database", None), base),
@@ -349,7 +364,8 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         max_gap_s=m.number("max_gap_s", DEFAULT_MAX_GAP_S, positive=True),
         threshold_K=m.number("threshold_K", 0.5, positive=True),
         model_drift_K=m.number("model_drift_K", 1.0, positive=True),
-        strategy=c.string("strategy", MonitorConfig.strategy, STRATEGIES),
+        strategy=strategy,
+        dataonly_model=dataonly,
         sensor_filter_s=c.number("sensor_filter_s", MonitorConfig.sensor_filter_s, nonneg=True),
         max_offset_um=c.number("max_offset_um", 200.0, positive=True),
         max_step_um=c.number("max_step_um", MonitorConfig.max_step_um, positive=True),
@@ -368,6 +384,36 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         prometheus_port=port,
         source_file=source,
     )
+
+
+def read_dataonly_model(path: Path, source: str = "<config>"):
+    """The data-only model of ``compensation.dataonly_model`` (:func:`~hybridcomp.rom.dataonly_model.model_from_json`).
+
+    Raises
+    ------
+    ConfigError
+        the file cannot be read or is no data-only model, a channel is no offset (``dx_um``, ``dy_um``, ``dz_um``),
+        or a channel is driven by an activity other than ``spindle_rpm`` (the only one a sample carries); the
+        message names the configuration, the key and the file.
+    """
+    from hybridcomp.rom.dataonly_model import model_from_json
+
+    where = f"{source}: compensation.dataonly_model = {str(path)!r}"
+    try:
+        model = model_from_json(Path(path).read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"{where}: cannot be read ({exc.strerror or exc})") from None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ConfigError(f"{where}: not a data-only model ({type(exc).__name__}: {exc})") from None
+    for ch in model.channels:
+        if ch.channel not in DRIFT_COLUMNS:
+            raise ConfigError(f"{where}: channel {ch.channel!r} is not an offset ({', '.join(DRIFT_COLUMNS)})")
+        if ch.signal not in (None, "spindle_rpm"):
+            raise ConfigError(f"{where}: channel {ch.channel} is driven by {ch.signal!r}; the monitor's samples carry "
+                              "spindle_rpm only")
+    if not model.channels:
+        raise ConfigError(f"{where}: the model has no channel")
+    return model
 
 
 def load_config(path: str | Path) -> MonitorConfig:
@@ -396,7 +442,9 @@ stale_after_s = 20                 # 'monitor status' is unhealthy when no offse
 
 [compensation]
 strategy = "hybrid"                # "hybrid": CD tables on the sensors, chosen and generated by the corrected
-                                   # structure model; "observer": that model's drift itself (CDs while it is flagged)
+                                   # structure model; "observer": that model's drift itself (CDs while it is flagged);
+                                   # "dataonly": the data-only model of dataonly_model, updated by the probes
+# dataonly_model = "dataonly_model.json"  # hybridcomp diagnose --data-only --probe-every-hours 4 --out DIR
 sensor_filter_s = 20               # low-pass on the sensors the CDs read [s]
 max_offset_um = 200                # offsets are clamped to this magnitude [um]
 max_step_um = 0.2                  # and change by at most this much per compensation cycle [um]

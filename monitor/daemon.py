@@ -6,8 +6,9 @@ the sink, the events into the event log, the commands to the database (activate 
 (a request) or the state store (a boundary's state). Three clocks of machine time drive the transitions:
 
 * every ``compensation_interval_s`` (5 s): offsets — the active CD set on the low-passed sensors (strategy
-  ``hybrid``) or the corrected structure model's drift (strategy ``observer``, the CDs standing in while the
-  observer is flagged), clamped and rate limited;
+  ``hybrid``), the corrected structure model's drift (strategy ``observer``, the CDs standing in while the
+  observer is flagged) or the data-only model updated by the probes (strategy ``dataonly``, stepped every sample),
+  clamped and rate limited;
 * every ``increment_s`` (20 s, a model step): the histogram of the step's samples gives the loads; the
   observer (:mod:`hybridcomp.rom.observer`) steps the structure model and corrects it with the sensors and,
   when there is one, a probed drift;
@@ -50,7 +51,7 @@ from hybridcomp.models import jsonio
 from hybridcomp.models.layout import DIRECTIONS, DRIFT_COLUMNS
 from hybridcomp.monitor import decisions
 from hybridcomp.monitor import transitions as T
-from hybridcomp.monitor.config import MonitorConfig
+from hybridcomp.monitor.config import MonitorConfig, read_dataonly_model
 from hybridcomp.monitor.sinks import Offset, SinkWriteError
 from hybridcomp.monitor.sources import Reading, SourceDisconnected, WallClock
 from hybridcomp.monitor.state import STATE_VERSION, MonitorState
@@ -129,7 +130,8 @@ class Monitor:
         self.pose_key = pose_key
         self.clock = clock or WallClock()
         self.key = state_key(machine.name, pose_key)
-        self.ctx = T.context(cfg, machine, rom, pose_key)
+        dataonly = read_dataonly_model(cfg.dataonly_model, cfg.source_file) if cfg.strategy == "dataonly" else None
+        self.ctx = T.context(cfg, machine, rom, pose_key, dataonly)
         self.state = T.initial(self.ctx)
         self.regeneration_running = False
         self.lease_owner: str | None = None  # the owner token of the pose's lease while run_monitor holds it

@@ -7,10 +7,13 @@ filter of :mod:`hybridcomp.rom.coefficient_filter` (prior: the training fit; ran
 input is outside its training range, so the next probe counts more):
 
 * :func:`model_from_diagnosis` takes the fitted model and the filter settings out of a diagnosis;
-  :func:`model_to_json` / :func:`model_from_json` write and read it (one JSON document per machine);
+  :func:`model_to_json` / :func:`model_from_json` write and read it (one JSON document per machine; they live in
+  :mod:`hybridcomp.rom.dataonly_model`, which the diagnosis writes with, and are re-exported here);
 * :func:`start` gives the state before the first sample; :func:`step` is pure: the state and one sample in, the
   new state, the offsets [µm] and their spread [µm] out. A probe in the sample updates the coefficients after the
-  offsets of that sample are computed (each sample predicted from earlier probes only).
+  offsets of that sample are computed (each sample predicted from earlier probes only); :func:`predict` gives the
+  offsets at the state's own sample (the first one's);
+* :func:`state_to_dict` / :func:`state_from_dict`: the state bit-exact in JSON (the monitor persists it).
 
 The regressors are rebuilt from the sample stream with the same first-order hold as
 :func:`hybridcomp.diagnose.problem.first_order_lag` (exact for inputs linear between samples), so the online
@@ -19,49 +22,23 @@ prediction equals the diagnosis's on the same rows (tested). Only ``*_rpm`` acti
 
 from __future__ import annotations
 
-import json
+import base64
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
-from hybridcomp.rom.coefficient_filter import CoefficientSettings, FilterState, filter_start, filter_step
+from hybridcomp.rom.coefficient_filter import FilterState, filter_start, filter_step
+from hybridcomp.rom.dataonly_model import (  # noqa: F401 (the model's functions, re-exported)
+    ChannelModel,
+    DataOnlyModel,
+    model_from_diagnosis,
+    model_from_json,
+    model_to_json,
+)
 
 PROBE_INDEX = {"dx_um": 0, "dy_um": 1, "dz_um": 2}  # a channel's place in a probe (dx, dy, dz)
-
-
-@dataclass(frozen=True)
-class ChannelModel:
-    """One drift channel's regularised model: its family, standardisation, coefficients, prior and filter settings."""
-
-    channel: str
-    family: str
-    signal: str | None  # the activity column (``spindle_rpm``) of an ``S<n>`` family, None for ``T+lagT``
-    exponent: float
-    mu: np.ndarray
-    sd: np.ndarray
-    coef: np.ndarray
-    A: np.ndarray
-    s2_um2: float
-    z_lo: np.ndarray
-    z_hi: np.ndarray
-    settings: CoefficientSettings
-
-
-@dataclass(frozen=True)
-class DataOnlyModel:
-    """The models of every channel and what the regressors are made of.
-
-    The sensors in order (names as the monitor reads them, without the ``_degC`` suffix) and each activity's full
-    scale.
-    """
-
-    sensors: tuple[str, ...]
-    activity_max: dict
-    channels: tuple[ChannelModel, ...]
-    temp_lags_h: tuple[float, ...]  # the temperatures' lag time constants, in the families' column order
-    source_lags_h: tuple[float, ...]  # the activities' lag time constants
 
 
 @dataclass(frozen=True)
@@ -72,45 +49,6 @@ class StrategyState:
     inputs: np.ndarray  # the sensors, then the activities' normalised powers a^n (one per exponent in use)
     lags: np.ndarray  # inputs × lag time constants: the lag of every input at every time constant
     filters: tuple[FilterState, ...]
-
-
-def _family_parts(family: str) -> tuple[str | None, float]:
-    """The activity and exponent of a family name (``S1.5(spindle_rpm)+T+lagT`` → (spindle_rpm, 1.5))."""
-    if family == "T+lagT":
-        return None, 1.0
-    head = family.split("+", 1)[0]
-    if not (head.startswith("S") and "(" in head and head.endswith(")")):
-        raise ValueError(f"unknown family {family!r}: expected 'T+lagT' or 'S<n>(<signal>)+T+lagT'")
-    n, sig = head[1:].split("(", 1)
-    return sig[:-1], float(n)
-
-
-def model_from_diagnosis(d, settings: Mapping[str, CoefficientSettings] | None = None) -> DataOnlyModel:
-    """The online model of a data-only diagnosis's regularised families (``diagnose_data_only(regularised=True)``).
-
-    ``settings``: the coefficient filter per channel (default: those the diagnosis chose with ``probe_every_h``;
-    without them, an error names the missing option).
-    """
-    if not d.regularised:
-        raise ValueError("the diagnosis has no regularised model: run it with regularised=True")
-    if settings is None:
-        if not d.coefficient_updating:
-            raise ValueError("the diagnosis chose no coefficient filter: run it with probe_every_h (the probe cycle's "
-                             "interval) or give the settings")
-        settings = {c: u["settings"] for c, u in d.coefficient_updating.items()}
-    spec = next(iter(d.regularised.values()))["inputs"]
-    chans = []
-    for c, r in d.regularised.items():
-        sig, n = _family_parts(r["family"])
-        if sig is not None and sig not in spec["activity_max"]:
-            raise ValueError(f"{c}: the family {r['family']} is driven by {sig}, which the online strategy cannot "
-                             "rebuild (only *_rpm activities)")
-        m = r["model"]
-        chans.append(ChannelModel(c, r["family"], sig, n, m.mu, m.sd, m.coef, m.A, m.s2_um2, m.z_lo, m.z_hi,
-                                  settings[c]))
-    sensors = tuple(s.removesuffix("_degC") for s in spec["temperatures"])
-    return DataOnlyModel(sensors, dict(spec["activity_max"]), tuple(chans), tuple(spec["temp_lags_h"]),
-                         tuple(spec["source_lags_h"]))
 
 
 def _taus_s(model: DataOnlyModel) -> np.ndarray:
@@ -189,30 +127,40 @@ def step(model: DataOnlyModel, st: StrategyState, t_s: float, sensors_degC: Mapp
     return StrategyState(float(t_s), u, lags, tuple(filters)), offsets, spreads
 
 
-def model_to_json(model: DataOnlyModel) -> str:
-    """The model as one JSON document (arrays as lists)."""
-    def arr(x):
-        return np.asarray(x, float).tolist()
-
-    return json.dumps({"sensors": list(model.sensors), "activity_max": model.activity_max,
-                       "temp_lags_h": list(model.temp_lags_h), "source_lags_h": list(model.source_lags_h), "channels": [
-        {"channel": c.channel, "family": c.family, "mu": arr(c.mu), "sd": arr(c.sd), "coef": arr(c.coef),
-         "A": arr(c.A), "s2_um2": c.s2_um2, "z_lo": arr(c.z_lo), "z_hi": arr(c.z_hi),
-         "settings": {"every_h": c.settings.every_h, "probe_sd_um": c.settings.probe_sd_um,
-                      "prior_scale": c.settings.prior_scale, "walk": c.settings.walk,
-                      "range_walk": c.settings.range_walk, "offset_walk": c.settings.offset_walk,
-                      "gain_walk_per_sqrt_h": c.settings.gain_walk_per_sqrt_h, "gain_sd": c.settings.gain_sd}}
-        for c in model.channels]})
+def predict(model: DataOnlyModel, st: StrategyState) -> tuple[dict, dict]:
+    """The offsets [µm] and their spread [µm] at the state's own sample, the state unchanged (the first sample's)."""
+    offsets, spreads = {}, {}
+    for c, fs in zip(model.channels, st.filters):
+        _, offsets[c.channel], spreads[c.channel] = filter_step(fs, _regressors(model, c, st.inputs, st.lags), st.t_s,
+                                                                c.settings, c.s2_um2, c.z_lo, c.z_hi)
+    return offsets, spreads
 
 
-def model_from_json(text: str) -> DataOnlyModel:
-    """The model written by :func:`model_to_json`."""
-    d = json.loads(text)
-    chans = []
-    for c in d["channels"]:
-        sig, n = _family_parts(c["family"])
-        chans.append(ChannelModel(c["channel"], c["family"], sig, n, *(np.array(c[k]) for k in ("mu", "sd", "coef", "A")),
-                                  float(c["s2_um2"]), np.array(c["z_lo"]), np.array(c["z_hi"]),
-                                  CoefficientSettings(**c["settings"])))
-    return DataOnlyModel(tuple(d["sensors"]), dict(d["activity_max"]), tuple(chans), tuple(d["temp_lags_h"]),
-                         tuple(d["source_lags_h"]))
+def compatible(model: DataOnlyModel, st: StrategyState) -> bool:
+    """Whether ``st`` is a state of ``model``'s shape (a persisted state of another model file is not)."""
+    return (st.inputs.shape == (len(model.sensors) + len(_activities(model)),)
+            and st.lags.shape == (st.inputs.size, _taus_s(model).size) and len(st.filters) == len(model.channels)
+            and all(f.theta.shape == c.coef.shape for f, c in zip(st.filters, model.channels)))
+
+
+def _b64(a: np.ndarray) -> dict:
+    a = np.ascontiguousarray(a, dtype="<f8")
+    return {"shape": list(a.shape), "data": base64.b64encode(a.tobytes()).decode("ascii")}
+
+
+def _unb64(d: Mapping) -> np.ndarray:
+    return np.frombuffer(base64.b64decode(d["data"]), dtype="<f8").reshape(d["shape"]).copy()
+
+
+def state_to_dict(st: StrategyState) -> dict:
+    """The state as JSON-able values, bit-exact (arrays as base64 of little-endian float64, times as repr floats)."""
+    return {"t_s": st.t_s, "inputs": _b64(st.inputs), "lags": _b64(st.lags), "filters": [
+        {"theta": _b64(f.theta), "P": _b64(f.P), "t_probe_s": f.t_probe_s, "t_last_s": f.t_last_s,
+         "excess": _b64(f.excess), "theta0": _b64(f.theta0)} for f in st.filters]}
+
+
+def state_from_dict(d: Mapping) -> StrategyState:
+    """The state written by :func:`state_to_dict`."""
+    filters = tuple(FilterState(_unb64(f["theta"]), _unb64(f["P"]), float(f["t_probe_s"]), float(f["t_last_s"]),
+                                _unb64(f["excess"]), _unb64(f["theta0"])) for f in d["filters"])
+    return StrategyState(float(d["t_s"]), _unb64(d["inputs"]), _unb64(d["lags"]), filters)

@@ -47,8 +47,9 @@ class Offset:
     degraded : sensors standing in by the structure model's estimate
     by : what computed the offsets: ``"cd"`` (the active CD set), ``"cd+model"`` (the CDs' slow part and the corrected
         structure model's fast part), ``"observer"`` (the corrected structure model), ``"zero"`` (the fail-safe on
-        a known-wrong set while the structure model is flagged: ramping to zero) or ``"cd-grid"`` (the
-        support-point table of the active CD grid, :mod:`hybridcomp.chardiag.grid`)
+        a known-wrong set while the structure model is flagged: ramping to zero), ``"cd-grid"`` (the
+        support-point table of the active CD grid, :mod:`hybridcomp.chardiag.grid`) or ``"dataonly"`` (the data-only
+        model of strategy ``dataonly``)
     position_mm : with a pose-aware structure model or an active CD grid: the commanded axis positions the offsets
         are for [mm]
     pose_um : ... the offsets at the model's pose (what a one-pose compensation writes) [µm]
@@ -300,6 +301,8 @@ def monitor_inputs(cfg) -> dict[str, Path]:
     if cfg.source.kind == "replay" and cfg.source.path is not None:
         inputs["the replay trace source.path"] = Path(cfg.source.path)
     inputs["the structure model monitor.rom"] = Path(cfg.rom)
+    if cfg.dataonly_model is not None:
+        inputs["the data-only model compensation.dataonly_model"] = Path(cfg.dataonly_model)
     if str(cfg.machine).endswith(".toml") or Path(cfg.machine).exists():
         inputs["the machine file monitor.machine"] = Path(cfg.machine)
     db = sqlite_file(cfg.database)

@@ -16,11 +16,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hybridcomp.models import jsonio
+from hybridcomp.monitor.dataonly_strategy import StrategyState, state_from_dict, state_to_dict
 from hybridcomp.monitor.decisions import SensorState
 from hybridcomp.monitor.sources import Reading
 from hybridcomp.rom.observer import ObserverState
 
-STATE_VERSION = 6
+STATE_VERSION = 7
 ZERO_OFFSETS = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
 NO_DROPS = {"repeated": 0, "backwards": 0, "jump": 0, "invalid": 0}
 
@@ -53,6 +54,7 @@ _CODECS: dict[str, tuple[Any, Any]] = {
     "observer": (lambda o: None if o is None else o.to_dict(), lambda v: None if v is None else ObserverState.from_dict(v)),
     "sensors": (lambda d: {k: s.to_dict() for k, s in d.items()}, lambda d: {k: SensorState.from_dict(s) for k, s in d.items()}),
     "carry": (_reading_out, _reading_in),
+    "dataonly": (lambda s: None if s is None else state_to_dict(s), lambda v: None if v is None else state_from_dict(v)),
 }
 
 
@@ -113,6 +115,8 @@ class MonitorState:
     gains : the drives' gains learnt from probes at several positions (:class:`hybridcomp.monitor.volumetric.DriveGains`)
     failsafe : why the active set is not applied ("" when it is): its predicted error exceeded ``reject_um`` and no
         stored set fitted (:func:`hybridcomp.monitor.transitions.fail_safe`)
+    dataonly : strategy ``dataonly``: the data-only model's state after the last sample (lags, coefficient filters:
+        :class:`hybridcomp.monitor.dataonly_strategy.StrategyState`), None before the first sample and for the others
     """
 
     version: int = STATE_VERSION
@@ -171,6 +175,7 @@ class MonitorState:
     table: dict | None = None
     gains: dict | None = None
     failsafe: str = ""
+    dataonly: StrategyState | None = None
 
     def to_dict(self) -> dict:
         """JSON-able (non-finite floats become null)."""

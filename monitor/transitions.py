@@ -8,7 +8,8 @@ returned stays what it was (a boundary's state is persisted by keeping a referen
 
 The clocks of machine time, each a function ``(ctx, state, ...) -> Step``:
 
-* :func:`on_reading` — one sample: time stamp and sensor checks, the held inputs, the low-pass filter, a probe;
+* :func:`on_reading` — one sample: time stamp and sensor checks, the held inputs, the low-pass filter, the data-only
+  model's step (strategy ``dataonly``), a probe;
   the model steps and monitoring boundaries the sample completes (:func:`on_model_step`, :func:`on_interval`);
   every ``compensation_interval_s`` (5 s) the offsets;
 * :func:`on_model_step` — every ``increment_s`` (a model step): the histogram's loads, the observer's predict and
@@ -41,9 +42,9 @@ from hybridcomp.chardiag.cd import CDSet
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.increments import increments_from_samples
 from hybridcomp.histogram.signature import SignatureLayout, signatures
-from hybridcomp.histogram.trace import Samples, TraceFileError, position_column
+from hybridcomp.histogram.trace import Samples, TraceFileError, air_columns, position_column
 from hybridcomp.models.layout import DIRECTIONS, DRIFT_COLUMNS, temperature_column
-from hybridcomp.monitor import decisions, volumetric
+from hybridcomp.monitor import dataonly_strategy, decisions, volumetric
 from hybridcomp.monitor.config import MonitorConfig
 from hybridcomp.monitor.decisions import Candidate, Decision, SensorState, SetError
 from hybridcomp.monitor.regeneration import FORECAST_STEP_S, RegenerationRequest
@@ -76,6 +77,8 @@ class Context:
     t_ref : reference temperature [°C] (the air before the first finite reading)
     gain_settings : priors of the drives' gains
     feedback_axes : the pose-aware model's drives
+    dataonly : strategy ``dataonly``: the data-only model (:class:`hybridcomp.monitor.dataonly_strategy.DataOnlyModel`)
+        that gives the offsets; None for the other strategies
     """
 
     cfg: MonitorConfig
@@ -92,12 +95,29 @@ class Context:
     t_ref: float
     gain_settings: volumetric.GainSettings
     feedback_axes: tuple[str, ...]
+    dataonly: dataonly_strategy.DataOnlyModel | None = None
 
 
-def context(cfg: MonitorConfig, machine, rom, pose_key: str) -> Context:
-    """The context of a run on ``rom`` (a pose-aware model: its model pose's block is the observer's)."""
+def context(cfg: MonitorConfig, machine, rom, pose_key: str,
+            dataonly: dataonly_strategy.DataOnlyModel | None = None) -> Context:
+    """The context of a run on ``rom`` (a pose-aware model: its model pose's block is the observer's).
+
+    ``dataonly``: the data-only model, required with strategy ``dataonly`` (its sensors must be the machine's
+    sensors or air columns), ignored otherwise.
+    """
     pose = volumetric.pose_model(rom, cfg.table_points) if rom.meta.get("poses") else None
     layout = machine.layout()
+    if cfg.strategy != "dataonly":
+        dataonly = None
+    elif dataonly is None:
+        raise ValueError(f"{cfg.source_file}: strategy 'dataonly' needs the data-only model (compensation.dataonly_model)")
+    else:
+        known = {s.name for s in machine.sensors} | {c.removesuffix("_degC") for c in air_columns(machine)}
+        unknown = [n for n in dataonly.sensors if n not in known]
+        if unknown:
+            raise ValueError(f"{cfg.source_file}: compensation.dataonly_model = {str(cfg.dataonly_model)!r} reads "
+                             f"{', '.join(unknown)}, which machine {machine.name} has neither as a sensor nor as an "
+                             f"air column (sensors: {', '.join(sorted(known))})")
     return Context(
         cfg=cfg, machine=machine, pose_key=pose_key, rom_id=rom.rom_id,
         observer=build_observer(pose.block if pose is not None else rom, machine, cfg.observer), pose=pose,
@@ -105,7 +125,7 @@ def context(cfg: MonitorConfig, machine, rom, pose_key: str) -> Context:
         pose_mm=dict(rom.meta.get("pose_mm") or machine.default_pose_mm()), layout=layout,
         sig_layout=SignatureLayout.of(machine), t_ref=layout.reference_temperature_degC,
         gain_settings=volumetric.GainSettings(probe_sigma_um=cfg.observer.probe_sigma_um),
-        feedback_axes=tuple(rom.meta.get("feedback", {})))
+        feedback_axes=tuple(rom.meta.get("feedback", {})), dataonly=dataonly)
 
 
 @dataclass(frozen=True)
@@ -181,6 +201,8 @@ class State:
     eval_failed_logged, nonfinite_logged : a warning of a failing evaluation / non-finite offsets is out (once
         per run of them)
     invalid_after_s : ``last_time_s`` at the last invalid-stamp event (one event per run of them)
+    dataonly_um, dataonly_sd_um : strategy ``dataonly``: the data-only model's offsets and their spread at the last
+        sample [µm] (None: none, the offsets are held)
     counters : what the monitor counts
     """
 
@@ -200,6 +222,8 @@ class State:
     eval_failed_logged: bool = False
     nonfinite_logged: bool = False
     invalid_after_s: float | None = -math.inf
+    dataonly_um: Mapping[str, float] | None = None
+    dataonly_sd_um: Mapping[str, float] | None = None
     counters: Counters = Counters()
 
 
@@ -356,6 +380,9 @@ def initial(ctx: Context) -> State:
 
 def restored(ctx: Context, saved: MonitorState) -> State:
     """The state of a persisted boundary: the pose-aware model's state, the last table and the gains read back."""
+    if saved.dataonly is not None and (ctx.dataonly is None
+                                       or not dataonly_strategy.compatible(ctx.dataonly, saved.dataonly)):
+        saved = replace(saved, dataonly=None)  # another strategy's or model's: the data-only model starts afresh
     st = replace(initial(ctx), saved=saved)
     if ctx.pose is not None:
         from hybridcomp.rom.volumetric import table_from_dict
@@ -380,12 +407,14 @@ def with_active(ctx: Context, st: State, active: CDSet | None) -> State:
 
 
 def with_active_grid(ctx: Context, st: State, grid) -> State:
-    """The state with ``grid`` the active CD grid as the database has it (None: none); a pose-aware model ignores it.
+    """The state with ``grid`` the active CD grid as the database has it (None: none).
+
+    A pose-aware model and strategy ``dataonly`` ignore it.
 
     The next compensation cycles build the support-point table from its sets (:func:`_compensate_from_grid`); the
     table written last stays the rate limit's start (carried onto the new grid's points when they differ).
     """
-    return replace(st, grid=grid if ctx.pose is None else None)
+    return replace(st, grid=grid if ctx.pose is None and ctx.dataonly is None else None)
 
 
 def boundary_saved(ctx: Context, boundary: State | None, st: State) -> MonitorState:
@@ -444,6 +473,8 @@ def on_reading(ctx: Context, st: State, r: Reading, stored_sets: StoredSets = no
     st = _set(st, last_time_s=r.time_s)
     st = _check_sensors(ctx, st, r, out)
     st = _filter(ctx, st, r.time_s)
+    if ctx.dataonly is not None:
+        st = _dataonly_step(ctx, st, r)
     if r.probe_um is not None:
         st = _probe(ctx, st, r)
     if first:
@@ -599,6 +630,29 @@ def _filter(ctx: Context, st: State, t: float) -> State:
         old = filtered.get(name, math.nan)
         filtered[name] = v if not math.isfinite(old) or not math.isfinite(v) else old + a * (v - old)
     return _set(st, filtered_degC=filtered, filter_time_s=t)
+
+
+def _dataonly_step(ctx: Context, st: State, r: Reading) -> State:
+    """Strategy ``dataonly``: the data-only model one sample on (every sample: its lags are exact) with its probe.
+
+    Its inputs: the low-passed sensors, the air as read (held: :func:`_clean`; an air column never read is at the
+    reference temperature) and the spindle speed. The first sample starts it (the offsets at its steady state); a
+    sample with a non-finite input leaves it as it was and the offsets are held.
+    """
+    s = st.saved
+    model = ctx.dataonly
+    air = {k.removesuffix("_degC"): v for k, v in {**s.air_hold, **r.air_degC}.items()}
+    values = {**air, **s.filtered_degC}
+    sensors = {n: float(values.get(n, ctx.t_ref)) for n in model.sensors}
+    spindle = {"spindle_rpm": float(r.spindle_rpm)}
+    if not all(map(math.isfinite, [*sensors.values(), *spindle.values()])):
+        return replace(st, dataonly_um=None, dataonly_sd_um=None)
+    if s.dataonly is None:
+        ds = dataonly_strategy.start(model, r.time_s, sensors, spindle)
+        off, sd = dataonly_strategy.predict(model, ds)
+    else:
+        ds, off, sd = dataonly_strategy.step(model, s.dataonly, r.time_s, sensors, spindle, r.probe_um)
+    return replace(_set(st, dataonly=ds), dataonly_um=off, dataonly_sd_um=sd)
 
 
 def _probe(ctx: Context, st: State, r: Reading) -> State:
@@ -898,7 +952,11 @@ def _compensate(ctx: Context, st: State, r: Reading, out: _Out) -> tuple[State, 
     eval_failed, nonfinite = st.eval_failed_logged, st.nonfinite_logged
     upd: dict = {}
     model = _model_drift_now(ctx, st, r.time_s)
-    if s.failsafe:  # the active set is known to be wrong (:func:`fail_safe`): never evaluated
+    if cfg.strategy == "dataonly":  # the data-only model's offsets (a channel it has no model of: 0); no CDs
+        by = "dataonly"
+        if st.dataonly_um is not None:
+            target = {c: st.dataonly_um.get(c, 0.0) for c in DRIFT_COLUMNS}
+    elif s.failsafe:  # the active set is known to be wrong (:func:`fail_safe`): never evaluated
         target, by = (dict(model), "observer") if model is not None else (dict.fromkeys(DRIFT_COLUMNS, 0.0), "zero")
     elif cfg.strategy == "observer" and model is not None:
         target, by = dict(model), "observer"
@@ -1109,8 +1167,9 @@ def _monitor(ctx: Context, st: State, boundary: float, stored_sets: StoredSets, 
     t_ref = st.active.t_reference_degC if st.active is not None else {}
     dT, dT_sensor = decisions.temperature_deviation(est, t_ref) if st.active is not None else (math.inf, None)
     v = cfg.validity
-    enabled = cfg.regeneration.enabled and boundary >= s.regen_blocked_until_s
-    why = ("regeneration is disabled" if not cfg.regeneration.enabled else
+    enabled = cfg.regeneration.enabled and boundary >= s.regen_blocked_until_s and ctx.dataonly is None
+    why = ("strategy 'dataonly' compensates without CDs: none is generated" if ctx.dataonly is not None else
+           "regeneration is disabled" if not cfg.regeneration.enabled else
            f"no generation before {s.regen_blocked_until_s:.0f} s after a failed one")
     # a generation job runs exactly while its request is pending (submitted with it, finished with it cleared)
     running = s.pending is not None

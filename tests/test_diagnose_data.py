@@ -666,6 +666,10 @@ def test_post_process_updating_in_the_cli_report_and_summary(tmp_path):
     report = (out / "report.md").read_text()
     assert "## Post-process gain updating: a probe every 2 h" in report and (out / "channels.png").is_file()
     assert "* dz_um: probe every 2 h (repeatability 0.3 µm)" in report
+    from hybridcomp.rom.dataonly_model import model_from_json  # the monitor's strategy dataonly reads it
+
+    model = model_from_json((out / "dataonly_model.json").read_text())
+    assert [c.channel for c in model.channels] == ["dz_um"] and model.channels[0].settings.probe_sd_um == 0.3
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(tmp_path / "x"), "--probe-sd-um", "1"]) == 2
     assert main(["diagnose", "--data-only", "--data", str(path), "--out", str(tmp_path / "x"),
                  "--probe-every-hours", "0"]) == 2
