@@ -267,8 +267,11 @@ def planted_cause(disturbance, causes, element_size_mm: float) -> tuple[str, boo
         return f"power of {name} x {f:g}", ok, True
     if disturbance.added_source is not None:
         a = disturbance.added_source
+        from hybridcomp.diagnose.locate import located_at
+
         ok = any(c.candidate.kind in ("located_source", "missing_source") and "location_mm" in c.candidate.info
-                 and np.linalg.norm(np.subtract(c.candidate.info["location_mm"], a["position_mm"])) <= element_size_mm
+                 and np.linalg.norm(np.subtract(located_at(c.candidate, c.params)[0], a["position_mm"]))
+                 <= element_size_mm
                  and abs(c.params[0] - a["power_W"]) <= 0.2 * a["power_W"] for c in causes)
         return f"missing source {a['power_W']:g} W at {tuple(a['position_mm'])} mm", ok, True
     if disturbance.workspace_air_K:

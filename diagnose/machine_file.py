@@ -82,11 +82,14 @@ def extended_machine(machine, causes, drives=()) -> dict:
             sources.append(new)
             applied.append(f"heat_sources: new '{name}' at {loc} ({s0['body']}), driven by {driver}, {p[0]:.4g} W at full load")
         elif c.kind == "located_source":
+            from hybridcomp.diagnose.locate import location_uncertainty_mm
+
             new = located_source_entry(c, p, {b["name"]: b for b in bodies})
             sources.append(new)
             where = ", ".join(f"{v:g}" for v in new["position_mm"])
+            how = "1σ from the fit" if c.info.get("face") else "the search's confidence region"
             applied.append(f"heat_sources: new '{new['name']}' on {new['body']} at ({where}) mm "
-                           f"(± {c.info['location_spread_mm']:.0f} mm), {p[0]:.4g} W, {c.info['form']}"
+                           f"(± {location_uncertainty_mm(c, f.uncertainty):.0f} mm, {how}), {p[0]:.4g} W, {c.info['form']}"
                            + (f" with {c.info['driver']}" if c.info.get("driver") else ""))
         elif c.kind == "expansion":
             b = next(b for b in bodies if b["name"] == c.target)
@@ -136,11 +139,11 @@ def located_source_entry(c, p, bodies: dict) -> dict:
     (proportional: exponent 1; power law: the fitted exponent), a power table that switches on at 2 % load (on/off),
     or no driver (constant).
     """
-    from hybridcomp.diagnose.locate import ON_THRESHOLD
+    from hybridcomp.diagnose.locate import ON_THRESHOLD, located_at
 
     info = c.info
     box = bodies[info["body"]].get("box_mm")
-    pos = np.asarray(info["location_mm"], float)
+    pos = located_at(c, p)[0] if "offset_mm" in info else np.asarray(info["location_mm"], float)
     if box is not None:
         pos = np.clip(pos, np.asarray(box[0], float), np.asarray(box[1], float))
     name = _clean_name(f"found_{info['body']}_{info['form']}_{info.get('driver') or 'always'}")
