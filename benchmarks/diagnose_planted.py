@@ -393,7 +393,8 @@ def main(argv=None) -> int:
     p.add_argument("--dt", type=float, default=120.0, help="sampling of the day [s]")
     p.add_argument("--hidden", action="store_true",
                    help="the hidden-style cases instead of random ones: a source between the search's sites and the "
-                        "machine's patches, on/off, constant and power law, alone and with a sensor effect (6 cases)")
+                        "machine's patches, on/off, constant and power law, alone and with a sensor effect (6 cases; "
+                        "--cases N: the first N)")
     a = p.parse_args(argv)
     machine = load_machine("vmc800")
     loads = jobshop_loads(machine).resample(a.dt)
@@ -412,7 +413,7 @@ def main(argv=None) -> int:
 
         pb = build_problem(machine, rom, ds0, parse_split("0:60%", ds0.time_s))
         hidden = hidden_cases(machine, fe, loads, rng, a.element_size_mm, activity, sites_for(pb).position_mm)
-    for i in range(len(hidden) if a.hidden else a.cases):
+    for i in range(min(len(hidden), a.cases) if a.hidden else a.cases):
         if a.hidden:
             case, kind = hidden[i], "hidden"
         else:

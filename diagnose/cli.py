@@ -55,6 +55,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--element-size-mm", type=float, help="FE element size for the reduction [mm] (default: machine file)")
     p.add_argument("--effects", help="comma-separated effect kinds to consider (default: the whole library)")
     p.add_argument("--max-effects", type=int, default=4, help="most effects to name (default 4)")
+    p.add_argument("--no-discretisation-floor", action="store_true",
+                   help="skip the model's discretisation floor (a second, coarser mesh reduced once: a residual within "
+                        "the two meshes' difference counts as explained, an effect within it is not named)")
     p.add_argument("--max-terms", type=int, default=16, help="--data-only: most search steps (extension terms added, "
                    "inputs dropped) per channel (default 16)")
     p.add_argument("--beam", type=int, default=16, help="--data-only: models kept per search step; 1 is greedy forward "
@@ -174,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
         probes = _read_probes(args, machine)  # before the long work: a bad file fails at once
         print(f"preparing the reduced model of {machine.name} ...", file=sys.stderr)
         rom = prepare_model(machine, rom=rom, element_size_mm=args.element_size_mm)
-        d = diagnose(machine, ds, split, rom=rom, kinds=kinds, max_effects=args.max_effects, progress=True)
+        d = diagnose(machine, ds, split, rom=rom, kinds=kinds, max_effects=args.max_effects, progress=True,
+                     discretisation=not args.no_discretisation_floor)
         drives = None
         if probes is not None:
             from hybridcomp.diagnose.drives import dataset_inputs, diagnose_drives, drive_candidates

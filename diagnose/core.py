@@ -160,8 +160,7 @@ def _select_above_floor(problem, cands: list, max_effects: int, progress: bool, 
         cands = [c for c in cands if c.key not in keys]
     if problem.floor is not None:
         f = problem.floor
-        note = (f"the model's discretisation error (its {f.element_size_mm[0]:g} mm mesh against a second one of "
-                f"{f.element_size_mm[1]:g} mm) is a floor per channel: up to "
+        note = (f"the model's discretisation error ({f.describe()}) is a floor per channel: up to "
                 + ", ".join(f"{c} {v:.3g}" for c, v in zip(problem.channels, f.rms)))
         if dropped:
             note += "; within it, not named: " + "; ".join(dict.fromkeys(dropped))

@@ -251,10 +251,10 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
     L += ["", "Units: °C channels in K, µm channels in µm. fit % = 100 (1 − ‖y − ŷ‖/‖y − ȳ‖).", ""]
     if p.floor is not None:
         fl = p.floor
-        L += [f"The model's own discretisation error (its {fl.element_size_mm[0]:g} mm mesh, {fl.nodes[0]} nodes, against "
-              f"a second mesh of {fl.element_size_mm[1]:g} mm, {fl.nodes[1]} nodes, on these inputs; RMS over the "
-              "validation rows) is a floor: a residual within it counts as explained, and an effect whose contribution "
-              "stays within it on every channel is not named.", "", "| channel | discretisation floor |", "|---|---|"]
+        L += [f"The model's own discretisation error ({fl.describe()}: the meshes' difference on these inputs, "
+              "extrapolated to the model's error; the largest RMS over the validation rows) is a floor: a residual within "
+              "it counts as explained, and an effect that changes the channels no more than the same effect fitted to "
+              "the discretisation error alone is not named.", "", "| channel | discretisation floor |", "|---|---|"]
         L += [f"| {c} | {_fmt(float(v), 2)} |" for c, v in zip(p.channels, fl.rms)] + [""]
     L += ["## E_P95(range)", "", "95th percentile of the residual's range over sliding windows (validation part), "
           "model as is → extended:", ""]

@@ -501,14 +501,14 @@ def test_source_and_sensor_lag_are_both_named(machine, fe, rom, loads):
 
 def test_a_mesh_difference_is_not_named(machine, rom, loads, model_200mm):
     """Data from the FE model at 200 mm, nothing planted, diagnosed with the reduced model at 150 mm: the model's
-    discretisation error (its second mesh: 225 mm, which snaps to the 200 mm one's 1,624 nodes against 4,081) is known
-    and no effect is named for it."""
+    discretisation error (its second meshes: 225 mm, which snaps to the 200 mm one's 1,624 nodes against 4,081, and
+    300 mm) is known and no effect is named for it."""
     U = machine.layout().inputs(loads)
     s, d = fe_run(model_200mm, loads.time_s, U)
     dg = diagnose(machine, dataset(machine, loads, s, d, seed=8), "0:60%", rom=rom,
                   kinds=["power_scale", "htc", "sensor_offset", "workspace_offset"])
     floor = dg.problem.floor
-    assert floor is not None and floor.element_size_mm == (150.0, 225.0) and floor.nodes == (4081, 1624)
-    assert floor.factor == pytest.approx(1.0 / ((4081 / 1624) ** (1 / 3) - 1.0))
+    assert floor is not None and floor.element_size_mm == (150.0, 225.0, 300.0) and floor.nodes == (4081, 1624, 960)
+    assert floor.factors == pytest.approx([1.0 / ((4081 / n) ** (1 / 3) - 1.0) for n in (1624, 960)])
     assert not dg.causes and not dg.partial, [f.candidate.describe(f.params) for f in dg.causes + dg.partial]
     assert "discretisation error" in dg.message
