@@ -35,6 +35,8 @@ log = logging.getLogger(__name__)
 
 #: load factor above which a driver counts as on (on/off shapes)
 ON_THRESHOLD = 0.02
+#: most residual evaluations of a face's fit of power and place (half of them for another patch size from there)
+FACE_NFEV = 40
 #: a patch's heat is sampled this many times more finely than a machine-file source's (smooth in its place)
 PATCH_SAMPLING = 4.0
 #: sites kept per drive shape (distinct places, at least two spacings apart) as candidates of the selection
@@ -492,10 +494,12 @@ def _chi2_threshold(problem: Problem, residual: np.ndarray, best_cost: float) ->
 
 
 def _face_fit(problem: Problem, at: Sites, i: int, G: np.ndarray, residual: np.ndarray, face: dict,
-              power_W: float, patch_mm: float) -> tuple[float, np.ndarray]:
+              power_W: float, patch_mm: float, start_mm: np.ndarray | None = None,
+              max_nfev: int | None = None) -> tuple[float, np.ndarray]:
     """Power and place of a ``patch_mm`` patch on one face fitted to the weighted training ``residual``.
 
-    Returns (misfit as ``least_squares``' cost, (power, u, v)).
+    From the site ``i`` projected on the face, or from ``start_mm``.  Returns (misfit as ``least_squares``' cost,
+    (power, u, v)).
     """
     from scipy.optimize import least_squares
 
@@ -503,7 +507,7 @@ def _face_fit(problem: Problem, at: Sites, i: int, G: np.ndarray, residual: np.n
     w = problem.weights * _channel_scale(problem)
     R = (residual[tr] * problem.weights[None, :]).ravel()
     Phi = problem.rom._modes()[1]
-    ref0 = _face_point(face, at.reference_mm[i])
+    ref0 = _face_point(face, at.reference_mm[i] if start_mm is None else start_mm)
 
     def resid(x):
         Br = patch_inputs(problem.machine, problem.rom, at.mesh, [at.body[i]], _face_point(face, ref0, x[1:])[None, :],
@@ -515,7 +519,7 @@ def _face_fit(problem: Problem, at: Sites, i: int, G: np.ndarray, residual: np.n
     hi = np.r_[2000.0, face["upper_mm"]]
     x0 = np.clip(np.r_[max(power_W, 1.0), ref0[list(face["free"])]], lo, hi)
     res = least_squares(resid, x0, bounds=(lo, hi), x_scale=np.r_[max(power_W, 1.0), at.patch_mm, at.patch_mm],
-                        max_nfev=60, method="trf")
+                        max_nfev=max_nfev or FACE_NFEV, method="trf")
     return float(res.cost), res.x
 
 
@@ -570,10 +574,14 @@ def _continuous(problem: Problem, at: Sites, i: int, shape: Shape, where: str, i
     if not faces:
         return None
     # the face by the evidence: near an edge, the power and place fitted on each face, the best kept as the start
-    # and the patch's size among three (a third, two thirds and the whole search spacing)
+    # with the search's patch; then on the best face the patch's size among three (a third, two thirds and the whole
+    # search spacing), from the place found
     h = float(sites_for(problem).patch_mm)
-    fits = [(*_face_fit(problem, at, i, G, residual, f, power_W, size), f, size)
-            for f in faces for size in (h / 3.0, 2.0 * h / 3.0, h)]
+    fits = [(*_face_fit(problem, at, i, G, residual, f, power_W, at.patch_mm), f, at.patch_mm) for f in faces]
+    _, x_best, face, _ = min(fits, key=lambda x: x[0])
+    start = _face_point(face, at.reference_mm[i], x_best[1:])
+    fits += [(*_face_fit(problem, at, i, G, residual, face, float(x_best[0]), size, start, FACE_NFEV // 2), face, size)
+             for size in (h / 3.0, 2.0 * h / 3.0, h) if abs(size - at.patch_mm) > 1e-6 * h]
     _, x_best, face, patch = min(fits, key=lambda x: x[0])
     threshold = _chi2_threshold(problem, residual, min(f[0] for f in fits))
     power_W = float(x_best[0])
