@@ -35,6 +35,9 @@ log = logging.getLogger(__name__)
 
 #: load factor above which a driver counts as on (on/off shapes)
 ON_THRESHOLD = 0.02
+#: lattice points per element size (each side of the start, one element far) on which a placed source's input is
+#: made once and interpolated
+LATTICE_PER_ELEMENT = 6
 #: most residual evaluations of a face's fit of power and place (half of them for another patch size from there)
 FACE_NFEV = 40
 #: a patch's heat is sampled this many times more finely than a machine-file source's (smooth in its place)
@@ -593,7 +596,27 @@ def _continuous(problem: Problem, at: Sites, i: int, shape: Shape, where: str, i
     lags: dict = {}
     axes = "xyz"
 
+    # the patch's modal input on a lattice around the start, made in one go and interpolated bilinearly (a fit
+    # evaluates it hundreds of times); made directly outside the lattice
+    step = float(sites_for(problem).patch_mm) / LATTICE_PER_ELEMENT
+    axes_uv = [np.clip(ref0[d] + step * np.arange(-LATTICE_PER_ELEMENT, LATTICE_PER_ELEMENT + 1), lo_d, hi_d)
+               for d, lo_d, hi_d in zip(face["free"], face["lower_mm"], face["upper_mm"])]
+    grid_u, grid_v = (np.unique(a) for a in axes_uv)
+    U_, V_ = np.meshgrid(grid_u, grid_v, indexing="ij")
+    pts = np.array([_face_point(face, ref0, (u, v)) for u, v in zip(U_.ravel(), V_.ravel())])
+    lattice = (Phi.T @ patch_inputs(problem.machine, problem.rom, at.mesh, [body] * len(pts), pts, patch)).reshape(
+        Phi.shape[1], grid_u.size, grid_v.size)
+
     def Bm(uv) -> np.ndarray:  # the two in-plane coordinates [mm]
+        u, v = (float(x) for x in uv)
+        if grid_u.size > 1 and grid_v.size > 1 and grid_u[0] <= u <= grid_u[-1] and grid_v[0] <= v <= grid_v[-1]:
+            i0 = min(int(np.searchsorted(grid_u, u, side="right")) - 1, grid_u.size - 2)
+            j0 = min(int(np.searchsorted(grid_v, v, side="right")) - 1, grid_v.size - 2)
+            a = (u - grid_u[i0]) / (grid_u[i0 + 1] - grid_u[i0])
+            b = (v - grid_v[j0]) / (grid_v[j0 + 1] - grid_v[j0])
+            L = lattice
+            return ((1 - a) * (1 - b) * L[:, i0, j0] + a * (1 - b) * L[:, i0 + 1, j0] + (1 - a) * b * L[:, i0, j0 + 1]
+                    + a * b * L[:, i0 + 1, j0 + 1])[:, None]
         key = tuple(np.round(np.asarray(uv, float) / _POSITION_ROUND_MM).astype(int))
         if key not in Bms:
             if len(Bms) > 256:
