@@ -394,7 +394,7 @@ def main(argv=None) -> int:
     p.add_argument("--hidden", action="store_true",
                    help="the hidden-style cases instead of random ones: a source between the search's sites and the "
                         "machine's patches, on/off, constant and power law, alone and with a sensor effect (6 cases; "
-                        "--cases N: the first N)")
+                        "--cases N: the first N), diagnosed with the discretisation floor and continuous placement")
     a = p.parse_args(argv)
     machine = load_machine("vmc800")
     loads = jobshop_loads(machine).resample(a.dt)
@@ -412,7 +412,8 @@ def main(argv=None) -> int:
         from hybridcomp.diagnose.locate import sites_for
 
         pb = build_problem(machine, rom, ds0, parse_split("0:60%", ds0.time_s))
-        hidden = hidden_cases(machine, fe, loads, rng, a.element_size_mm, activity, sites_for(pb).position_mm)
+        hidden = hidden_cases(machine, fe, loads, rng, a.element_size_mm, activity,
+                              sites_for(pb, place="continuous").position_mm)
     for i in range(min(len(hidden), a.cases) if a.hidden else a.cases):
         if a.hidden:
             case, kind = hidden[i], "hidden"
@@ -420,7 +421,10 @@ def main(argv=None) -> int:
             kind = str(rng.choice(KINDS, p=WEIGHTS / WEIGHTS.sum()))
             case = make_case(kind, machine, fe, loads, rng, a.element_size_mm, activity)
         t0 = time.perf_counter()
-        d = diagnose(machine, dataset(machine, loads, case, seed=a.seed + i), "0:60%", rom=rom)
+        # the hidden cases with the opt-in discretisation floor and continuous placement; the random ones as the
+        # diagnosis runs by default
+        opts = {"discretisation": True, "place": "continuous"} if a.hidden else {"discretisation": False, "place": "patch"}
+        d = diagnose(machine, dataset(machine, loads, case, seed=a.seed + i), "0:60%", rom=rom, **opts)
         snr = detectability(case, nominal, start)
         ok, said = judge(case, d, snr, a.element_size_mm)
         rows.append({"case": i + 1, "kind": kind, "planted": case.description, "sigma": f"{snr:.0f}", "result": said,

@@ -58,7 +58,7 @@ def prepare_model(machine, *, rom=None, model=None, element_size_mm: float | Non
 
 def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=None, kinds=None,
              max_effects: int = 4, tolerance: tuple[float, float] = (0.02, 0.1), progress: bool = False,
-             discretisation: bool = True) -> Diagnosis:
+             discretisation: bool = False, place: str = "patch") -> Diagnosis:
     """Diagnose what the reduced model of ``machine`` gets wrong on ``dataset``.
 
     Parameters
@@ -72,11 +72,19 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     max_effects : most effects named
     tolerance : (K, µm) residual the model itself may leave (its reduction error): a channel whose validation
         RMS is below this or below 1.5 × its noise level counts as explained
-    discretisation : know the model's own discretisation error (``diagnose.discretisation``): the machine reduced on a
-        second, coarser mesh; the two models' difference on the dataset's inputs is a per-channel floor, a residual
-        within it counts as explained and an effect whose contribution stays within it on every channel is not named
+    discretisation : know the model's own discretisation error (``diagnose.discretisation``): the machine reduced on
+        second, coarser meshes; the models' difference on the dataset's inputs is a per-channel floor, a residual
+        within it counts as explained and an effect the mesh alone could make is not named.  Off by default: the
+        second meshes' reductions and the refits on them cost minutes per diagnosis
+    place : how a heat source found anywhere on the surface is placed: ``"patch"`` (default) at the best search site,
+        known to the search's confidence region; ``"continuous"`` its place fitted on the site's face with its power,
+        with an uncertainty in mm from the fit (opt-in: several times the search's cost)
     """
     t0 = time.perf_counter()
+    from hybridcomp.diagnose.locate import PLACES
+
+    if place not in PLACES:
+        raise ValueError(f"diagnose: place={place!r}, expected one of {', '.join(PLACES)}")
     if not isinstance(split, Split):
         split = parse_split(split, dataset.time_s)
     if rom is None:
@@ -101,10 +109,10 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
             from hybridcomp.diagnose.locate import candidates as located
 
             t1 = time.perf_counter()
-            more = located(problem, problem.Y - predicted_channels(problem, []))
+            more = located(problem, problem.Y - predicted_channels(problem, []), place=place)
             if d.partial:
                 seen = {c.key for c in more}
-                more += [c for c in located(problem, problem.Y - d.Y_after) if c.key not in seen]
+                more += [c for c in located(problem, problem.Y - d.Y_after, place=place) if c.key not in seen]
             log.info("%d located-source candidates in %.1f s", len(more), time.perf_counter() - t1)
             timings = d.timings_s
             # a new selection with the located sources beside the machine's own effects (the screening fits and
@@ -140,8 +148,10 @@ def _select_above_floor(problem, cands: list, max_effects: int, progress: bool, 
 
     Such an effect (named or partial) is what the mesh alone can make of the data: it is left out of the library and
     the selection runs again (at most ``FLOOR_ROUNDS`` times, then any still within it is dropped from the result).
-    Returns the diagnosis and the candidates it chose from.
+    Returns the diagnosis and the candidates it chose from.  Without a floor (the default): :func:`select` once.
     """
+    if problem.floor is None:
+        return select(problem, cands, max_effects=max_effects, progress=progress, memo=memo), cands
     from hybridcomp.diagnose.discretisation import within_floor
 
     dropped: list = []

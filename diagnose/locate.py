@@ -18,6 +18,11 @@ Drive shapes (``shapes``): on/off with the spindle or any axis (on above 2 % loa
 a power law of it (exponent fitted once the site is found), constant (on before the record began: the machine in
 its steady state with it), and switched on at the record's first sample (the machine at rest before: a cabinet or
 a hydraulic unit that comes on with the machine).
+
+Placement (``candidates(..., place=)``): ``"patch"`` (default) keeps a source at its best search site (refined on
+finer sites), its place known to the search's confidence region; ``"continuous"`` (opt-in, costly: a bounded fit of
+power and place per refined site, patches sampled ``PATCH_SAMPLING`` times more finely) fits the place on the site's
+face with the power, its uncertainty in mm from the fit.
 """
 
 from __future__ import annotations
@@ -40,8 +45,11 @@ ON_THRESHOLD = 0.02
 LATTICE_PER_ELEMENT = 6
 #: most residual evaluations of a face's fit of power and place (half of them for another patch size from there)
 FACE_NFEV = 40
-#: a patch's heat is sampled this many times more finely than a machine-file source's (smooth in its place)
+#: continuous placement: a patch's heat is sampled this many times more finely than a machine-file source's (smooth
+#: in its place)
 PATCH_SAMPLING = 4.0
+#: how located sources are placed: at the best search site, or fitted continuously on its face (opt-in)
+PLACES = ("patch", "continuous")
 #: sites kept per drive shape (distinct places, at least two spacings apart) as candidates of the selection
 TOP_SITES = 2
 #: (shape, site) pairs refined on finer sites, the best by their coarse fit (the others stay candidates as they are)
@@ -129,7 +137,7 @@ def shapes(problem: Problem) -> list[Shape]:
 
 
 def surface_sites(machine, rom, mesh=None, spacing_mm: float | None = None, patch_mm: float | None = None,
-                  near: tuple[np.ndarray, float, str] | None = None) -> Sites:
+                  near: tuple[np.ndarray, float, str] | None = None, sampling: float | None = None) -> Sites:
     """The search sites of a machine for a reduced model with its basis V.
 
     Parameters
@@ -140,6 +148,8 @@ def surface_sites(machine, rom, mesh=None, spacing_mm: float | None = None, patc
     spacing_mm : distance between sites [mm] (default: the element size)
     patch_mm : edge of a site's box patch [mm] (default: the spacing)
     near : (centre at the pose [mm], radius [mm], body): only the surface of that body within the radius
+    sampling : a patch's heat sampled this many times more finely than a machine-file source's (:func:`patch_inputs`;
+        default: as a machine-file source's)
     """
     from hybridcomp.fem.mesh import mesh_machine
     from hybridcomp.fem.model import MM
@@ -184,14 +194,17 @@ def surface_sites(machine, rom, mesh=None, spacing_mm: float | None = None, patc
     bodies = [mesh.body_names[int(b)] for b in np.bincount(group, weights=body_idx, minlength=n)
               // np.bincount(group, minlength=n)]
     ref = np.array([p - machine.body_offset_mm(b, mesh.pose_mm) for p, b in zip(pos, bodies)])
-    return Sites(pos, ref, tuple(bodies), patch_inputs(machine, rom, mesh, bodies, ref, patch), patch, mesh)
+    return Sites(pos, ref, tuple(bodies), patch_inputs(machine, rom, mesh, bodies, ref, patch, sampling), patch, mesh)
 
 
-def patch_inputs(machine, rom, mesh, bodies, reference_mm: np.ndarray, patch_mm: float) -> np.ndarray:
+def patch_inputs(machine, rom, mesh, bodies, reference_mm: np.ndarray, patch_mm: float,
+                 sampling: float | None = None) -> np.ndarray:
     """Reduced heat inputs (r × n) of 1 W on a box patch of edge ``patch_mm`` centred at each point.
 
     ``reference_mm``: the points in machine-file coordinates (n × 3) [mm], on the ``bodies``; the patch is clipped to
-    its body as a machine-file heat source is.
+    its body as a machine-file heat source is.  ``sampling``: the patch's heat sampled this many times more finely
+    than a machine-file source's (the input then varies smoothly with the point, which a fit of the place needs);
+    None: as a machine-file source's.
     """
     from hybridcomp.fem.assembly import cell_basis
     from hybridcomp.fem.model import heat_input_rows
@@ -205,13 +218,16 @@ def patch_inputs(machine, rom, mesh, bodies, reference_mm: np.ndarray, patch_mm:
                                      position_mm=tuple(map(float, r)), size_mm=(float(patch_mm),) * 3, power_W=1.0,
                                      exponent=1.0, power_table=None)
                  for i, (r, b) in enumerate(zip(reference_mm, bodies)))
-    key = ("cell_basis", id(mesh))
+    m = dataclasses.replace(machine, heat_sources=srcs)
+    if sampling is None:
+        rows, _ = heat_input_rows(m, mesh, cell_basis(mesh.mesh))
+        return np.asarray(rows @ rom.V).T
+    key = ("cell_basis", id(mesh))  # a fit of the place makes inputs hundreds of times: the basis once per mesh
     if key not in rom._cache:
         rom._cache[key] = (mesh, cell_basis(mesh.mesh))  # the mesh kept with it: its id stays its own
-    # sampled at a quarter of the usual spacing: the input then varies smoothly with the point (a fit moves it)
-    h = float(rom.meta.get("element_size_mm") or machine.mesh.element_size_mm) / PATCH_SAMPLING
-    fine = dataclasses.replace(machine, heat_sources=srcs, mesh=dataclasses.replace(machine.mesh, element_size_mm=h))
-    rows, _ = heat_input_rows(fine, mesh, rom._cache[key][1])
+    h = float(rom.meta.get("element_size_mm") or machine.mesh.element_size_mm) / float(sampling)
+    m = dataclasses.replace(m, mesh=dataclasses.replace(machine.mesh, element_size_mm=h))
+    rows, _ = heat_input_rows(m, mesh, rom._cache[key][1])
     return np.asarray(rows @ rom.V).T
 
 
@@ -241,16 +257,27 @@ def _facet_points(corners_mm: np.ndarray, body_idx: np.ndarray, spacing: float) 
     return np.vstack(pts), np.concatenate(bodies)
 
 
-def sites_for(problem: Problem, machine=None) -> Sites | None:
-    """The problem's search sites (made once per reduced model and kept in its cache); None without a basis."""
+def _sampling(place: str) -> float | None:
+    if place not in PLACES:
+        raise ValueError(f"place of located sources: {place!r}, expected one of {', '.join(PLACES)}")
+    return PATCH_SAMPLING if place == "continuous" else None
+
+
+def sites_for(problem: Problem, machine=None, place: str = "patch") -> Sites | None:
+    """The problem's search sites, made once per reduced model and placement (kept in its cache); None without a basis.
+
+    ``place``: ``"continuous"`` samples the patches' heat ``PATCH_SAMPLING`` times more finely.
+    """
     rom = problem.rom
     if rom.V is None:
         return None
-    if "surface_sites" not in rom._cache:
+    sampling = _sampling(place)
+    key = "surface_sites" if sampling is None else ("surface_sites", sampling)
+    if key not in rom._cache:
         t0 = time.perf_counter()
-        rom._cache["surface_sites"] = surface_sites(machine or problem.machine, rom)
-        log.info("%d surface sites for a missing source in %.1f s", rom._cache["surface_sites"].n, time.perf_counter() - t0)
-    return rom._cache["surface_sites"]
+        rom._cache[key] = surface_sites(machine or problem.machine, rom, sampling=sampling)
+        log.info("%d surface sites for a missing source in %.1f s", rom._cache[key].n, time.perf_counter() - t0)
+    return rom._cache[key]
 
 
 def _channel_scale(problem: Problem) -> np.ndarray:
@@ -340,11 +367,11 @@ def search(problem: Problem, sites: Sites, residual: np.ndarray, shape: Shape, t
 
 
 def refine(problem: Problem, sites: Sites, i: int, residual: np.ndarray, shape: Shape,
-           G: np.ndarray | None = None) -> tuple[Sites, int, float]:
+           G: np.ndarray | None = None, sampling: float | None = None) -> tuple[Sites, int, float]:
     """Finer searches around site ``i`` on its body.
 
     First a third of the spacing within 1.2 spacings, then a ninth within half a spacing with patches of one, two
-    and three thirds of the spacing.
+    and three thirds of the spacing.  ``sampling``: as :func:`surface_sites`'.
 
     Returns the sites searched last, the best one's index among them, and the confidence region's extent [mm].
     """
@@ -354,7 +381,7 @@ def refine(problem: Problem, sites: Sites, i: int, residual: np.ndarray, shape: 
         trials = []
         for patch in patches:
             fine = surface_sites(problem.machine, problem.rom, sites.mesh, step, patch,
-                                 (at.position_mm[best], radius, at.body[best]))
+                                 (at.position_mm[best], radius, at.body[best]), sampling)
             found = search(problem, fine, residual, shape, top=1, G=G)
             if found.sites:
                 trials.append((found.gain[0], fine, found.sites[0], found.spread_mm[0]))
@@ -393,17 +420,22 @@ def _describe_shape(shape: Shape, exponent: float | None = None) -> str:
     return text + (" (the same in these data)" if shape.also else "")
 
 
-def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> list:
+def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES, place: str = "patch") -> list:
     """``located_source`` candidates: per drive shape, the ``top`` best distinct sites for ``residual``.
 
     The ``REFINED`` best of them are placed more finely (:func:`refine`).  Each is linear in its power; a
     proportional shape's best site is also tried with a power law of its activity (power and exponent fitted).
     The location counts as three parameters more in the selection's BIC (``Candidate.extra_dof``); the
     confidence region's extent is reported with it.
+
+    ``place="continuous"`` (opt-in, several times slower): a refined site's source is placed on its face by a fit of
+    power and place (:func:`_continuous`), its uncertainty in mm from the fit; ``"patch"``: at the site found.
     """
     from hybridcomp.diagnose.effects import Candidate
 
-    sites = sites_for(problem)
+    sampling = _sampling(place)
+    continuous = sampling is not None
+    sites = sites_for(problem, place=place)
     if sites is None:
         log.info("the reduced model has no basis V: no search for a missing source over the surface")
         return []
@@ -417,7 +449,7 @@ def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> 
         shape = found.shape
         for i0, g0, s0 in zip(found.sites, found.gain, found.spread_mm):
             if g0 >= refine_from:
-                at, i, spread = refine(problem, sites, i0, residual, shape, G)
+                at, i, spread = refine(problem, sites, i0, residual, shape, G, sampling)
             else:
                 at, i, spread = sites, i0, max(s0, 0.5 * sites.patch_mm)
             resp = site_responses(problem, G, problem.rom._modes()[1].T @ at.Br[:, [i]])[:, :, 0]
@@ -432,6 +464,14 @@ def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> 
                 s.raw_ops.append(_adds(rows, p[0] * resp))
 
             label = _label(at, i, shape)
+            if not continuous:
+                out.append(Candidate("located_source", f"{where}|{shape.name}", label, ("power [W]",), (0.0,),
+                                     (2000.0,), (0.0,), (0.0,), True, "raw", apply, physical=((True, False),),
+                                     extra_dof=3, info=info))
+                if shape.form == "proportional" and i0 == found.sites[0]:
+                    out.append(_power_law(problem, at, i, shape, where, info))
+                continue
+            info = {**info, "offset_mm": [float(v) for v in at.position_mm[i] - at.reference_mm[i]]}
             refined = g0 >= refine_from
             cont = _continuous(problem, at, i, shape, where, info, G, _power_at(problem, resp, residual), residual) \
                 if refined else None
@@ -440,8 +480,7 @@ def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> 
             else:
                 out.append(Candidate("located_source", f"{where}|{shape.name}", label, ("power [W]",), (0.0,),
                                      (2000.0,), (0.0,), (0.0,), True, "raw", apply, physical=((True, False),),
-                                     extra_dof=3, info={**info, "offset_mm": [float(v) for v in at.position_mm[i]
-                                                                              - at.reference_mm[i]]}))
+                                     extra_dof=3, info=info))
             if shape.form == "proportional" and i0 == found.sites[0]:
                 cont = _continuous(problem, at, i, shape, where, info, G, _power_at(problem, resp, residual), residual,
                                    True) if refined else None
@@ -514,7 +553,7 @@ def _face_fit(problem: Problem, at: Sites, i: int, G: np.ndarray, residual: np.n
 
     def resid(x):
         Br = patch_inputs(problem.machine, problem.rom, at.mesh, [at.body[i]], _face_point(face, ref0, x[1:])[None, :],
-                          patch_mm)
+                          patch_mm, PATCH_SAMPLING)
         Y = site_responses(problem, G[tr], Phi.T @ Br)[:, :, 0] * w[None, :]
         return R - x[0] * Y.ravel()
 
@@ -534,6 +573,8 @@ def located_at(candidate, params) -> tuple[np.ndarray, np.ndarray]:
     """
     info = candidate.info
     ref = np.asarray(info["location_mm"], float).copy()
+    if "offset_mm" not in info:  # placed at a search site (``place="patch"``)
+        return ref, np.asarray(info["location_at_pose_mm"], float)
     face = info.get("face")
     if face is not None:
         k = info["uv_index"]
@@ -579,7 +620,7 @@ def _continuous(problem: Problem, at: Sites, i: int, shape: Shape, where: str, i
     # the face by the evidence: near an edge, the power and place fitted on each face, the best kept as the start
     # with the search's patch; then on the best face the patch's size among three (a third, two thirds and the whole
     # search spacing), from the place found
-    h = float(sites_for(problem).patch_mm)
+    h = float(sites_for(problem, place="continuous").patch_mm)
     fits = [(*_face_fit(problem, at, i, G, residual, f, power_W, at.patch_mm), f, at.patch_mm) for f in faces]
     _, x_best, face, _ = min(fits, key=lambda x: x[0])
     start = _face_point(face, at.reference_mm[i], x_best[1:])
@@ -598,13 +639,14 @@ def _continuous(problem: Problem, at: Sites, i: int, shape: Shape, where: str, i
 
     # the patch's modal input on a lattice around the start, made in one go and interpolated bilinearly (a fit
     # evaluates it hundreds of times); made directly outside the lattice
-    step = float(sites_for(problem).patch_mm) / LATTICE_PER_ELEMENT
+    step = float(sites_for(problem, place="continuous").patch_mm) / LATTICE_PER_ELEMENT
     axes_uv = [np.clip(ref0[d] + step * np.arange(-LATTICE_PER_ELEMENT, LATTICE_PER_ELEMENT + 1), lo_d, hi_d)
                for d, lo_d, hi_d in zip(face["free"], face["lower_mm"], face["upper_mm"])]
     grid_u, grid_v = (np.unique(a) for a in axes_uv)
     U_, V_ = np.meshgrid(grid_u, grid_v, indexing="ij")
     pts = np.array([_face_point(face, ref0, (u, v)) for u, v in zip(U_.ravel(), V_.ravel())])
-    lattice = (Phi.T @ patch_inputs(problem.machine, problem.rom, at.mesh, [body] * len(pts), pts, patch)).reshape(
+    lattice = (Phi.T @ patch_inputs(problem.machine, problem.rom, at.mesh, [body] * len(pts), pts, patch,
+                                          PATCH_SAMPLING)).reshape(
         Phi.shape[1], grid_u.size, grid_v.size)
 
     def Bm(uv) -> np.ndarray:  # the two in-plane coordinates [mm]
@@ -622,7 +664,8 @@ def _continuous(problem: Problem, at: Sites, i: int, shape: Shape, where: str, i
             if len(Bms) > 256:
                 Bms.clear()
             ref = _face_point(face, ref0, np.asarray(key, float) * _POSITION_ROUND_MM)
-            Bms[key] = Phi.T @ patch_inputs(problem.machine, problem.rom, at.mesh, [body], ref[None, :], patch)
+            Bms[key] = Phi.T @ patch_inputs(problem.machine, problem.rom, at.mesh, [body], ref[None, :], patch,
+                                             PATCH_SAMPLING)
         return Bms[key]
 
     def lag(n: float) -> np.ndarray:
@@ -700,6 +743,4 @@ def _power_law(problem: Problem, sites: Sites, i: int, shape: Shape, where: str,
     label = _label(sites, i, shape, exponent=1.0)
     return Candidate("located_source", f"{where}|{shape.driver} power law", label, ("power [W]", "exponent [-]"),
                      (0.0, 0.2), (2000.0, 4.0), (0.0, 1.0), (100.0, 1.0), False, "raw", apply, grid=(20.0, 100.0, 500.0),
-                     physical=((True, False), (False, False)), extra_dof=3,
-                     info={**info, "form": "power law",
-                           "offset_mm": [float(v) for v in sites.position_mm[i] - sites.reference_mm[i]]})
+                     physical=((True, False), (False, False)), extra_dof=3, info={**info, "form": "power law"})

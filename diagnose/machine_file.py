@@ -82,14 +82,17 @@ def extended_machine(machine, causes, drives=()) -> dict:
             sources.append(new)
             applied.append(f"heat_sources: new '{name}' at {loc} ({s0['body']}), driven by {driver}, {p[0]:.4g} W at full load")
         elif c.kind == "located_source":
-            from hybridcomp.diagnose.locate import location_uncertainty_mm
-
             new = located_source_entry(c, p, {b["name"]: b for b in bodies})
             sources.append(new)
             where = ", ".join(f"{v:g}" for v in new["position_mm"])
-            how = "1σ from the fit" if c.info.get("face") else "the search's confidence region"
+            if c.info.get("face") is not None:  # placed continuously on its face (opt-in): 1σ from the fit
+                from hybridcomp.diagnose.locate import location_uncertainty_mm
+
+                spread = f"± {location_uncertainty_mm(c, f.uncertainty):.0f} mm, 1σ from the fit"
+            else:
+                spread = f"± {c.info['location_spread_mm']:.0f} mm"
             applied.append(f"heat_sources: new '{new['name']}' on {new['body']} at ({where}) mm "
-                           f"(± {location_uncertainty_mm(c, f.uncertainty):.0f} mm, {how}), {p[0]:.4g} W, {c.info['form']}"
+                           f"({spread}), {p[0]:.4g} W, {c.info['form']}"
                            + (f" with {c.info['driver']}" if c.info.get("driver") else ""))
         elif c.kind == "expansion":
             b = next(b for b in bodies if b["name"] == c.target)

@@ -162,16 +162,16 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
     corr_before = before_correlations(d)
     summary = d.summary()
     for f, entry in zip(d.causes, summary["causes"]):
-        if f.candidate.kind == "located_source":
+        if f.candidate.kind == "located_source" and "offset_mm" in f.candidate.info:  # placed continuously (opt-in)
             from hybridcomp.diagnose.locate import located_at, location_uncertainty_mm
 
             ref, at_pose = located_at(f.candidate, f.params)
             entry["place"] = {"body": f.candidate.info["body"], "position_mm": [float(v) for v in ref],
                               "position_at_pose_mm": [float(v) for v in at_pose],
                               "uncertainty_mm": location_uncertainty_mm(f.candidate, f.uncertainty),
-                              "discretisation_shift_mm": float(np.hypot(*f.candidate.info.get(
-                                  "discretisation_shift_mm", (0.0, 0.0)))),
                               "patch_mm": float(f.candidate.info["patch_mm"])}
+            if "discretisation_shift_mm" in f.candidate.info:  # with the discretisation floor (opt-in)
+                entry["place"]["discretisation_shift_mm"] = float(np.hypot(*f.candidate.info["discretisation_shift_mm"]))
     summary["machine"] = p.machine.name
     summary["dataset"] = dataset_name
     summary["model"] = {"order": int(p.rom.order), "nodes": p.rom.meta.get("nodes"),
@@ -209,16 +209,21 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
         for f in d.causes:
             w = f.candidate.info
             if f.candidate.kind == "located_source":
-                from hybridcomp.diagnose.locate import located_at, location_uncertainty_mm
+                if w.get("face") is not None:  # placed continuously on its face (opt-in)
+                    from hybridcomp.diagnose.locate import located_at, location_uncertainty_mm
 
-                xyz = ", ".join(f"{v:.0f}" for v in located_at(f.candidate, f.params)[0])
-                unc = location_uncertainty_mm(f.candidate, f.uncertainty)
-                shift = np.hypot(*w.get("discretisation_shift_mm", (0.0, 0.0)))
-                how = (f"its place fitted continuously on the face with its power (± {unc:.0f} mm, 1σ from the fit's "
-                       "Jacobian, scaled by the residual; the model's discretisation error could move it by up to "
-                       f"{shift:.0f} mm)" if w.get("face") else
-                       f"sites within {unc:.0f} mm of it fit the training data as well within the noise (the place is "
-                       "known to that extent)")
+                    xyz = ", ".join(f"{v:.0f}" for v in located_at(f.candidate, f.params)[0])
+                    unc = location_uncertainty_mm(f.candidate, f.uncertainty)
+                    how = (f"its place fitted continuously on the face with its power (± {unc:.0f} mm, 1σ from the "
+                           "fit's Jacobian, scaled by the residual")
+                    if "discretisation_shift_mm" in w:
+                        how += (f"; the model's discretisation error could move it by up to "
+                                f"{np.hypot(*w['discretisation_shift_mm']):.0f} mm")
+                    how += ")"
+                else:
+                    xyz = ", ".join(f"{v:.0f}" for v in w["location_mm"])
+                    how = (f"sites within {w['location_spread_mm']:.0f} mm of it fit the training data as well within "
+                           "the noise (the place is known to that extent)")
                 L += ["", f"The missing source was searched over every body's surface (sites {w['patch_mm']:.0f} mm "
                       f"patches, on the training rows only): it sits on {w['body']} at ({xyz}) mm in machine-file "
                       f"coordinates; {how}."

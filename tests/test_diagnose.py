@@ -432,9 +432,7 @@ def test_missing_source_anywhere_is_located(machine, fe, rom, loads, tmp_path):
     cause = dg.causes[0]
     assert cause.candidate.target.endswith("|spindle on/off"), cause.candidate.target
     info = cause.candidate.info
-    from hybridcomp.diagnose.locate import located_at
-
-    assert np.linalg.norm(located_at(cause.candidate, cause.params)[0] - where) <= H_MM, info
+    assert np.linalg.norm(np.asarray(info["location_mm"]) - where) <= H_MM, info
     _check(cause.params, 55.0, 0.0)
     assert "location_mm" in cause.as_dict()["where"]
     path, applied, _ = write_extended_machine(machine, dg.causes, tmp_path / "m.toml")
@@ -465,7 +463,8 @@ def test_off_site_source_is_placed_continuously_and_confirmed(machine, fe, rom, 
 
     where = np.array([-900.0, -97.0, -682.0])
     s, d = _planted_source(machine, fe, loads, "bed", where, 50.0)
-    dg = diagnose(machine, dataset(machine, loads, s, d, seed=5), "0:60%", rom=rom, kinds=LOCATED_KINDS)
+    dg = diagnose(machine, dataset(machine, loads, s, d, seed=5), "0:60%", rom=rom, kinds=LOCATED_KINDS,
+                  place="continuous", discretisation=True)
     assert dg.verdict == "explained", (dg.message, [f.candidate.label for f in dg.causes + dg.partial])
     assert [f.candidate.kind for f in dg.causes] == ["located_source"]
     cause = dg.causes[0]
@@ -488,7 +487,8 @@ def test_source_and_sensor_lag_are_both_named(machine, fe, rom, loads):
     where = np.array([-900.0, -97.0, -682.0])
     s, d = _planted_source(machine, fe, loads, "bed", where, 50.0)
     s[:, 0] = first_order_lag(loads.time_s, s[:, 0], 38.0 * 60)
-    dg = diagnose(machine, dataset(machine, loads, s, d, seed=6), "0:60%", rom=rom, kinds=LOCATED_KINDS)
+    dg = diagnose(machine, dataset(machine, loads, s, d, seed=6), "0:60%", rom=rom, kinds=LOCATED_KINDS,
+                  place="continuous", discretisation=True)
     assert dg.verdict == "explained", (dg.message, [f.candidate.label for f in dg.causes + dg.partial])
     named = {f.candidate.kind: f for f in dg.causes}
     assert set(named) == {"located_source", "sensor_lag"}, [f.candidate.label for f in dg.causes]
@@ -506,7 +506,7 @@ def test_a_mesh_difference_is_not_named(machine, rom, loads, model_200mm):
     U = machine.layout().inputs(loads)
     s, d = fe_run(model_200mm, loads.time_s, U)
     dg = diagnose(machine, dataset(machine, loads, s, d, seed=8), "0:60%", rom=rom,
-                  kinds=["power_scale", "htc", "sensor_offset", "workspace_offset"])
+                  kinds=["power_scale", "htc", "sensor_offset", "workspace_offset"], discretisation=True)
     floor = dg.problem.floor
     assert floor is not None and floor.element_size_mm == (150.0, 225.0, 300.0) and floor.nodes == (4081, 1624, 960)
     assert floor.factors == pytest.approx([1.0 / ((4081 / n) ** (1 / 3) - 1.0) for n in (1624, 960)])
