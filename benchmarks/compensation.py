@@ -267,8 +267,11 @@ def planted_cause(disturbance, causes, element_size_mm: float) -> tuple[str, boo
         return f"power of {name} x {f:g}", ok, True
     if disturbance.added_source is not None:
         a = disturbance.added_source
+        from hybridcomp.diagnose.locate import located_at
+
         ok = any(c.candidate.kind in ("located_source", "missing_source") and "location_mm" in c.candidate.info
-                 and np.linalg.norm(np.subtract(c.candidate.info["location_mm"], a["position_mm"])) <= element_size_mm
+                 and np.linalg.norm(np.subtract(located_at(c.candidate, c.params)[0], a["position_mm"]))
+                 <= element_size_mm
                  and abs(c.params[0] - a["power_W"]) <= 0.2 * a["power_W"] for c in causes)
         return f"missing source {a['power_W']:g} W at {tuple(a['position_mm'])} mm", ok, True
     if disturbance.workspace_air_K:
@@ -312,7 +315,8 @@ def _after_diagnosis(out: Path, case: str, res, models, scenario, noise_um: floa
     # residual, where it is no model error
     data = read_measured(_campaign_record(Path(res.files["recorded"]), noise_um, seed), machine,
                          increment_s=res.summary["real_dt_s"])
-    d = diagnose(machine, data, rom=rom)
+    # the default diagnosis (no discretisation floor, sources at their search site): the figures the README quotes
+    d = diagnose(machine, data, rom=rom, discretisation=False, place="patch")
     write_report(d, folder / "diagnosis")
     planted, correct, in_file = planted_cause(DISTURBANCES[case], d.causes, scenario.element_size_mm)
     named = "; ".join(f"{c.candidate.label} ({', '.join(f'{v:.3g}' for v in c.params)})" for c in d.causes)

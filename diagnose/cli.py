@@ -70,6 +70,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--element-size-mm", type=float, help="FE element size for the reduction [mm] (default: machine file)")
     p.add_argument("--effects", help="comma-separated effect kinds to consider (default: the whole library)")
     p.add_argument("--max-effects", type=int, default=4, help="most effects to name (default 4)")
+    p.add_argument("--discretisation-floor", action="store_true",
+                   help="know the model's discretisation error: the machine reduced on second, coarser meshes; a "
+                        "residual within the meshes' difference counts as explained, an effect the mesh alone could "
+                        "make is not named (off by default: minutes more per diagnosis)")
+    p.add_argument("--place-sources", choices=("patch", "continuous"), default="patch",
+                   help="a heat source found anywhere on the surface: 'patch' (default) at the best search site, known "
+                        "to the search's confidence region; 'continuous' its place fitted on the face with its power, "
+                        "its uncertainty in mm from the fit (several times slower)")
     p.add_argument("--max-terms", type=int, default=16, help="--data-only: most search steps (extension terms added, "
                    "inputs dropped) per channel (default 16)")
     p.add_argument("--beam", type=int, default=16, help="--data-only: models kept per search step; 1 is greedy forward "
@@ -113,7 +121,8 @@ def run(args: argparse.Namespace) -> int:
     data_only = "applies with --data-only only"
     bad = refuse_unused(args, [
         *((opt, args.data_only, model_only) for opt in ("machine", "increment", "rom", "element_size_mm", "effects",
-                                                         "max_effects", "probes", "pose_rom")),
+                                                         "max_effects", "probes", "pose_rom",
+                                                         "discretisation_floor", "place_sources")),
         ("pose_rom", args.probes is None, "applies with --probes only (the feed drives' diagnosis)"),
         *((opt, not args.data_only, data_only) for opt in ("max_terms", "beam", "no_selection_check", "selection",
                                                             "folds", "criterion", "probe_every_hours",
@@ -205,7 +214,8 @@ def run(args: argparse.Namespace) -> int:
         probes = _read_probes(args, machine)  # before the long work: a bad file fails at once
         print(f"preparing the reduced model of {machine.name} ...", file=sys.stderr)
         rom = prepare_model(machine, rom=rom, element_size_mm=args.element_size_mm)
-        d = diagnose(machine, ds, split, rom=rom, kinds=kinds, max_effects=args.max_effects, progress=True)
+        d = diagnose(machine, ds, split, rom=rom, kinds=kinds, max_effects=args.max_effects, progress=True,
+                     discretisation=args.discretisation_floor, place=args.place_sources)
         drives = None
         if probes is not None:
             from hybridcomp.diagnose.drives import dataset_inputs, diagnose_drives, drive_candidates

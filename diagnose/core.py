@@ -57,7 +57,8 @@ def prepare_model(machine, *, rom=None, model=None, element_size_mm: float | Non
 
 
 def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=None, kinds=None,
-             max_effects: int = 4, tolerance: tuple[float, float] = (0.02, 0.1), progress: bool = False) -> Diagnosis:
+             max_effects: int = 4, tolerance: tuple[float, float] = (0.02, 0.1), progress: bool = False,
+             discretisation: bool = False, place: str = "patch") -> Diagnosis:
     """Diagnose what the reduced model of ``machine`` gets wrong on ``dataset``.
 
     Parameters
@@ -71,19 +72,35 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     max_effects : most effects named
     tolerance : (K, µm) residual the model itself may leave (its reduction error): a channel whose validation
         RMS is below this or below 1.5 × its noise level counts as explained
+    discretisation : know the model's own discretisation error (``diagnose.discretisation``): the machine reduced on
+        second, coarser meshes; the models' difference on the dataset's inputs is a per-channel floor, a residual
+        within it counts as explained and an effect the mesh alone could make is not named.  Off by default: the
+        second meshes' reductions and the refits on them cost minutes per diagnosis
+    place : how a heat source found anywhere on the surface is placed: ``"patch"`` (default) at the best search site,
+        known to the search's confidence region; ``"continuous"`` its place fitted on the site's face with its power,
+        with an uncertainty in mm from the fit (opt-in: several times the search's cost)
     """
     t0 = time.perf_counter()
+    from hybridcomp.diagnose.locate import PLACES
+
+    if place not in PLACES:
+        raise ValueError(f"diagnose: place={place!r}, expected one of {', '.join(PLACES)}")
     if not isinstance(split, Split):
         split = parse_split(split, dataset.time_s)
     if rom is None:
         rom = prepare_model(machine)
     problem = build_problem(machine, rom, dataset, split, None, tolerance)
+    if discretisation:
+        from hybridcomp.diagnose.discretisation import with_floor
+
+        with single_blas_thread():
+            problem = with_floor(problem, machine)
     cands = library(problem, kinds)
     log.info("%d candidate effects", len(cands))
     with single_blas_thread():
         memo: dict = {}
         wanted = kinds is None or "located_source" in kinds
-        d = select(problem, cands, max_effects=max_effects, progress=progress, memo=memo)
+        d, cands = _select_above_floor(problem, cands, max_effects, progress, memo)
         if d.verdict == "unexplained" and wanted and rom.V is not None:
             # the machine's own elements leave a structured residual: then, and only then, a heat source the machine
             # file lacks, searched anywhere on the surface (the most flexible hypothesis comes last), on the residual
@@ -92,25 +109,73 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
             from hybridcomp.diagnose.locate import candidates as located
 
             t1 = time.perf_counter()
-            more = located(problem, problem.Y - predicted_channels(problem, []))
+            more = located(problem, problem.Y - predicted_channels(problem, []), place=place)
             if d.partial:
                 seen = {c.key for c in more}
-                more += [c for c in located(problem, problem.Y - d.Y_after) if c.key not in seen]
+                more += [c for c in located(problem, problem.Y - d.Y_after, place=place) if c.key not in seen]
             log.info("%d located-source candidates in %.1f s", len(more), time.perf_counter() - t1)
             timings = d.timings_s
             # a new selection with the located sources beside the machine's own effects (the screening fits and
             # joint refits it repeats are remembered)
-            d = select(problem, cands + more, max_effects=max_effects, progress=progress, memo=memo)
+            d, cands = _select_above_floor(problem, cands + more, max_effects, progress, memo)
             d.timings_s["without located sources"] = timings["selection"]
-            cands = cands + more
         elif d.verdict == "unexplained" and wanted:
             why = ("the search for a heat source anywhere on the surface did not run: the reduced model carries no "
                    "basis (V) to place one (reduce it from the machine file, or load it with its basis)")
             log.warning(why)
             d = dataclasses.replace(d, message=f"{d.message}; {why}")
+    if problem.floor is not None:
+        from hybridcomp.diagnose.discretisation import parameter_shift
+
+        with single_blas_thread():
+            for i, f in enumerate(d.causes):
+                if f.candidate.kind == "located_source" and f.candidate.info.get("face") is not None:
+                    # how far the model's own discretisation error could move the place: part of its uncertainty
+                    k = f.candidate.info["uv_index"]
+                    shift = parameter_shift(problem, d.causes, i)[k:k + 2]
+                    f.candidate.info["discretisation_shift_mm"] = [float(v) for v in shift]
     d.timings_s["total"] = time.perf_counter() - t0
     d.timings_s["candidates"] = len(cands)
     return d
+
+
+#: selections repeated, at most, with the effects found within the discretisation floor left out
+FLOOR_ROUNDS = 3
+
+
+def _select_above_floor(problem, cands: list, max_effects: int, progress: bool, memo: dict):
+    """:func:`select`, repeated without the effects whose contribution stays within the model's discretisation floor.
+
+    Such an effect (named or partial) is what the mesh alone can make of the data: it is left out of the library and
+    the selection runs again (at most ``FLOOR_ROUNDS`` times, then any still within it is dropped from the result).
+    Returns the diagnosis and the candidates it chose from.  Without a floor (the default): :func:`select` once.
+    """
+    if problem.floor is None:
+        return select(problem, cands, max_effects=max_effects, progress=progress, memo=memo), cands
+    from hybridcomp.diagnose.discretisation import within_floor
+
+    dropped: list = []
+    for attempt in range(FLOOR_ROUNDS + 1):
+        d = select(problem, cands, max_effects=max_effects, progress=progress, memo=memo)
+        low = within_floor(problem, list(d.causes)) + within_floor(problem, list(d.partial))
+        if not low:
+            break
+        dropped += [f.candidate.describe(f.params) for f in low]
+        keys = {f.candidate.key for f in low}
+        log.info("within the discretisation floor, not named: %s", "; ".join(f.candidate.label for f in low))
+        if attempt == FLOOR_ROUNDS:
+            d = dataclasses.replace(d, causes=tuple(f for f in d.causes if f.candidate.key not in keys),
+                                    partial=tuple(f for f in d.partial if f.candidate.key not in keys))
+            break
+        cands = [c for c in cands if c.key not in keys]
+    if problem.floor is not None:
+        f = problem.floor
+        note = (f"the model's discretisation error ({f.describe()}) is a floor per channel: up to "
+                + ", ".join(f"{c} {v:.3g}" for c, v in zip(problem.channels, f.rms)))
+        if dropped:
+            note += "; within it, not named: " + "; ".join(dict.fromkeys(dropped))
+        d = dataclasses.replace(d, message=f"{d.message}; {note}")
+    return d, cands
 
 
 def dataset_from_trace(path, machine, increment_s: float = 60.0, raw: Dataset | None = None) -> Dataset:

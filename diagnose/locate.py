@@ -18,6 +18,11 @@ Drive shapes (``shapes``): on/off with the spindle or any axis (on above 2 % loa
 a power law of it (exponent fitted once the site is found), constant (on before the record began: the machine in
 its steady state with it), and switched on at the record's first sample (the machine at rest before: a cabinet or
 a hydraulic unit that comes on with the machine).
+
+Placement (``candidates(..., place=)``): ``"patch"`` (default) keeps a source at its best search site (refined on
+finer sites), its place known to the search's confidence region; ``"continuous"`` (opt-in, costly: a bounded fit of
+power and place per refined site, patches sampled ``PATCH_SAMPLING`` times more finely) fits the place on the site's
+face with the power, its uncertainty in mm from the fit.
 """
 
 from __future__ import annotations
@@ -35,6 +40,16 @@ log = logging.getLogger(__name__)
 
 #: load factor above which a driver counts as on (on/off shapes)
 ON_THRESHOLD = 0.02
+#: lattice points per element size (each side of the start, one element far) on which a placed source's input is
+#: made once and interpolated
+LATTICE_PER_ELEMENT = 6
+#: most residual evaluations of a face's fit of power and place (half of them for another patch size from there)
+FACE_NFEV = 40
+#: continuous placement: a patch's heat is sampled this many times more finely than a machine-file source's (smooth
+#: in its place)
+PATCH_SAMPLING = 4.0
+#: how located sources are placed: at the best search site, or fitted continuously on its face (opt-in)
+PLACES = ("patch", "continuous")
 #: sites kept per drive shape (distinct places, at least two spacings apart) as candidates of the selection
 TOP_SITES = 2
 #: (shape, site) pairs refined on finer sites, the best by their coarse fit (the others stay candidates as they are)
@@ -122,7 +137,7 @@ def shapes(problem: Problem) -> list[Shape]:
 
 
 def surface_sites(machine, rom, mesh=None, spacing_mm: float | None = None, patch_mm: float | None = None,
-                  near: tuple[np.ndarray, float, str] | None = None) -> Sites:
+                  near: tuple[np.ndarray, float, str] | None = None, sampling: float | None = None) -> Sites:
     """The search sites of a machine for a reduced model with its basis V.
 
     Parameters
@@ -133,10 +148,11 @@ def surface_sites(machine, rom, mesh=None, spacing_mm: float | None = None, patc
     spacing_mm : distance between sites [mm] (default: the element size)
     patch_mm : edge of a site's box patch [mm] (default: the spacing)
     near : (centre at the pose [mm], radius [mm], body): only the surface of that body within the radius
+    sampling : a patch's heat sampled this many times more finely than a machine-file source's (:func:`patch_inputs`;
+        default: as a machine-file source's)
     """
-    from hybridcomp.fem.assembly import cell_basis
     from hybridcomp.fem.mesh import mesh_machine
-    from hybridcomp.fem.model import MM, heat_input_rows
+    from hybridcomp.fem.model import MM
 
     if rom.V is None:
         raise ValueError("the reduced model has no basis V: a missing source cannot be searched over the surface")
@@ -178,17 +194,41 @@ def surface_sites(machine, rom, mesh=None, spacing_mm: float | None = None, patc
     bodies = [mesh.body_names[int(b)] for b in np.bincount(group, weights=body_idx, minlength=n)
               // np.bincount(group, minlength=n)]
     ref = np.array([p - machine.body_offset_mm(b, mesh.pose_mm) for p, b in zip(pos, bodies)])
+    return Sites(pos, ref, tuple(bodies), patch_inputs(machine, rom, mesh, bodies, ref, patch, sampling), patch, mesh)
+
+
+def patch_inputs(machine, rom, mesh, bodies, reference_mm: np.ndarray, patch_mm: float,
+                 sampling: float | None = None) -> np.ndarray:
+    """Reduced heat inputs (r × n) of 1 W on a box patch of edge ``patch_mm`` centred at each point.
+
+    ``reference_mm``: the points in machine-file coordinates (n × 3) [mm], on the ``bodies``; the patch is clipped to
+    its body as a machine-file heat source is.  ``sampling``: the patch's heat sampled this many times more finely
+    than a machine-file source's (the input then varies smoothly with the point, which a fit of the place needs);
+    None: as a machine-file source's.
+    """
+    from hybridcomp.fem.assembly import cell_basis
+    from hybridcomp.fem.model import heat_input_rows
+
     template = machine.heat_sources[0] if machine.heat_sources else None
     if template is None:
         from hybridcomp.models.machine import HeatSource
 
         template = HeatSource("site", "fixed", bodies[0], None, None, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1.0, 1.0, None)
     srcs = tuple(dataclasses.replace(template, name=f"site{i}", kind="fixed", body=b, axis=None, driver=None,
-                                     position_mm=tuple(map(float, r)), size_mm=(patch,) * 3, power_W=1.0,
+                                     position_mm=tuple(map(float, r)), size_mm=(float(patch_mm),) * 3, power_W=1.0,
                                      exponent=1.0, power_table=None)
-                 for i, (r, b) in enumerate(zip(ref, bodies)))
-    rows, _ = heat_input_rows(dataclasses.replace(machine, heat_sources=srcs), mesh, cell_basis(sk))
-    return Sites(pos, ref, tuple(bodies), np.asarray(rows @ rom.V).T, patch, mesh)
+                 for i, (r, b) in enumerate(zip(reference_mm, bodies)))
+    m = dataclasses.replace(machine, heat_sources=srcs)
+    if sampling is None:
+        rows, _ = heat_input_rows(m, mesh, cell_basis(mesh.mesh))
+        return np.asarray(rows @ rom.V).T
+    key = ("cell_basis", id(mesh))  # a fit of the place makes inputs hundreds of times: the basis once per mesh
+    if key not in rom._cache:
+        rom._cache[key] = (mesh, cell_basis(mesh.mesh))  # the mesh kept with it: its id stays its own
+    h = float(rom.meta.get("element_size_mm") or machine.mesh.element_size_mm) / float(sampling)
+    m = dataclasses.replace(m, mesh=dataclasses.replace(machine.mesh, element_size_mm=h))
+    rows, _ = heat_input_rows(m, mesh, rom._cache[key][1])
+    return np.asarray(rows @ rom.V).T
 
 
 def _facet_points(corners_mm: np.ndarray, body_idx: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
@@ -217,16 +257,27 @@ def _facet_points(corners_mm: np.ndarray, body_idx: np.ndarray, spacing: float) 
     return np.vstack(pts), np.concatenate(bodies)
 
 
-def sites_for(problem: Problem, machine=None) -> Sites | None:
-    """The problem's search sites (made once per reduced model and kept in its cache); None without a basis."""
+def _sampling(place: str) -> float | None:
+    if place not in PLACES:
+        raise ValueError(f"place of located sources: {place!r}, expected one of {', '.join(PLACES)}")
+    return PATCH_SAMPLING if place == "continuous" else None
+
+
+def sites_for(problem: Problem, machine=None, place: str = "patch") -> Sites | None:
+    """The problem's search sites, made once per reduced model and placement (kept in its cache); None without a basis.
+
+    ``place``: ``"continuous"`` samples the patches' heat ``PATCH_SAMPLING`` times more finely.
+    """
     rom = problem.rom
     if rom.V is None:
         return None
-    if "surface_sites" not in rom._cache:
+    sampling = _sampling(place)
+    key = "surface_sites" if sampling is None else ("surface_sites", sampling)
+    if key not in rom._cache:
         t0 = time.perf_counter()
-        rom._cache["surface_sites"] = surface_sites(machine or problem.machine, rom)
-        log.info("%d surface sites for a missing source in %.1f s", rom._cache["surface_sites"].n, time.perf_counter() - t0)
-    return rom._cache["surface_sites"]
+        rom._cache[key] = surface_sites(machine or problem.machine, rom, sampling=sampling)
+        log.info("%d surface sites for a missing source in %.1f s", rom._cache[key].n, time.perf_counter() - t0)
+    return rom._cache[key]
 
 
 def _channel_scale(problem: Problem) -> np.ndarray:
@@ -316,11 +367,11 @@ def search(problem: Problem, sites: Sites, residual: np.ndarray, shape: Shape, t
 
 
 def refine(problem: Problem, sites: Sites, i: int, residual: np.ndarray, shape: Shape,
-           G: np.ndarray | None = None) -> tuple[Sites, int, float]:
+           G: np.ndarray | None = None, sampling: float | None = None) -> tuple[Sites, int, float]:
     """Finer searches around site ``i`` on its body.
 
     First a third of the spacing within 1.2 spacings, then a ninth within half a spacing with patches of one, two
-    and three thirds of the spacing.
+    and three thirds of the spacing.  ``sampling``: as :func:`surface_sites`'.
 
     Returns the sites searched last, the best one's index among them, and the confidence region's extent [mm].
     """
@@ -330,7 +381,7 @@ def refine(problem: Problem, sites: Sites, i: int, residual: np.ndarray, shape: 
         trials = []
         for patch in patches:
             fine = surface_sites(problem.machine, problem.rom, sites.mesh, step, patch,
-                                 (at.position_mm[best], radius, at.body[best]))
+                                 (at.position_mm[best], radius, at.body[best]), sampling)
             found = search(problem, fine, residual, shape, top=1, G=G)
             if found.sites:
                 trials.append((found.gain[0], fine, found.sites[0], found.spread_mm[0]))
@@ -369,17 +420,22 @@ def _describe_shape(shape: Shape, exponent: float | None = None) -> str:
     return text + (" (the same in these data)" if shape.also else "")
 
 
-def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> list:
+def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES, place: str = "patch") -> list:
     """``located_source`` candidates: per drive shape, the ``top`` best distinct sites for ``residual``.
 
     The ``REFINED`` best of them are placed more finely (:func:`refine`).  Each is linear in its power; a
     proportional shape's best site is also tried with a power law of its activity (power and exponent fitted).
     The location counts as three parameters more in the selection's BIC (``Candidate.extra_dof``); the
     confidence region's extent is reported with it.
+
+    ``place="continuous"`` (opt-in, several times slower): a refined site's source is placed on its face by a fit of
+    power and place (:func:`_continuous`), its uncertainty in mm from the fit; ``"patch"``: at the site found.
     """
     from hybridcomp.diagnose.effects import Candidate
 
-    sites = sites_for(problem)
+    sampling = _sampling(place)
+    continuous = sampling is not None
+    sites = sites_for(problem, place=place)
     if sites is None:
         log.info("the reduced model has no basis V: no search for a missing source over the surface")
         return []
@@ -393,7 +449,7 @@ def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> 
         shape = found.shape
         for i0, g0, s0 in zip(found.sites, found.gain, found.spread_mm):
             if g0 >= refine_from:
-                at, i, spread = refine(problem, sites, i0, residual, shape, G)
+                at, i, spread = refine(problem, sites, i0, residual, shape, G, sampling)
             else:
                 at, i, spread = sites, i0, max(s0, 0.5 * sites.patch_mm)
             resp = site_responses(problem, G, problem.rom._modes()[1].T @ at.Br[:, [i]])[:, :, 0]
@@ -408,11 +464,261 @@ def candidates(problem: Problem, residual: np.ndarray, top: int = TOP_SITES) -> 
                 s.raw_ops.append(_adds(rows, p[0] * resp))
 
             label = _label(at, i, shape)
-            out.append(Candidate("located_source", f"{where}|{shape.name}", label, ("power [W]",), (0.0,), (2000.0,),
-                                 (0.0,), (0.0,), True, "raw", apply, physical=((True, False),), extra_dof=3, info=info))
+            if not continuous:
+                out.append(Candidate("located_source", f"{where}|{shape.name}", label, ("power [W]",), (0.0,),
+                                     (2000.0,), (0.0,), (0.0,), True, "raw", apply, physical=((True, False),),
+                                     extra_dof=3, info=info))
+                if shape.form == "proportional" and i0 == found.sites[0]:
+                    out.append(_power_law(problem, at, i, shape, where, info))
+                continue
+            info = {**info, "offset_mm": [float(v) for v in at.position_mm[i] - at.reference_mm[i]]}
+            refined = g0 >= refine_from
+            cont = _continuous(problem, at, i, shape, where, info, G, _power_at(problem, resp, residual), residual) \
+                if refined else None
+            if cont is not None:  # placed continuously on its face, with its power, in every fit
+                out.append(cont)
+            else:
+                out.append(Candidate("located_source", f"{where}|{shape.name}", label, ("power [W]",), (0.0,),
+                                     (2000.0,), (0.0,), (0.0,), True, "raw", apply, physical=((True, False),),
+                                     extra_dof=3, info=info))
             if shape.form == "proportional" and i0 == found.sites[0]:
-                out.append(_power_law(problem, at, i, shape, where, info))
+                cont = _continuous(problem, at, i, shape, where, info, G, _power_at(problem, resp, residual), residual,
+                                   True) if refined else None
+                out.append(cont if cont is not None else _power_law(problem, at, i, shape, where, info))
     return out
+
+
+def faces_near(machine, body: str, reference_mm: np.ndarray, distance_mm: float) -> list[dict]:
+    """The faces of a box body whose plane lies within ``distance_mm`` of a surface point, the nearest first.
+
+    Near an edge the heat may sit on either face.  Each face as ``{"axis": a, "value_mm": v, "free": (i, j),
+    "lower_mm": (lo_i, lo_j), "upper_mm": (hi_i, hi_j)}`` in machine-file coordinates; none for a body that is not a
+    box (an imported mesh's group).
+    """
+    box = machine.body(body).box_mm
+    if box is None:
+        return []
+    lo, hi = np.asarray(box[0], float), np.asarray(box[1], float)
+    p = np.asarray(reference_mm, float)
+    gaps = np.concatenate([np.abs(p - lo), np.abs(p - hi)])
+    out = []
+    for k in np.argsort(gaps, kind="stable"):
+        if gaps[k] > distance_mm and out:
+            break
+        a = int(k % 3)
+        free = tuple(d for d in range(3) if d != a)
+        out.append({"axis": a, "value_mm": float((lo if k < 3 else hi)[a]), "free": free,
+                    "lower_mm": tuple(float(lo[d]) for d in free), "upper_mm": tuple(float(hi[d]) for d in free)})
+    return out
+
+
+def _face_point(face: dict, reference_mm: np.ndarray, uv=None) -> np.ndarray:
+    """The point of ``face`` at in-plane coordinates ``uv`` (default: the projection of ``reference_mm``, in the face)."""
+    ref = np.asarray(reference_mm, float).copy()
+    if uv is None:
+        uv = np.clip(ref[list(face["free"])], face["lower_mm"], face["upper_mm"])
+    ref[list(face["free"])] = uv
+    ref[face["axis"]] = face["value_mm"]
+    return ref
+
+
+def _chi2_threshold(problem: Problem, residual: np.ndarray, best_cost: float) -> float:
+    """``CHI2_3_95`` as a change of ``least_squares``' cost (half the weighted training misfit).
+
+    Scaled by the variance the best fit leaves (``best_cost``) and inflated for the residual's correlation in time.
+    """
+    from hybridcomp.diagnose.metrics import lag1_autocorrelation
+
+    R = residual[problem.split.train] * problem.weights[None, :]
+    rho = np.clip(np.mean([lag1_autocorrelation(r) for r in R.T]), 0.0, 0.99)
+    s2 = 2.0 * best_cost / max(R.size - 3, 1)
+    return 0.5 * CHI2_3_95 * s2 * (1 + rho) / (1 - rho)
+
+
+def _face_fit(problem: Problem, at: Sites, i: int, G: np.ndarray, residual: np.ndarray, face: dict,
+              power_W: float, patch_mm: float, start_mm: np.ndarray | None = None,
+              max_nfev: int | None = None) -> tuple[float, np.ndarray]:
+    """Power and place of a ``patch_mm`` patch on one face fitted to the weighted training ``residual``.
+
+    From the site ``i`` projected on the face, or from ``start_mm``.  Returns (misfit as ``least_squares``' cost,
+    (power, u, v)).
+    """
+    from scipy.optimize import least_squares
+
+    tr = problem.split.train
+    w = problem.weights * _channel_scale(problem)
+    R = (residual[tr] * problem.weights[None, :]).ravel()
+    Phi = problem.rom._modes()[1]
+    ref0 = _face_point(face, at.reference_mm[i] if start_mm is None else start_mm)
+
+    def resid(x):
+        Br = patch_inputs(problem.machine, problem.rom, at.mesh, [at.body[i]], _face_point(face, ref0, x[1:])[None, :],
+                          patch_mm, PATCH_SAMPLING)
+        Y = site_responses(problem, G[tr], Phi.T @ Br)[:, :, 0] * w[None, :]
+        return R - x[0] * Y.ravel()
+
+    lo = np.r_[0.0, face["lower_mm"]]
+    hi = np.r_[2000.0, face["upper_mm"]]
+    x0 = np.clip(np.r_[max(power_W, 1.0), ref0[list(face["free"])]], lo, hi)
+    res = least_squares(resid, x0, bounds=(lo, hi), x_scale=np.r_[max(power_W, 1.0), at.patch_mm, at.patch_mm],
+                        max_nfev=max_nfev or FACE_NFEV, method="trf")
+    return float(res.cost), res.x
+
+
+def located_at(candidate, params) -> tuple[np.ndarray, np.ndarray]:
+    """A located source's place at fitted ``params``: (machine-file coordinates, at the model's pose) [mm].
+
+    A source placed continuously on a face (``info["face"]``) has its two in-plane coordinates among its parameters
+    (from ``info["uv_index"]``); one found at a search site has the site's place.
+    """
+    info = candidate.info
+    ref = np.asarray(info["location_mm"], float).copy()
+    if "offset_mm" not in info:  # placed at a search site (``place="patch"``)
+        return ref, np.asarray(info["location_at_pose_mm"], float)
+    face = info.get("face")
+    if face is not None:
+        k = info["uv_index"]
+        ref[list(face["free"])] = np.asarray(params, float)[k:k + 2]
+        ref[face["axis"]] = face["value_mm"]
+    return ref, ref + np.asarray(info["offset_mm"], float)
+
+
+def location_uncertainty_mm(candidate, uncertainty) -> float:
+    """1σ radius of a located source's place in the face's plane [mm].
+
+    For a source placed continuously: its in-plane coordinates' 1σ from the fit's Jacobian (scaled by the residual,
+    inflated for its correlation in time), in quadrature, or, if larger, the distance to the fit on another face near
+    an edge that fits the training rows as well (``info["face_spread_mm"]``); for one placed at a site the search's
+    confidence-region extent.  The shift the model's discretisation error could make of the place is reported beside it
+    (``info["discretisation_shift_mm"]``, :func:`hybridcomp.diagnose.discretisation.parameter_shift`).
+    """
+    if candidate.info.get("face") is None:
+        return float(candidate.info["location_spread_mm"])
+    k = candidate.info["uv_index"]
+    u = np.asarray(uncertainty, float)[k:k + 2]
+    return float(max(np.sqrt(np.sum(u**2)), candidate.info.get("face_spread_mm", 0.0)))
+
+
+#: coordinates closer than this share one reduced input (a cache key; far below the fit's finite-difference step) [mm]
+_POSITION_ROUND_MM = 1e-6
+
+
+def _continuous(problem: Problem, at: Sites, i: int, shape: Shape, where: str, info: dict, G: np.ndarray,
+                power_W: float, residual: np.ndarray, power_law: bool = False):
+    """A located source whose place on its body's face is fitted with its power (and exponent).
+
+    Bounded least squares over the face's two in-plane coordinates, from the search's best site.
+    The reduced input of a patch at any point (:func:`patch_inputs`) is continuous in the point, so the fit moves the
+    patch between the search's sites; its uncertainty in mm comes from the fit's Jacobian like every parameter's.
+    Returns None for a site on a body that is not a box.
+    """
+    from hybridcomp.diagnose.effects import Candidate
+
+    faces = faces_near(problem.machine, at.body[i], at.reference_mm[i], at.patch_mm)
+    if not faces:
+        return None
+    # the face by the evidence: near an edge, the power and place fitted on each face, the best kept as the start
+    # with the search's patch; then on the best face the patch's size among three (a third, two thirds and the whole
+    # search spacing), from the place found
+    h = float(sites_for(problem, place="continuous").patch_mm)
+    fits = [(*_face_fit(problem, at, i, G, residual, f, power_W, at.patch_mm), f, at.patch_mm) for f in faces]
+    _, x_best, face, _ = min(fits, key=lambda x: x[0])
+    start = _face_point(face, at.reference_mm[i], x_best[1:])
+    fits += [(*_face_fit(problem, at, i, G, residual, face, float(x_best[0]), size, start, FACE_NFEV // 2), face, size)
+             for size in (h / 3.0, 2.0 * h / 3.0, h) if abs(size - at.patch_mm) > 1e-6 * h]
+    _, x_best, face, patch = min(fits, key=lambda x: x[0])
+    threshold = _chi2_threshold(problem, residual, min(f[0] for f in fits))
+    power_W = float(x_best[0])
+    rows = list(problem.out_index)
+    Phi = problem.rom._modes()[1]
+    ref0 = _face_point(face, at.reference_mm[i], x_best[1:])
+    body = at.body[i]
+    Bms: dict = {}
+    lags: dict = {}
+    axes = "xyz"
+
+    # the patch's modal input on a lattice around the start, made in one go and interpolated bilinearly (a fit
+    # evaluates it hundreds of times); made directly outside the lattice
+    step = float(sites_for(problem, place="continuous").patch_mm) / LATTICE_PER_ELEMENT
+    axes_uv = [np.clip(ref0[d] + step * np.arange(-LATTICE_PER_ELEMENT, LATTICE_PER_ELEMENT + 1), lo_d, hi_d)
+               for d, lo_d, hi_d in zip(face["free"], face["lower_mm"], face["upper_mm"])]
+    grid_u, grid_v = (np.unique(a) for a in axes_uv)
+    U_, V_ = np.meshgrid(grid_u, grid_v, indexing="ij")
+    pts = np.array([_face_point(face, ref0, (u, v)) for u, v in zip(U_.ravel(), V_.ravel())])
+    lattice = (Phi.T @ patch_inputs(problem.machine, problem.rom, at.mesh, [body] * len(pts), pts, patch,
+                                          PATCH_SAMPLING)).reshape(
+        Phi.shape[1], grid_u.size, grid_v.size)
+
+    def Bm(uv) -> np.ndarray:  # the two in-plane coordinates [mm]
+        u, v = (float(x) for x in uv)
+        if grid_u.size > 1 and grid_v.size > 1 and grid_u[0] <= u <= grid_u[-1] and grid_v[0] <= v <= grid_v[-1]:
+            i0 = min(int(np.searchsorted(grid_u, u, side="right")) - 1, grid_u.size - 2)
+            j0 = min(int(np.searchsorted(grid_v, v, side="right")) - 1, grid_v.size - 2)
+            a = (u - grid_u[i0]) / (grid_u[i0 + 1] - grid_u[i0])
+            b = (v - grid_v[j0]) / (grid_v[j0 + 1] - grid_v[j0])
+            L = lattice
+            return ((1 - a) * (1 - b) * L[:, i0, j0] + a * (1 - b) * L[:, i0 + 1, j0] + (1 - a) * b * L[:, i0, j0 + 1]
+                    + a * b * L[:, i0 + 1, j0 + 1])[:, None]
+        key = tuple(np.round(np.asarray(uv, float) / _POSITION_ROUND_MM).astype(int))
+        if key not in Bms:
+            if len(Bms) > 256:
+                Bms.clear()
+            ref = _face_point(face, ref0, np.asarray(key, float) * _POSITION_ROUND_MM)
+            Bms[key] = Phi.T @ patch_inputs(problem.machine, problem.rom, at.mesh, [body], ref[None, :], patch,
+                                             PATCH_SAMPLING)
+        return Bms[key]
+
+    def lag(n: float) -> np.ndarray:
+        key = round(float(n), 6)
+        if key not in lags:
+            if len(lags) > 32:
+                lags.clear()
+            lags[key] = mode_lags(problem, shape.f ** key)
+        return lags[key]
+
+    if power_law:
+        def apply(s, p):
+            s.raw_ops.append(_adds(rows, p[0] * site_responses(problem, lag(p[1]), Bm(p[2:4]))[:, :, 0]))
+    else:
+        def apply(s, p):
+            s.raw_ops.append(_adds(rows, p[0] * site_responses(problem, G, Bm(p[1:3]))[:, :, 0]))
+
+    uv0 = tuple(float(ref0[d]) for d in face["free"])
+    names = tuple(f"{axes[d]} [mm]" for d in face["free"])
+    lower, upper = face["lower_mm"], face["upper_mm"]
+    sign = f"{axes[face['axis']]} = {face['value_mm']:g} mm"
+    label = (f"missing heat source on {body}'s face {sign}, placed on it by the fit, "
+             f"{_describe_shape(shape, 1.0 if power_law else None)}")
+    # faces and patch sizes that fit the training residual as well (within the Δχ² of three parameters, inflated for its
+    # correlation in time): the place is known to the distance between their fits
+    best = min(f[0] for f in fits)
+    alike = [_face_point(f[2], at.reference_mm[i], f[1][1:]) for f in fits if f[0] - best <= threshold]
+    spread = max(float(np.linalg.norm(a - ref0)) for a in alike)
+    info = {**info, "face": face, "patch_mm": patch, "offset_mm": [float(v) for v in at.position_mm[i] - at.reference_mm[i]],
+            "uv_index": 2 if power_law else 1, "face_spread_mm": spread}
+    edge = ((True, True), (True, True))  # a source at a face's edge is a result, not the wrong shape
+    p0 = float(np.clip(power_W, 1.0, 2000.0))
+    if power_law:
+        return Candidate("located_source", f"{where}|{shape.driver} power law", label,
+                         ("power [W]", "exponent [-]") + names, (0.0, 0.2) + lower,
+                         (2000.0, 4.0) + upper, (0.0, 1.0) + uv0, (p0, 1.0) + uv0, False, "raw", apply,
+                         grid=(0.5 * p0, p0, 2.0 * p0), physical=((True, False), (False, False)) + edge, extra_dof=1,
+                         info={**info, "form": "power law"})
+    return Candidate("located_source", f"{where}|{shape.name}", label, ("power [W]",) + names,
+                     (0.0,) + lower, (2000.0,) + upper, (0.0,) + uv0, (p0,) + uv0, False, "raw",
+                     apply, grid=(0.7 * p0, p0, 1.4 * p0), physical=((True, False),) + edge, extra_dof=1, info=info)
+
+
+def _power_at(problem: Problem, resp: np.ndarray, residual: np.ndarray) -> float:
+    """The non-negative power [W] of a unit response fitted to a residual.
+
+    ``resp``: raw outputs of 1 W (nt × nch); ``residual``: measured − model in channel units, weighted, training rows.
+    """
+    tr = problem.split.train
+    w = problem.weights * _channel_scale(problem)
+    Y = resp[tr] * w[None, :]
+    R = residual[tr] * problem.weights[None, :]
+    return float(max(np.sum(Y * R) / max(np.sum(Y * Y), 1e-300), 0.0))
 
 
 def _power_law(problem: Problem, sites: Sites, i: int, shape: Shape, where: str, info: dict):

@@ -85,8 +85,14 @@ def extended_machine(machine, causes, drives=()) -> dict:
             new = located_source_entry(c, p, {b["name"]: b for b in bodies})
             sources.append(new)
             where = ", ".join(f"{v:g}" for v in new["position_mm"])
+            if c.info.get("face") is not None:  # placed continuously on its face (opt-in): 1σ from the fit
+                from hybridcomp.diagnose.locate import location_uncertainty_mm
+
+                spread = f"± {location_uncertainty_mm(c, f.uncertainty):.0f} mm, 1σ from the fit"
+            else:
+                spread = f"± {c.info['location_spread_mm']:.0f} mm"
             applied.append(f"heat_sources: new '{new['name']}' on {new['body']} at ({where}) mm "
-                           f"(± {c.info['location_spread_mm']:.0f} mm), {p[0]:.4g} W, {c.info['form']}"
+                           f"({spread}), {p[0]:.4g} W, {c.info['form']}"
                            + (f" with {c.info['driver']}" if c.info.get("driver") else ""))
         elif c.kind == "expansion":
             b = next(b for b in bodies if b["name"] == c.target)
@@ -136,11 +142,11 @@ def located_source_entry(c, p, bodies: dict) -> dict:
     (proportional: exponent 1; power law: the fitted exponent), a power table that switches on at 2 % load (on/off),
     or no driver (constant).
     """
-    from hybridcomp.diagnose.locate import ON_THRESHOLD
+    from hybridcomp.diagnose.locate import ON_THRESHOLD, located_at
 
     info = c.info
     box = bodies[info["body"]].get("box_mm")
-    pos = np.asarray(info["location_mm"], float)
+    pos = located_at(c, p)[0] if "offset_mm" in info else np.asarray(info["location_mm"], float)
     if box is not None:
         pos = np.clip(pos, np.asarray(box[0], float), np.asarray(box[1], float))
     name = _clean_name(f"found_{info['body']}_{info['form']}_{info.get('driver') or 'always'}")

@@ -72,6 +72,7 @@ class Problem:
     body_names : bodies whose drift rows follow the base outputs
     air_measured : zone → the dataset column its air temperature came from
     tolerance : per channel, the residual the model itself may leave (reduction and discretisation error) [°C or µm]
+    floor : the model's discretisation error (:class:`~hybridcomp.diagnose.discretisation.Floor`), None if not known
     """
 
     machine: object
@@ -89,6 +90,7 @@ class Problem:
     body_names: tuple[str, ...] = ()
     air_measured: dict = field(default_factory=dict)
     tolerance: np.ndarray | None = None
+    floor: object = None
     _cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property

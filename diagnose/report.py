@@ -197,11 +197,24 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
     ep = ep95_table(d)
     corr_before = before_correlations(d)
     summary = d.summary()
+    for f, entry in zip(d.causes, summary["causes"]):
+        if f.candidate.kind == "located_source" and "offset_mm" in f.candidate.info:  # placed continuously (opt-in)
+            from hybridcomp.diagnose.locate import located_at, location_uncertainty_mm
+
+            ref, at_pose = located_at(f.candidate, f.params)
+            entry["place"] = {"body": f.candidate.info["body"], "position_mm": [float(v) for v in ref],
+                              "position_at_pose_mm": [float(v) for v in at_pose],
+                              "uncertainty_mm": location_uncertainty_mm(f.candidate, f.uncertainty),
+                              "patch_mm": float(f.candidate.info["patch_mm"])}
+            if "discretisation_shift_mm" in f.candidate.info:  # with the discretisation floor (opt-in)
+                entry["place"]["discretisation_shift_mm"] = float(np.hypot(*f.candidate.info["discretisation_shift_mm"]))
     summary["machine"] = p.machine.name
     summary["dataset"] = dataset_name
     summary["model"] = {"order": int(p.rom.order), "nodes": p.rom.meta.get("nodes"),
                         "element_size_mm": p.rom.meta.get("element_size_mm")}
     summary["ep95_range"] = ep
+    if p.floor is not None:
+        summary["discretisation_floor"] = p.floor.as_dict(p.channels)
     summary["residual_correlations_before"] = [c.as_dict() for c in corr_before]
     if drives is not None:
         summary["drives"] = drives.as_dict()
@@ -232,11 +245,24 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
         for f in d.causes:
             w = f.candidate.info
             if f.candidate.kind == "located_source":
-                xyz = ", ".join(f"{v:.0f}" for v in w["location_mm"])
+                if w.get("face") is not None:  # placed continuously on its face (opt-in)
+                    from hybridcomp.diagnose.locate import located_at, location_uncertainty_mm
+
+                    xyz = ", ".join(f"{v:.0f}" for v in located_at(f.candidate, f.params)[0])
+                    unc = location_uncertainty_mm(f.candidate, f.uncertainty)
+                    how = (f"its place fitted continuously on the face with its power (± {unc:.0f} mm, 1σ from the "
+                           "fit's Jacobian, scaled by the residual")
+                    if "discretisation_shift_mm" in w:
+                        how += (f"; the model's discretisation error could move it by up to "
+                                f"{np.hypot(*w['discretisation_shift_mm']):.0f} mm")
+                    how += ")"
+                else:
+                    xyz = ", ".join(f"{v:.0f}" for v in w["location_mm"])
+                    how = (f"sites within {w['location_spread_mm']:.0f} mm of it fit the training data as well within "
+                           "the noise (the place is known to that extent)")
                 L += ["", f"The missing source was searched over every body's surface (sites {w['patch_mm']:.0f} mm "
                       f"patches, on the training rows only): it sits on {w['body']} at ({xyz}) mm in machine-file "
-                      f"coordinates; sites within {w['location_spread_mm']:.0f} mm of it fit the training data as "
-                      "well within the noise (the place is known to that extent)."
+                      f"coordinates; {how}."
                       + (f" Its drive cannot be told apart from {', '.join(w['same_as'])}'s in these data."
                          if w.get("same_as") else "")]
     else:
@@ -264,6 +290,13 @@ def write_report(d: Diagnosis, out_dir: str | Path, dataset_name: str = "", plot
         L.append(f"| {c} | {_fmt(p.sigma[k], 2)} | {_fmt(b['rms'])} | {_fmt(a['rms'])} | {_fmt(b['p2p'])} | {_fmt(a['p2p'])} | "
                  f"{b['fit_percent']:.1f} | {a['fit_percent']:.1f} |")
     L += ["", "Units: °C channels in K, µm channels in µm. fit % = 100 (1 − ‖y − ŷ‖/‖y − ȳ‖).", ""]
+    if p.floor is not None:
+        fl = p.floor
+        L += [f"The model's own discretisation error ({fl.describe()}: the meshes' difference on these inputs, "
+              "extrapolated to the model's error; the largest RMS over the validation rows) is a floor: a residual within "
+              "it counts as explained, and an effect that changes the channels no more than the same effect fitted to "
+              "the discretisation error alone is not named.", "", "| channel | discretisation floor |", "|---|---|"]
+        L += [f"| {c} | {_fmt(float(v), 2)} |" for c, v in zip(p.channels, fl.rms)] + [""]
     L += ["## E_P95(range)", "", "95th percentile of the residual's range over sliding windows (validation part), "
           "model as is → extended:", ""]
     hdr = [f"{w * 60:.0f} min" if w < 1 else f"{w:g} h" for w in EP95_WINDOWS_H]

@@ -76,6 +76,8 @@ CASES = {
     "diagnose --data-only --effects": (["diagnose", "--data-only", "--data", "{d}/m.csv", "--effects", "htc",
                                         "--out", "{out}"], "--effects"),
     "diagnose model --beam": (["diagnose", "--data", "{d}/m.csv", "--beam", "4", "--out", "{out}"], "--beam"),
+    "diagnose --data-only --place-sources": (["diagnose", "--data-only", "--data", "{d}/m.csv", "--place-sources",
+                                              "continuous", "--out", "{out}"], "--place-sources"),
     "monitor run --speed on OPC UA": (["monitor", "run", "--config", "{d}/monitor.toml", "--speed", "0"], "--speed"),
 }
 
