@@ -201,3 +201,16 @@ def test_refusals_name_the_file_the_variable_and_the_property_before_any_long_co
     _expect(tmp_path, "dshape.mat", {**m, "D": np.zeros((2, 2))}, r"dshape\.mat: variable 'D' has shape \(2, 2\), "
             r"expected \(3, 2\)", order=3)
     _expect(tmp_path, "nsym.mat", cd, r"nsym\.mat: variable 'A' is not symmetric; the h2 basis", order=3, basis="h2")
+
+
+def test_an_error_far_below_the_gramians_round_off_is_still_right(tmp_path):
+    """Five channels, one of them 1e-7 as strong: dropping it leaves a relative H2 error of about 1e-7, which the
+    Lyapunov terms (each the size of ‖G‖²) cannot resolve; the printed figure is the quadrature's, by hand."""
+    a = np.array([1.0, 2.0, 5.0, 11.0, 3.0])
+    e = np.array([1.0, 0.5, 2.0, 1.0, 0.3])
+    bc = np.array([1.0, 0.8, 1.3, 0.6, 1e-7])
+    m = {"E": sp.diags(e).tocsr(), "A": sp.diags(-a).tocsr(), "B": np.diag(bc), "C": np.eye(5)}
+    rom = reduce_matrices(_save(tmp_path, "tiny.mat", m), order=4)
+    n2 = bc**2 / (2 * a * e)
+    assert rom.meta["h2_error_method"] == "quadrature" and "quadrature" in rom.meta["h2_error_note"]
+    assert rom.meta["h2_error_relative"] == pytest.approx(np.sqrt(n2[4] / n2.sum()), rel=1e-3)
