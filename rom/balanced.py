@@ -349,7 +349,8 @@ def quadrature_h2_error(full, reduced, slow: float, fast: float, per_decade: int
     for lam in np.asarray([] if peaks is None else peaks):
         w, d = abs(lam.imag), abs(lam.real)
         if w > 3 * d > 0:  # a resonance narrower than a third of its frequency: panels of its width around it
-            edges += list(np.log10(w + d * np.array([-8, -3, -1, 0, 1, 3, 8])))
+            at = w + d * np.array([-8, -3, -1, 0, 1, 3, 8])
+            edges += list(np.log10(at[at > 0]))
     edges = np.unique(np.clip(edges, np.floor(lo), np.ceil(hi)))
     Dz = np.zeros_like(full[4])
 
