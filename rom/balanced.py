@@ -372,3 +372,60 @@ def quadrature_h2_error(full, reduced, slow: float, fast: float, per_decade: int
         num += w * e
         den += w * g
     return float(np.sqrt(num / den))
+
+
+# -- IRKA ------------------------------------------------------------------------------------------------------
+def _real_basis(X: np.ndarray) -> np.ndarray:
+    """An orthonormal real basis of the span of complex columns closed under conjugation."""
+    return la.orth(np.hstack([X.real, X.imag]))
+
+
+def irka(E, A, B, C, start: tuple, symmetric: bool = False, maxit: int = 30, tol: float = 1e-6):
+    """Two-sided iterative rational Krylov (Gugercin, Antoulas, Beattie 2008), tangential for MIMO.
+
+    Starts from the reduced model ``start = (E_r, A_r, B_r, C_r)`` (balanced truncation's: its mirrored poles are
+    good first shifts, and scale-free). Each step: shifts ``σ_i = −λ_i`` of the reduced poles, tangential
+    directions from its residues, ``V = [(σ_i E − A)^{-1} B b_i]``, ``W = [(σ_i E − A)^{-T} C^T c_i]`` (one
+    sparse LU per shift pair), real bases, Petrov–Galerkin. Stops when the shifts move less than ``tol``
+    (relative). Returns ``(E_r, A_r, B_r, C_r, V)``, the iterations and the last relative shift change; ``None``
+    for the model if the order collapses (a real basis smaller than r).
+    """
+    Er, Ar, Br, Cr = (np.asarray(X) for X in start)
+    r = Ar.shape[0]
+    A, E = sp.csc_matrix(A), sp.csc_matrix(E)
+    sigma_old, change, it = None, np.inf, 0
+    V = None
+    for it in range(1, maxit + 1):
+        lam, Yl, Xr = la.eig(Ar, Er, left=True, right=True)
+        sigma = -lam
+        bt = (Yl.conj().T @ Br)  # rows: input directions
+        ct = Cr @ Xr  # columns: output directions
+        Vc = np.zeros((A.shape[0], r), complex)
+        Wc = np.zeros((A.shape[0], r), complex)
+        for i, s_ in enumerate(sigma):
+            if s_.imag < 0 and i > 0 and np.isclose(sigma[i - 1], np.conj(s_)):
+                Vc[:, i], Wc[:, i] = np.conj(Vc[:, i - 1]), np.conj(Wc[:, i - 1])
+                continue
+            K = s_ * E - A if s_.imag else s_.real * E - A
+            lu = splu(K, symmetric)
+            rb = B @ bt[i]
+            rc = C.T @ ct[:, i]
+            if s_.imag:
+                Vc[:, i] = lu.solve(rb.astype(complex))
+                Wc[:, i] = lu.solve(rc.astype(complex), trans="T")
+            else:
+                Vc[:, i] = lu.solve(np.ascontiguousarray(rb.real)) + 1j * lu.solve(np.ascontiguousarray(rb.imag))
+                Wc[:, i] = (lu.solve(np.ascontiguousarray(rc.real), trans="T")
+                            + 1j * lu.solve(np.ascontiguousarray(rc.imag), trans="T"))
+        V, W = _real_basis(Vc), _real_basis(Wc)
+        if V.shape[1] < r or W.shape[1] < r:
+            return None, it, change
+        V, W = V[:, :r], W[:, :r]
+        Er, Ar, Br, Cr = W.T @ (E @ V), W.T @ (A @ V), W.T @ B, C @ V
+        s_sorted = np.sort_complex(sigma)
+        if sigma_old is not None:
+            change = float(np.max(np.abs(s_sorted - sigma_old) / np.abs(s_sorted)))
+            if change < tol:
+                break
+        sigma_old = s_sorted
+    return (Er, Ar, Br, Cr, V), it, change

@@ -56,13 +56,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--h-range", type=_h_range, default=(0.5, 2.0), metavar="LOW,HIGH",
                    help="heat-transfer coefficients the model must cover, as factors of nominal (default 0.5,2)")
     p.add_argument("--check-loads", type=Path, help="loads CSV of the FE check (default: the 16 h example day at 60 s)")
-    p.add_argument("--basis", choices=("bt", "krylov", "h2"),
-                   help="bt (--matrices only, its default): square-root balanced truncation, for any stable system "
-                   "(non-symmetric A, D ≠ 0), dense Lyapunov equations up to 1,000 states, low-rank ADI above; "
+    p.add_argument("--basis", choices=("auto", "bt", "irka", "krylov", "h2"),
+                   help="auto (--matrices only, its default): bt, and at a stated --order up to 5,000 states also "
+                   "irka, the smaller exact H2 error kept; bt: square-root balanced truncation, for any stable system "
+                   "(non-symmetric A, D ≠ 0), dense Lyapunov equations up to 2,000 states, low-rank ADI above; irka: "
+                   "two-sided IRKA started from bt's model; "
                    "krylov: greedy rational Krylov basis, then its Gramian compression; h2: the one-sided basis "
                    "with the smallest H2 error (L-BFGS inside a large Krylov surrogate), keeping the s = 0 block when "
                    "the order allows (a machine's model); krylov and h2 keep the model symmetric, stable and affine "
-                   "in h (with --matrices: symmetric A only). Default: bt with --matrices, krylov for a machine")
+                   "in h (with --matrices: symmetric A only). Default: auto with --matrices, krylov for a machine")
     p.add_argument("--h2-tol", type=float, metavar="REL",
                    help="with --matrices, instead of --order: the smallest order whose exact relative H2 error is at "
                    "most REL, found by bisection")
@@ -97,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     matrices = args.matrices is not None
     if args.basis is None:  # balanced truncation for exported systems, krylov for a machine's model
-        args.basis = "bt" if matrices else "krylov"
+        args.basis = "auto" if matrices else "krylov"
     fe_only = "applies to a machine's FE model only, not to --matrices"
     bad = refuse_unused(args, [
         ("machine", matrices, fe_only),
@@ -109,13 +111,13 @@ def run(args: argparse.Namespace) -> int:
         ("basis", matrices and args.basis == "h2" and args.order is None and args.h2_tol is None,
          "h2 with --matrices needs --order or --h2-tol (the H2-optimal basis is built for one order, or searched "
          "for the smallest order reaching an exact relative H2 error)"),
-        ("basis", not matrices and args.basis == "bt",
-         "bt applies with --matrices only (a machine's model keeps the symmetric one-sided bases, affine in h)"),
+        ("basis", not matrices and args.basis in ("auto", "bt", "irka"),
+         f"{args.basis} applies with --matrices only (a machine's model keeps the symmetric one-sided bases, affine in h)"),
         ("h2_tol", not matrices, "applies with --matrices only (a machine's model is reduced to --tol-K, --tol-um)"),
         ("h2_tol", args.order is not None, "cannot be combined with --order (the order decides)"),
         ("fastest_time_s", not matrices, "applies with --matrices only"),
-        ("fastest_time_s", args.basis == "bt", "applies with --basis krylov or h2 only (balanced truncation has "
-         "no time scale to set)"),
+        ("fastest_time_s", args.basis not in ("krylov", "h2"), "applies with --basis krylov or h2 only (bt and irka take "
+         "their shifts from the system)"),
         ("h2_maxiter", args.basis != "h2", "applies with the h2 basis only"),
         ("tol_K", matrices and (args.order is not None or args.h2_tol is not None),
          "has no effect with --matrices and --order or --h2-tol (those decide)"),

@@ -375,7 +375,9 @@ def load_external(path: str | Path) -> ExternalModel:
 
 
 # -- reduction ------------------------------------------------------------------------------------------------
-BASES = ("bt", "h2", "krylov")
+BASES = ("auto", "bt", "irka", "h2", "krylov")
+#: with the default basis, IRKA (from balanced truncation's model) is tried beside it up to this many states
+IRKA_AUTO_MAX_STATES = 5000
 #: frequency points of the H∞ error (log-spaced over the system's own band)
 HINF_POINTS = 60
 #: below this relative H2 error the Lyapunov figure (a difference of three terms of the size of ‖G‖²) is replaced
@@ -413,7 +415,9 @@ def reduce_matrices(
     fastest_time_s : shortest time scale to resolve, in the system's time unit (``krylov`` and ``h2`` only);
         default: from the system (its balanced model's fastest pole)
     keep_basis : keep V (n × r) for reconstructing full states
-    basis : ``"bt"`` (default): square-root balanced truncation (any stable system); ``"h2"``: the one-sided
+    basis : ``"auto"`` (default): balanced truncation, and at a stated order up to :data:`IRKA_AUTO_MAX_STATES`
+        states also two-sided IRKA started from it, the one with the smaller exact error kept (if stable);
+        ``"bt"``: square-root balanced truncation (any stable system); ``"irka"``: IRKA from BT; ``"h2"``: the one-sided
         symmetric basis with the smallest H2 error (symmetric A only; stable by construction); ``"krylov"``:
         the greedy rational Krylov basis (symmetric A only)
     h2_maxiter : L-BFGS iterations of the ``h2`` basis
@@ -433,7 +437,7 @@ def reduce_matrices(
 
     from hybridcomp.rom import balanced as bl
 
-    basis = basis or "bt"
+    basis = basis or "auto"
     if basis not in BASES:
         raise ValueError(f"basis must be one of {', '.join(BASES)}, got {basis!r}")
     if sum(v is not None for v in (order, tol, h2_tol)) != 1:
@@ -452,7 +456,7 @@ def reduce_matrices(
     path = Path(path)
     mats, sha = read_matrices(path)
     system = check_system(mats, str(path))
-    if basis != "bt":
+    if basis in ("h2", "krylov"):
         _thermal(system, basis)  # refuses a non-symmetric A by name, before any long computation
     n, E, A, B, C, D = system.n, system.E, system.A, system.B, system.C, system.D
     if order is not None and order >= n:
@@ -472,11 +476,11 @@ def reduce_matrices(
         Er, Ar, _, _, _ = bl.truncate(E, A, B, C, bal, k)
         return float(np.max(np.abs(bl.reduced_poles(Er, Ar))))
 
-    thermal = None if basis == "bt" else _thermal(system, basis)
+    thermal = _thermal(system, basis) if basis in ("h2", "krylov") else None
 
     def build(r: int | None, want_tol: float | None = None):
         """(E_r, A_r, B_r, C_r, V, method) of order r."""
-        if basis == "bt":
+        if basis in ("bt", "auto", "irka"):
             Er, Ar, Br, Cr, V = bl.truncate(E, A, B, C, bal, r)
             return Er, Ar, Br, Cr, V, f"square-root balanced truncation ({gram})"
         from hybridcomp.rom.krylov import Reductor
@@ -503,7 +507,7 @@ def reduce_matrices(
     tried: list[tuple[int, float]] = []
     if order is not None:
         model = build(order)
-    elif tol is not None and basis == "bt":
+    elif tol is not None and basis != "krylov":
         r = next((k for k in range(1, r_max + 1) if bal.hinf_bound(k) <= tol), r_max)
         model = build(r)
     elif tol is not None:
@@ -530,6 +534,20 @@ def reduce_matrices(
                     lo = mid
             best = hi
         model = at(best)[0]
+    candidates = {}
+    if basis == "irka" or (basis == "auto" and n <= IRKA_AUTO_MAX_STATES and order is not None):
+        # IRKA from balanced truncation's model; kept if stable and better (auto), or asked for (irka)
+        e_bt = err_of(model)
+        candidates["bt"] = e_bt
+        out, its, change = bl.irka(E, A, B, C, model[:4], system.symmetric)
+        if out is not None and np.max(bl.reduced_poles(out[0], out[1]).real) < 0:
+            e_irka = err_of(out)
+            candidates["irka"] = e_irka
+            if basis == "irka" or e_irka < e_bt:
+                model = (*out, f"two-sided IRKA from balanced truncation's model ({its} iterations, last shift "
+                               f"change {change:.1e}; BT's relative H2 error {e_bt:.3g} by {gram})")
+        elif basis == "irka":
+            raise ValueError(f"IRKA at order {model[1].shape[0]} gave an unstable or collapsed model; use --basis bt")
     Er, Ar, Br, Cr, V, method = model
     poles = bl.reduced_poles(Er, Ar)
     stable = bool(np.max(poles.real) < 0)
@@ -552,14 +570,16 @@ def reduce_matrices(
         "nodes": n,
         "order": int(Ar.shape[0]),
         "order_asked": order,
-        "basis": basis,
+        "basis": basis if basis != "auto" else ("irka" if method.startswith("two-sided IRKA") else "bt"),
+        "basis_asked": basis,
+        "candidates_h2_error_relative": candidates,
         "method": method,
         "symmetric": system.symmetric,
         "spectrum": {"slowest_rate": spec.slow, "fastest_rate": spec.fast},
         "gramians": gram,
         "hankel_singular_values": [float(v) for v in bal.hsv[:min(bal.hsv.size, 200)]],
         "tol": tol,
-        "hinf_bound_bt": bal.hinf_bound(int(Ar.shape[0])) if basis == "bt" else None,
+        "hinf_bound_bt": bal.hinf_bound(int(Ar.shape[0])) if method.startswith("square-root") else None,
         "h2_error_relative": err,
         "h2_error_exact": not low_rank,
         "h2_error_note": ("relative to the H2 norm of G − D, "
