@@ -23,7 +23,7 @@ from hybridcomp.safeio import FORCE_HELP, check_output_path
 
 #: L-BFGS iterations of the h2 basis of an exported system at a stated order by default: on the public rail
 #: benchmarks 1,500 leave rail_1357 at r = 40 at 2.5x balanced truncation, 20,000 bring it to 1.2x (38 s;
-#: rom/README.md); growing to --h2-tol keeps 1,500 per order
+#: rom/README.md); the bisection of --h2-tol keeps 1,500 per order
 EXTERNAL_H2_MAXITER = 20000
 
 
@@ -39,8 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``hybridcomp reduce`` options."""
     add_machine_argument(p)
     p.add_argument("--matrices", type=Path, metavar="FILE",
-                   help="reduce an exported system E x' = A x + B u, y = C x instead: a .mat file (variables E, A, B, C) "
-                   "or a directory of Matrix Market files E.mtx, A.mtx, B.mtx, C.mtx")
+                   help="reduce an exported system E x' = A x + B u, y = C x + D u instead: a .mat file (variables A, B, "
+                   "C; E, the identity when absent, and D, zero when absent) or a directory of Matrix Market files "
+                   "A.mtx, B.mtx, C.mtx (E.mtx, D.mtx optional)")
     p.add_argument("--out", required=True, type=Path, help="reduced model to write (.npz with JSON metadata); an "
                    "existing file (a model a monitor configuration reads) is replaced only with --force")
     p.add_argument("--force", action="store_true", help=FORCE_HELP)
@@ -49,20 +50,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--order", type=int, help="reduce to exactly this order instead of to the tolerances")
     p.add_argument("--tol-K", type=float, default=0.05,
                    help="sensor-temperature tolerance [K] against FE on the check load case (default 0.05); "
-                   "with --matrices: the transfer-function tolerance per unit input, in output units")
+                   "with --matrices: the transfer-function (H∞) tolerance per unit input, in output units (bt: the smallest "
+                   "order whose bound 2 Σ of the truncated Hankel singular values is below it)")
     p.add_argument("--tol-um", type=float, default=0.2, help="TCP-drift tolerance [µm] (default 0.2)")
     p.add_argument("--h-range", type=_h_range, default=(0.5, 2.0), metavar="LOW,HIGH",
                    help="heat-transfer coefficients the model must cover, as factors of nominal (default 0.5,2)")
     p.add_argument("--check-loads", type=Path, help="loads CSV of the FE check (default: the 16 h example day at 60 s)")
-    p.add_argument("--basis", choices=("krylov", "h2"),
-                   help="krylov: greedy rational Krylov basis, then its Gramian compression; h2: the one-sided basis "
+    p.add_argument("--basis", choices=("auto", "bt", "irka", "krylov", "h2"),
+                   help="auto (--matrices only, its default): bt, and at a stated --order up to 5,000 states also "
+                   "irka, the smaller exact H2 error kept; bt: square-root balanced truncation, for any stable system "
+                   "(non-symmetric A, D ≠ 0), dense Lyapunov equations up to 2,000 states, low-rank ADI above; irka: "
+                   "two-sided IRKA started from bt's model; "
+                   "krylov: greedy rational Krylov basis, then its Gramian compression; h2: the one-sided basis "
                    "with the smallest H2 error (L-BFGS inside a large Krylov surrogate), keeping the s = 0 block when "
-                   "the order allows (a machine's model); both keep the model symmetric, stable and affine in h. "
-                   "Default: h2 for --matrices with --order or --h2-tol (on many-input, many-output systems it is "
-                   "up to 40x more accurate at the same order), krylov otherwise")
+                   "the order allows (a machine's model); krylov and h2 keep the model symmetric, stable and affine "
+                   "in h (with --matrices: symmetric A only). Default: auto with --matrices, krylov for a machine")
     p.add_argument("--h2-tol", type=float, metavar="REL",
-                   help="with --matrices, instead of --order: grow the order by 5 until the H2-optimal basis's exact "
-                   "relative H2 error is at most REL (systems up to 4,000 states)")
+                   help="with --matrices, instead of --order: the smallest order whose exact relative H2 error is at "
+                   "most REL, found by bisection")
+    p.add_argument("--fastest-time-s", type=float, metavar="T",
+                   help="with --matrices and --basis krylov or h2: the shortest time scale to resolve, in the "
+                   "system's time unit (default: from the system, its balanced model's fastest pole)")
     p.add_argument("--h2-maxiter", type=int, metavar="N",
                    help="with the h2 basis: L-BFGS iterations per basis (default 1500; 20000 for --matrices with "
                    "--order); more iterations, smaller H2 error (150 mm mesh, --order 80: about 30 s per 1,000 "
@@ -90,8 +98,8 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     matrices = args.matrices is not None
-    if args.basis is None:  # h2 where it is built for a stated order or error, krylov otherwise
-        args.basis = "h2" if matrices and (args.order is not None or args.h2_tol is not None) else "krylov"
+    if args.basis is None:  # balanced truncation for exported systems, krylov for a machine's model
+        args.basis = "auto" if matrices else "krylov"
     fe_only = "applies to a machine's FE model only, not to --matrices"
     bad = refuse_unused(args, [
         ("machine", matrices, fe_only),
@@ -101,11 +109,15 @@ def run(args: argparse.Namespace) -> int:
         ("h_range", matrices, fe_only + " (exported matrices have no convection coefficients)"),
         ("check_loads", matrices, fe_only + " (the FE check runs on the machine's model)"),
         ("basis", matrices and args.basis == "h2" and args.order is None and args.h2_tol is None,
-         "h2 with --matrices needs --order or --h2-tol (the H2-optimal basis is built for one order, or grown until "
-         "its exact relative H2 error is reached)"),
+         "h2 with --matrices needs --order or --h2-tol (the H2-optimal basis is built for one order, or searched "
+         "for the smallest order reaching an exact relative H2 error)"),
+        ("basis", not matrices and args.basis in ("auto", "bt", "irka"),
+         f"{args.basis} applies with --matrices only (a machine's model keeps the symmetric one-sided bases, affine in h)"),
         ("h2_tol", not matrices, "applies with --matrices only (a machine's model is reduced to --tol-K, --tol-um)"),
-        ("h2_tol", args.basis != "h2", "applies with the h2 basis only (not with --basis krylov)"),
         ("h2_tol", args.order is not None, "cannot be combined with --order (the order decides)"),
+        ("fastest_time_s", not matrices, "applies with --matrices only"),
+        ("fastest_time_s", args.basis not in ("krylov", "h2"), "applies with --basis krylov or h2 only (bt and irka take "
+         "their shifts from the system)"),
         ("h2_maxiter", args.basis != "h2", "applies with the h2 basis only"),
         ("tol_K", matrices and (args.order is not None or args.h2_tol is not None),
          "has no effect with --matrices and --order or --h2-tol (those decide)"),
@@ -140,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
             _check_out(args, [args.matrices, *(_matrix_files(args.matrices))])
 
             rom = reduce_matrices(args.matrices, tol=None if args.order or args.h2_tol else args.tol_K, order=args.order,
-                                  h2_tol=args.h2_tol,
+                                  h2_tol=args.h2_tol, fastest_time_s=args.fastest_time_s,
                                   keep_basis=not args.no_basis, basis=args.basis, progress=True,
                                   h2_maxiter=args.h2_maxiter if args.h2_maxiter is not None else
                                   EXTERNAL_H2_MAXITER if args.order is not None else 1500)
@@ -177,7 +189,12 @@ def run(args: argparse.Namespace) -> int:
                                   input_scale=scale, workers=_workers(args),
                                   scheduler="process" if args.scheduler == "serial" else args.scheduler,
                                   progress=True)
-    save_rom(args.out, rom)  # atomically: a temporary file renamed over --out
+    if args.matrices is not None:
+        from hybridcomp.rom.external import save_external
+
+        save_external(args.out, rom)  # atomically, as save_rom
+    else:
+        save_rom(args.out, rom)  # atomically: a temporary file renamed over --out
     summary = {"out": str(args.out), "order": rom.order, "seconds": round(time.perf_counter() - t0, 2)}
     if rom.meta.get("poses"):
         summary["support_poses"] = len(rom.meta["poses"]["poses"])
@@ -192,18 +209,21 @@ def run(args: argparse.Namespace) -> int:
                   + (f" at --order {args.order}" if args.order is not None else "")
                   + "; its metadata says passed = false", file=sys.stderr)
     else:
-        summary["estimate"] = rom.meta.get("estimate")
-        summary["basis"] = rom.meta.get("basis")
-        summary["h2_error_relative"] = rom.meta.get("h2_error_relative")
-        if rom.meta.get("h2_tol") is not None:
-            summary["h2_tol_met"] = rom.meta["h2_tol_met"]
-            if not rom.meta["h2_tol_met"]:
-                print(f"warning: relative H2 error {rom.meta['h2_error_relative']:.3g} above --h2-tol "
-                      f"{rom.meta['h2_tol']:g} at the largest order tried", file=sys.stderr)
-        err = rom.meta.get("h2_error_relative")
-        summary["h2_error_exact"] = rom.meta.get("h2_error_exact")
-        how = "exact" if rom.meta.get("h2_error_exact") else rom.meta.get("h2_error_note")
-        print(f"relative H2 error of the reduced model: {err:.3g} ({how})", file=sys.stderr)
+        m = rom.meta
+        summary.update(basis=m["basis"], order_asked=m["order_asked"], stable=m["stable"],
+                       h2_error_relative=m["h2_error_relative"], h2_error_exact=m["h2_error_exact"],
+                       hinf_error_relative=m["hinf_error_relative"])
+        if m.get("h2_tol") is not None:
+            summary["h2_tol_met"] = m["h2_tol_met"]
+            if not m["h2_tol_met"]:
+                print(f"warning: relative H2 error {m['h2_error_relative']:.3g} above --h2-tol {m['h2_tol']:g} at the "
+                      f"largest order with a balanced direction ({rom.order})", file=sys.stderr)
+        if not m["stable"]:
+            print(f"warning: the reduced model is NOT stable (a pole with real part {m['max_pole_real_part']:.3g}); "
+                  "try --basis bt, or --basis h2 / krylov for symmetric A (stable by construction)", file=sys.stderr)
+        print(f"reduced {m['nodes']} states to {rom.order} ({m['method']}); relative H2 error "
+              f"{m['h2_error_relative']:.3g} ({m['h2_error_note']}); relative H∞ error {m['hinf_error_relative']:.3g} "
+              f"on {m['hinf_grid_rad_per_time_unit'][2]} frequencies; stable: {m['stable']}", file=sys.stderr)
     print(jsonio.dumps(summary))
     return 0
 

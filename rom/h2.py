@@ -327,7 +327,8 @@ def optimal_subspace(forms: list[ModalForm], Z0: np.ndarray, maxiter: int = 2000
             nit += max(k, 1)
             if bar is not None:
                 bar.update(min(max(k, 1), maxiter - bar.n))
-                bar.set_postfix_str(f"relative H2 error {np.sqrt(max(J, 0.0) / len(forms)):.3g} (RMS over h)")
+                bar.set_postfix_str(f"surrogate's relative H2 error {np.sqrt(max(J, 0.0) / len(forms)):.3g} "
+                                    "(RMS over h; the true error is computed at the end)")
             if message != "maxiter":  # converged, or the line search failed: restarting will not help
                 break
         if maxiter <= 0:

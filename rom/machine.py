@@ -187,10 +187,11 @@ def gramian_directions(system: ThermalSystem, V: np.ndarray, h_list, input_scale
 
 
 def _reduce_h2(system, reductor, samples, scale, tol, order, max_order, step, accept, fastest_time_s, maxiter,
-               progress=False, hold_steady=True):
+               progress=False, hold_steady=True, surrogate_fastest_time_s=None):
     """The H2-optimal one-sided basis (see :func:`reduce_model`): a Reduction and the method text.
 
     ``hold_steady``: keep the ``s = 0`` block in the basis when the order allows (steady states exact).
+    ``surrogate_fastest_time_s``: the surrogate's shortest time scale (default: 5 s or ``fastest_time_s``).
     """
     from hybridcomp.rom.h2 import h2_optimal_basis
 
@@ -199,7 +200,8 @@ def _reduce_h2(system, reductor, samples, scale, tol, order, max_order, step, ac
     n_first = s0.shape[1]
     # surrogate: a rational Krylov basis resolving down to 5 s, well above the reduced order (its own H2 error
     # is orders of magnitude below the reduced model's)
-    sur_red = Reductor(system, tol, scale, h_list, n_s=12, fastest_time_s=min(5.0, fastest_time_s))
+    sur_ft = min(5.0, fastest_time_s) if surrogate_fastest_time_s is None else surrogate_fastest_time_s
+    sur_red = Reductor(system, tol, scale, h_list, n_s=12, fastest_time_s=sur_ft)
 
     surrogate = np.zeros((system.n, 0))
 

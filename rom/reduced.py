@@ -450,6 +450,10 @@ def load_rom(path: str | Path, machine=None) -> ReducedModel:
     if "meta_json" not in data:
         raise RomFileError(f"{path}: not a hybridcomp reduced model (no 'meta_json' entry)")
     meta = json.loads(str(data["meta_json"]))
+    if meta.get("format") == "hybridcomp-external-lti":
+        raise RomFileError(f"{path}: field 'format' is 'hybridcomp-external-lti': the reduced model of an exported "
+                           "system (reduce --matrices), a general state-space model with no machine inputs; read it "
+                           "with hybridcomp.rom.external.load_external")
     if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
         raise RomFileError(
             f"{path}: field 'format_version' is {meta.get('format')!r} version {meta.get('format_version')!r}; "
