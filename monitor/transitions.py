@@ -656,32 +656,23 @@ def _dataonly_step(ctx: Context, st: State, r: Reading) -> State:
 
 
 def _probe(ctx: Context, st: State, r: Reading) -> State:
-    """A probed drift: one at the model's pose into the mean of the step's probes, one elsewhere into the drives' gains.
-
-    The observer owns the model's pose: a probe elsewhere teaches the drives' gains only (taken to the pose through
-    the table, the table's errors there would reach the one-pose estimate).  One at the pose is kept as probed; the
-    drives' errors there leave it when the step closes (:func:`_structure_probe`), with the gains the step's whole
-    probing cycle taught.
-    """
+    """A probed drift: into the mean of the step's probes (at the model's pose) and the drives' gains."""
     probe = [float(v) for v in r.probe_um]
+    at_pose = True
     if ctx.pose is not None and st.raw_table is not None:
-        st = replace(st, drive_gains=volumetric.update_gains(st.drive_gains, st.raw_table, r.position_mm, probe,
-                                                             r.time_s, ctx.gain_settings))
-        if not volumetric.at_model_pose(st.raw_table, r.position_mm):
-            return st
+        gains = volumetric.update_gains(st.drive_gains, st.raw_table, r.position_mm, probe, r.time_s,
+                                        ctx.gain_settings)
+        st = replace(st, drive_gains=gains)
+        # the observer owns the model's pose: a probe elsewhere teaches the drives' gains only (taken to the pose
+        # through the table, the table's errors there would reach the one-pose estimate); one at the pose less the
+        # drives' errors there, which the one-pose model does not hold
+        at_pose = volumetric.at_model_pose(st.raw_table, r.position_mm)
+        if at_pose:
+            probe = volumetric.without_drives_um(volumetric.with_gains(st.raw_table, gains), r.position_mm, probe)
+    if not at_pose:
+        return st
     mean, n = _mean_probe(st.saved.probe_um, st.saved.probe_n, probe)
     return _set(st, probe_um=mean, probe_n=n)
-
-
-def _structure_probe(ctx: Context, st: State, probe_um) -> list[float]:
-    """The step's mean probe at the model's pose less the drives' errors there, gains applied.
-
-    The observer's model holds the structure alone.
-    """
-    if ctx.pose is None or st.raw_table is None:
-        return list(probe_um)
-    table = volumetric.with_gains(st.raw_table, st.drive_gains)
-    return volumetric.without_drives_um(table, table.grid.reference_mm(), probe_um)
 
 
 # ============================================================================================ the model step
@@ -771,20 +762,17 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
     # the sensors at the step's end from a line through their readings over it (their noise averages out)
     y = (decisions.step_end_values([t for t, _ in st.step_readings], [m for _, m in st.step_readings])
          if st.step_readings else np.full(len(ctx.sensor_names), math.nan))
-    probe = None if s.probe_um is None else _structure_probe(ctx, st, s.probe_um)
-    st = _log_step(ctx, replace(st, step_readings=()), end_s, dt, u, y, probe, before)
+    st = _log_step(ctx, replace(st, step_readings=()), end_s, dt, u, y, s.probe_um, before)
     state, inn = obs.update_sensors(state, y)
     rejected = dict(s.rejected)
     for name in inn.rejected:
         rejected[name] = rejected.get(name, 0) + 1
     st = _set(st, observer=state, sensors=sensors, rejected=rejected)
-    if probe is not None:
-        state = obs.update_probe(state, probe)
+    if s.probe_um is not None:
+        state = obs.update_probe(state, s.probe_um)
         st = counted(_set(st, observer=state, probe_um=None, probe_n=0), probes=1)
         payload = {"measured_um": dict(zip(DRIFT_COLUMNS, s.probe_um)), "probes": s.probe_n,
                    "estimate_um": dict(zip(DRIFT_COLUMNS, map(float, obs.drift_um(state))))}
-        if ctx.pose is not None:  # what reached the observer: the drives' errors at the model's pose taken out
-            payload["structure_um"] = dict(zip(DRIFT_COLUMNS, map(float, probe)))
         g = st.drive_gains
         if g is not None and len(g.axes):  # what the probes at several positions taught
             payload["drive_gains"] = {a: float(v) for a, v in zip(g.axes, g.g)}

@@ -16,8 +16,8 @@ the inputs as the observer corrects them (its air offsets and power scales).  It
 pose's reduced model itself, so the bracket is zero at the model's pose: at that pose the table gives the
 one-pose offsets plus the drives' error at the model's axis positions.
 
-Probes: one at the model's pose goes to the observer less the drives' errors there, their gains applied (the
-one-pose model holds none); one elsewhere teaches the drives' gains (:class:`DriveGains`) and nothing else.
+Probes: one at the model's pose goes to the observer less the drives' errors there (the one-pose model holds
+none); one elsewhere teaches the drives' gains (:class:`DriveGains`) and nothing else.
 
 Each entry of the table moves at most ``max_step_um`` per cycle (the rate limit of the one-pose offsets,
 per support point); the offsets at the commanded position are the table interpolated there, as the control
@@ -247,15 +247,12 @@ class DriveGains:
 
     The pose-aware model's drives (a screw's elongation, a scale's expansion) are known only as well as their
     heat inputs and coefficients: a nut that runs warmer than its machine file says, or a scale of another
-    material, scales the error along the axis, at the model's pose as anywhere.  A probing cycle that touches
-    several positions along the axes sees it: the probe less the table without gains is
-    ``b + Σ_a g_a · sign_a · e_a(p_a)`` in the drive's direction (``b`` a uniform offset: what the one-pose
-    observer has not taken out yet, a nuisance here), and a Kalman filter on ``(g, b)`` (random walks) estimates
-    the gains from the probes away from the model's pose (one pose alone cannot tell a gain from an offset, so
-    probes there leave the gains alone).  The table's drive entries become ``(1 + g) e``, at the model's pose
-    too, and a probe at the model's pose reaches the one-pose observer less ``(1 + g) e(p0)``: the observer's
-    model holds the structure alone, and a drive's error taken there as the structure's would distort its
-    estimate (its powers and air) at every pose.
+    material, scales the error along the axis.  A probing cycle that touches several positions along the axes
+    sees it: the probe less the table without gains is ``b + Σ_a g_a · sign_a · (e_a(p_a) − e_a(p0_a))`` in the
+    drive's direction (``p0`` the model's pose; ``b`` a uniform offset — the gain's share at the model's pose
+    included — that the observer at the model's pose takes care of, here a nuisance), and a Kalman filter on
+    ``(g, b)`` (random walks) estimates the gains.  The table's drive entries become ``e + g (e − e(p0))``: at the
+    model's pose nothing changes (the one-pose observer owns it), and probes there alone leave the gains alone.
     """
 
     axes: tuple[str, ...]
@@ -282,20 +279,19 @@ def initial_gains(axes, settings: GainSettings = GainSettings()) -> DriveGains:
 
 
 def _drive_rows(table, position_mm, axes) -> np.ndarray:
-    """(3 × n): each drive's error at ``position_mm`` (sign applied), in its direction [µm]."""
+    """(3 × n): each drive's error at ``position_mm`` less at the model's pose (sign applied), in its direction [µm]."""
     H = np.zeros((3, len(axes)))
+    ref = table.grid.reference_mm()
     for f in table.feedback_um:
         if f.axis in axes:
-            H[f.direction, list(axes).index(f.axis)] = f.sign * _drive_at(table, f, position_mm)
+            H[f.direction, list(axes).index(f.axis)] = f.sign * (_drive_at(table, f, position_mm)
+                                                                 - _drive_at(table, f, ref))
     return H
 
 
 def update_gains(gains: DriveGains, raw_table, position_mm, probe_um, time_s: float,
                  settings: GainSettings = GainSettings()) -> DriveGains:
-    """The gains after a probe at ``position_mm`` (``raw_table``: the table at that time without gains).
-
-    A probe at the model's pose (:func:`at_model_pose`) only lets the gains' uncertainty grow with the time.
-    """
+    """The gains after a probe at ``position_mm`` (``raw_table``: the table at that time without gains)."""
     from hybridcomp.rom.volumetric import interpolate_one
 
     n = len(gains.axes)
@@ -303,8 +299,6 @@ def update_gains(gains: DriveGains, raw_table, position_mm, probe_um, time_s: fl
     if gains.time_s is not None and time_s > gains.time_s:
         h = (time_s - gains.time_s) / 3600.0
         P = P + np.diag(np.r_[np.full(n, settings.gain_rate ** 2 * h), np.full(3, settings.offset_rate_um ** 2 * h)])
-    if at_model_pose(raw_table, position_mm):
-        return DriveGains(gains.axes, gains.g, gains.b, P, time_s)
     y = np.asarray(probe_um, float) - np.asarray(interpolate_one(raw_table, position_mm), float)
     H = np.hstack([_drive_rows(raw_table, position_mm, gains.axes), np.eye(3)])
     ok = np.isfinite(y)
@@ -321,11 +315,13 @@ def update_gains(gains: DriveGains, raw_table, position_mm, probe_um, time_s: fl
 
 
 def with_gains(table, gains: DriveGains | None):
-    """The table with each drive's entries ``(1 + g) e`` (:class:`DriveGains`)."""
+    """The table with each drive's entries ``e + g (e − e(p0))`` (``p0`` the model's pose, :class:`DriveGains`)."""
     if gains is None or not len(gains.axes):
         return table
     import dataclasses
 
     g = dict(zip(gains.axes, gains.g))
-    fb = tuple(f._replace(error_um=(1.0 + g.get(f.axis, 0.0)) * f.error_um) for f in table.feedback_um)
+    ref = table.grid.reference_mm()
+    fb = tuple(f._replace(error_um=f.error_um + g.get(f.axis, 0.0) * (f.error_um - _drive_at(table, f, ref)))
+               for f in table.feedback_um)
     return dataclasses.replace(table, feedback_um=fb)
