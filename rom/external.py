@@ -353,16 +353,10 @@ def load_external(path: str | Path) -> ExternalModel:
     """Read a model written by :func:`save_external`."""
     import json
 
-    from hybridcomp.models.toml import open_regular_file
+    from hybridcomp.rom.reduced import read_npz
 
     path = Path(path)
-    try:
-        with open_regular_file(path, MatrixFileError, "reduced model") as fh, np.load(fh, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except MatrixFileError:
-        raise
-    except (OSError, ValueError) as exc:
-        raise MatrixFileError(f"{path}: cannot read reduced model: {exc}") from None
+    data = read_npz(path, MatrixFileError)
     meta = json.loads(str(data.get("meta_json", "{}")))
     if meta.get("format") != EXTERNAL_FORMAT or meta.get("format_version") != EXTERNAL_FORMAT_VERSION:
         raise MatrixFileError(f"{path}: field 'format' is {meta.get('format')!r} version {meta.get('format_version')!r}; "

@@ -431,6 +431,17 @@ def save_rom(path: str | Path, rom: ReducedModel) -> Path:
     return path
 
 
+def read_npz(path: Path, error: type[Exception], what: str = "reduced model") -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` file ``path`` (a regular file, no pickles); ``error`` names the file on failure."""
+    try:
+        with open_regular_file(path, error, what) as fh, np.load(fh, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except error:
+        raise
+    except (OSError, ValueError) as exc:
+        raise error(f"{path}: cannot read {what}: {exc}") from None
+
+
 def load_rom(path: str | Path, machine=None) -> ReducedModel:
     """Read a reduced model; with ``machine`` (a loaded :class:`Machine`) check it was reduced from that very file.
 
@@ -440,13 +451,7 @@ def load_rom(path: str | Path, machine=None) -> ReducedModel:
         unreadable file, another format version, or a machine file whose hash differs
     """
     path = Path(path)
-    try:
-        with open_regular_file(path, RomFileError, "reduced model") as fh, np.load(fh, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except RomFileError:
-        raise
-    except (OSError, ValueError) as exc:
-        raise RomFileError(f"{path}: cannot read reduced model: {exc}") from None
+    data = read_npz(path, RomFileError)
     if "meta_json" not in data:
         raise RomFileError(f"{path}: not a hybridcomp reduced model (no 'meta_json' entry)")
     meta = json.loads(str(data["meta_json"]))

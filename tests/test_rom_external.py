@@ -14,27 +14,10 @@ import json
 import numpy as np
 import pytest
 import scipy.io
-import scipy.linalg as la
 
 from hybridcomp.cli import main
 from hybridcomp.rom.external import MatrixFileError, load_external, plate_system, reduce_matrices
-
-
-def _h2_error(m: dict, Er, Ar, Br, Cr) -> float:
-    """Relative H2 error by scipy's dense Lyapunov solver on the error system (standard form)."""
-    def std(E, A, B, C):
-        Li = la.inv(la.cholesky(np.asarray(E), lower=True))
-        return Li @ np.asarray(A) @ Li.T, Li @ B, C @ Li.T
-
-    E = m["E"].toarray() if "E" in m else np.eye(m["A"].shape[0])
-    A1, B1, C1 = std(E, m["A"].toarray() if hasattr(m["A"], "toarray") else m["A"], m["B"], m["C"])
-    A2, B2, C2 = la.solve(np.asarray(Er), np.asarray(Ar)), la.solve(np.asarray(Er), Br), Cr  # any reduced E_r
-    P1 = la.solve_continuous_lyapunov(A1, -B1 @ B1.T)
-    A = la.block_diag(A1, A2)
-    B = np.vstack([B1, B2])
-    C = np.hstack([C1, -C2])
-    P = la.solve_continuous_lyapunov(A, -B @ B.T)
-    return float(np.sqrt(max(np.trace(C @ P @ C.T), 0.0) / np.trace(C1 @ P1 @ C1.T)))
+from tests.test_rom_balanced import lyapunov_error
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +39,7 @@ def test_the_h2_basis_changes_the_basis_lowers_the_error_and_the_error_is_exact(
     assert kr.meta["basis"] == "krylov" and opt.meta["basis"] == "h2" and opt.order == kr.order == r
     # the stored figure is the exact relative H2 error (checked against scipy's Lyapunov solver)
     for rom in (kr, opt):
-        ref = _h2_error(m, rom.E, rom.A, rom.B, rom.C)
+        ref = lyapunov_error(m, rom)
         assert rom.meta["h2_error_relative"] == pytest.approx(ref, rel=1e-6)
     e_kr, e_opt = kr.meta["h2_error_relative"], opt.meta["h2_error_relative"]
     assert e_opt < 0.8 * e_kr, (e_opt, e_kr)
@@ -83,7 +66,7 @@ def test_reduce_cli_with_matrices_bt_default_and_basis_h2(mat, tmp_path, capsys)
     assert summary["basis"] in ("bt", "irka") and summary["order"] == 8 and summary["stable"]
     rom = load_external(tmp_path / "d.npz")
     assert rom.meta["matrices"]["file"] == "plate.mat" and rom.order == 8
-    assert summary["h2_error_relative"] == pytest.approx(_h2_error(m, rom.E, rom.A, rom.B, rom.C), rel=1e-6)
+    assert summary["h2_error_relative"] == pytest.approx(lyapunov_error(m, rom), rel=1e-6)
     from hybridcomp.rom.reduced import RomFileError, load_rom
 
     with pytest.raises(RomFileError, match="load_external"):
