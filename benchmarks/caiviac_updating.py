@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _caiviac import add_arguments, missing
+
 from hybridcomp.diagnose.data import parse_split, read_dataset
 from hybridcomp.diagnose.dataonly import _activity_signals, diagnose_data_only
 from hybridcomp.diagnose.metrics import fit_percent
@@ -40,7 +42,6 @@ from hybridcomp.diagnose.updating import choose_settings, probe_rows, updated_pr
 
 from _table import table
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "caiviac-spindle.csv"  # data/ of this checkout
 FOLDS = (3, 5, 10)
 EVERY_H = (2.0, 1.0)
 
@@ -71,16 +72,12 @@ def _gain_offset(d, ds, c: str, every_h: float, probe_sd_um: float) -> float:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, default=DATA, help="the spindle test CSV (default: data/caiviac-spindle.csv of this "
-                   "checkout, written by 'hybridcomp data fetch caiviac-spindle --out data/')")
-    p.add_argument("--train", default="0:50%", help="training part (default 0:50%%, as README)")
+    add_arguments(p)
     p.add_argument("--probe-sd-um", type=float, default=0.5, help="the probes' repeatability (default 0.5 µm)")
     p.add_argument("--search", action="store_true", help="also the beam search's held-out fit for 3, 5 and 10 folds "
                    "(about 2 minutes each on 2 cores)")
     a = p.parse_args(argv)
-    if not a.data.is_file():
-        print(f"error: the measured spindle test {a.data} is missing: fetch it with 'hybridcomp data fetch "
-              "caiviac-spindle --out data/' (or give its path with --data)", file=sys.stderr)
+    if missing(a.data):
         return 2
     t0 = time.perf_counter()
     ds = read_dataset(a.data)

@@ -40,13 +40,14 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _caiviac import add_arguments, missing
+
 from hybridcomp.diagnose.data import parse_split, read_dataset
 from hybridcomp.diagnose.metrics import channel_metrics
 from hybridcomp.diagnose.problem import first_order_lag
 
 from _table import table
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "caiviac-spindle.csv"  # data/ of this checkout
 TEMP_LAGS_H = (0.25, 1.0, 4.0)
 SOURCE_LAGS_H = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 EXPONENTS = (1.0, 1.5, 2.0)
@@ -101,13 +102,9 @@ def cv_errors(X: np.ndarray, Y: np.ndarray, parts) -> np.ndarray:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, default=DATA, help="the spindle test CSV (default: data/caiviac-spindle.csv of this "
-                   "checkout, written by 'hybridcomp data fetch caiviac-spindle --out data/')")
-    p.add_argument("--train", default="0:50%", help="training part (default 0:50%%, as README)")
+    add_arguments(p)
     a = p.parse_args(argv)
-    if not a.data.is_file():
-        print(f"error: the measured spindle test {a.data} is missing: fetch it with 'hybridcomp data fetch "
-              "caiviac-spindle --out data/' (or give its path with --data)", file=sys.stderr)
+    if missing(a.data):
         return 2
     t0 = time.perf_counter()
     ds = read_dataset(a.data)
