@@ -59,11 +59,11 @@ def main() -> int:
                                machine).resample(dt)
         t = loads.time_s
         U = prom.layout().inputs(list(loads.names), loads.values, "loads")
-        W, spread = trace_step_weights(grid, ts, P, t)
+        poses = trace_step_weights(grid, ts, P, t)
         for history in ("moves", "none"):
             t0 = time.perf_counter()
-            Y, _ = rp.integrate_along(prom, t, U, trace_positions(ts, P, t), history=history, weights=W,
-                                      spread=spread)
+            Y, _ = rp.integrate_along(prom, t, U, trace_positions(ts, P, t), history=history,
+                                      weights=poses)
             wall[(dt, history)] = time.perf_counter() - t0
             tc = np.arange(0.0, t[-1] + 1.0, 900.0)
             Yc = np.column_stack([np.interp(tc, t, Y[:, j]) for j in range(Y.shape[1])])

@@ -661,26 +661,27 @@ def trace_positions(ts: np.ndarray, P: np.ndarray, t: np.ndarray) -> np.ndarray:
     return P[k]
 
 
-def trace_step_weights(grid, ts: np.ndarray, P: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The support poses' weights of every step of ``t`` (nt × poses), where the machine was weighted by the time.
+def trace_step_weights(grid, ts: np.ndarray, P: np.ndarray, t: np.ndarray):
+    """Where the trace's machine was over every step of ``t``: a :class:`~hybridcomp.rom.poses.StepPoses` (nt × poses).
 
-    Row k: over the step from ``t[k]`` on, the weights of the trace's samples (:func:`trace_samples`) in it, each
-    for the time until the next sample (:func:`hybridcomp.rom.poses.integrate_along`); a step with no sample: the
-    last sample's.  Also how far the samples' weights went from each row's (nt,).
+    Row k: over the step from ``t[k]`` on, the support poses' weights of the trace's samples (:func:`trace_samples`)
+    in it, each for the time until the next sample (:func:`hybridcomp.rom.poses.integrate_along`), their range and
+    the first one's; a step with no sample: the last sample's.
     """
+    from hybridcomp.rom.poses import StepPoses
+
     Ws = grid.weights_along(P)
     dts = np.diff(ts, append=ts[-1])
-    W = np.empty((t.size, Ws.shape[1]))
-    spread = np.zeros(t.size)
+    W, lo, hi, first = (np.empty((t.size, Ws.shape[1])) for _ in range(4))
     row = np.searchsorted(t, ts, side="right") - 1  # the step each sample falls in
     for k in range(t.size):
         mine = row == k
         if mine.any() and dts[mine].sum() > 0:
-            W[k] = dts[mine] @ Ws[mine] / dts[mine].sum()
-            spread[k] = np.abs(Ws[mine] - W[k]).max()
+            s = StepPoses.of(Ws[mine], dts[mine])
         else:
-            W[k] = Ws[max(int(np.searchsorted(ts, t[k], side="right")) - 1, 0)]
-    return W, spread
+            s = StepPoses.held(Ws[max(int(np.searchsorted(ts, t[k], side="right")) - 1, 0)])
+        W[k], lo[k], hi[k], first[k] = s.weights, s.low, s.high, s.first
+    return StepPoses(W, lo, hi, first)
 
 
 @dataclass(frozen=True)
@@ -691,8 +692,8 @@ class PathTruth:
     machine's OWN pose-aware structure model (its machine file, disturbance and all, reduced at the support
     poses like the models' one; the models' own when the real machine is the model) driven by the real machine's
     loads along the poses it visits (its pose history, :func:`hybridcomp.rom.poses.integrate_along`), at the pose
-    less at the model's pose.  ``positions``, ``added`` and the support poses' ``weights`` (and their ``spread``,
-    :func:`trace_step_weights`) are at the day's times ``t``.
+    less at the model's pose.  ``positions``, ``added`` and where the machine was (``poses``, the support poses'
+    weights of the trace's samples, :func:`trace_step_weights`) are at the day's times ``t``.
     """
 
     pose_mm: dict
@@ -703,8 +704,7 @@ class PathTruth:
     positions: np.ndarray
     added: np.ndarray
     own: bool
-    weights: np.ndarray
-    spread: np.ndarray
+    poses: object
 
     def at(self, t_s: float, positions_mm: np.ndarray) -> np.ndarray:
         """The real machine's drift [µm] (m × 3) at the time ``t_s`` at the poses ``positions_mm`` (m × axes)."""
@@ -729,12 +729,12 @@ def _path_truth(models: Models, real_machine, day: _Day) -> PathTruth:
     values = np.column_stack([np.interp(t, day.real_loads.time_s, day.real_loads.values[:, j])
                               for j in range(len(day.real_loads.names))])
     U_real = real_prom.layout().inputs(list(day.real_loads.names), values, "real machine")
-    weights, spread = trace_step_weights(grid_of(real_prom), ts, P, t)
-    Y_real, _ = integrate_along(real_prom, t, U_real, positions, weights=weights, spread=spread)  # its pose history
+    poses = trace_step_weights(grid_of(real_prom), ts, P, t)
+    Y_real, _ = integrate_along(real_prom, t, U_real, positions, weights=poses)  # its pose history
     added = drift_along(real_prom, Y_real, positions) - _tcp_um(real_prom, Y_real)
     log.info("real machine along the path: its %s pose-aware model, position-dependent part up to %.1f µm",
              "own" if own else "models'", np.abs(added).max())
-    return PathTruth(dict(models.pose_mm), t, day.truth, real_prom, Y_real, positions, added, own, weights, spread)
+    return PathTruth(dict(models.pose_mm), t, day.truth, real_prom, Y_real, positions, added, own, poses)
 
 
 def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, path: PathTruth) -> dict:
@@ -749,11 +749,11 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
 
     prom, machine, t, positions = models.pose_rom, models.machine, day.t, path.positions
     truth_path = day.truth + path.added
-    weights, spread = path.weights, path.spread  # where the trace's machine was (the same support poses)
+    poses = path.poses  # where the trace's machine was (the same support poses)
     if grid_of(prom) != grid_of(path.rom):
-        weights, spread = trace_step_weights(grid_of(prom), *trace_samples(machine, day.controller), t)
+        poses = trace_step_weights(grid_of(prom), *trace_samples(machine, day.controller), t)
     Y, _ = integrate_along(prom, t, prom.layout().inputs(day.loads.names, day.loads.values, "loads"), positions,
-                           weights=weights, spread=spread)
+                           weights=poses)
     path_preds = {}
     for k, p in preds.items():
         if k == BOUND:

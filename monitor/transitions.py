@@ -859,15 +859,15 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
     return st
 
 
-def _step_weights(ctx: Context, st: State, end_s: float) -> tuple[np.ndarray | None, float]:
-    """The support poses' weights over the step ending at ``end_s`` and their samples' spread, for the pose history.
+def _step_weights(ctx: Context, st: State, end_s: float):
+    """Where the machine was over the step ending at ``end_s``, for the pose history (None without samples).
 
-    Where the step's samples were, each for the time until the next (the last until ``end_s``)
-    (:func:`hybridcomp.monitor.volumetric.advance`); (None, 0) without samples.
+    The support poses' weights of the step's samples, each for the time until the next (the last until ``end_s``)
+    (:func:`hybridcomp.monitor.volumetric.step_weights`, :func:`~hybridcomp.monitor.volumetric.advance`).
     """
     b = st.buffer
     if not b:
-        return None, 0.0
+        return None
     ts = np.fromiter((x.time_s for x in b), float, len(b))
     dt = np.clip(np.diff(ts, append=max(end_s, ts[-1])), 0.0, None)
     if dt.sum() <= 0:
@@ -885,7 +885,7 @@ def _after_update(ctx: Context, st: State, t: float, u: np.ndarray) -> State:
         if track is None:
             track = volumetric.start(ctx.pose, uc, t, ctx.cfg.increment_s)
         elif t > track.time_s:
-            track = volumetric.advance(ctx.pose, track, uc, t, ctx.cfg.increment_s, *_step_weights(ctx, st, t))
+            track = volumetric.advance(ctx.pose, track, uc, t, ctx.cfg.increment_s, _step_weights(ctx, st, t))
     st = replace(_set(st, step_time_s=t, step_inputs=[float(v) for v in u],
                       drift_um=[float(v) for v in obs.drift_um(state)],
                       drift_next_um=[float(v) for v in obs.forecast(state, u[None, :], ctx.cfg.increment_s)[1][0]]),

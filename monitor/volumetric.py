@@ -82,11 +82,12 @@ def start(pm: PoseModel, u: np.ndarray, time_s: float, horizon_s: float) -> Pose
 
 
 def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizon_s: float,
-            weights: np.ndarray | None = None, spread: float = 0.0) -> PoseTrack:
+            weights=None) -> PoseTrack:
     """One model step to ``end_s`` with the inputs ``u`` held over it (as the observer steps), and the forecast.
 
-    ``weights``, ``spread``: the support poses' interpolation weights over this step (time-weighted where the
-    machine moved) and how far its samples' weights went from them (:func:`step_weights`).  The pose history's clock
+    ``weights``: where the machine was over this step, the support poses' interpolation weights of its readings
+    (:func:`step_weights`, a :class:`~hybridcomp.rom.poses.StepPoses`; plain weights: it held that pose).  The pose
+    history's clock
     (:func:`hybridcomp.rom.poses.history_step`) decides whether the support poses' blocks are first blended with
     where the machine was since its last tick
     (:func:`hybridcomp.rom.poses.blend_history`), as :func:`~hybridcomp.rom.poses.integrate_along` does.  A model
@@ -97,26 +98,22 @@ def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizo
     dt = end_s - track.time_s
     x, window = track.x, track.history
     if weights is not None and pm.rom.pose_transfer is not None:
-        blend, window = history_step(window, weights, max(dt, 0.0), step_spread=spread)
+        blend, window = history_step(window, weights, max(dt, 0.0))
         if blend is not None:
             x = blend_history(pm.rom, x, blend)
     x = x if dt <= 0 else np.asarray(pm.rom.step(x, u, u, dt), float)
     return _track(pm, end_s, x, u, horizon_s, window)
 
 
-def step_weights(pm: PoseModel, positions_mm: np.ndarray,
-                 dt_s: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """The support poses' weights over a model step (time-weighted) and how far the readings' own went from them.
+def step_weights(pm: PoseModel, positions_mm: np.ndarray, dt_s: np.ndarray | None = None):
+    """Where the machine was over a model step: its readings' support-pose weights (:class:`~hybridcomp.rom.poses.StepPoses`).
 
-    The spread is the largest difference: motion within the step.  ``positions_mm``: the readings' axis positions
-    (m × axes, machine order) [mm]; ``dt_s``: the time each reading stands for (default: equal).
+    The time-weighted mean, the readings' range and the first reading's.  ``positions_mm``: the readings' axis
+    positions (m × axes, machine order) [mm]; ``dt_s``: the time each reading stands for (default: equal).
     """
-    from hybridcomp.rom.poses import grid_of
+    from hybridcomp.rom.poses import StepPoses, grid_of
 
-    W = grid_of(pm.rom).weights_along(positions_mm)
-    dt = np.ones(W.shape[0]) if dt_s is None else np.asarray(dt_s, float)
-    w = dt @ W / dt.sum()
-    return w, float(np.abs(W - w).max())
+    return StepPoses.of(grid_of(pm.rom).weights_along(positions_mm), dt_s)
 
 
 def _track(pm: PoseModel, time_s: float, x: np.ndarray, u: np.ndarray, horizon_s: float,

@@ -303,6 +303,51 @@ HISTORY_TICK_S = 900.0
 
 
 @dataclass(frozen=True)
+class StepPoses:
+    """Where the machine was over model steps: its samples' support-pose interpolation weights.
+
+    Arrays of shape (poses,) for one step or (steps × poses) for a path's rows.  The pose history decides from the
+    samples, not from the step's mean, so that the same samples give the same blends on 1 min and on 5 min steps.
+
+    Attributes
+    ----------
+    weights : the time-weighted mean over the step (each sample for the time until the next)
+    low, high : the smallest and largest weight of each support pose over the step's samples
+    first : the weights of the step's first sample
+    """
+
+    weights: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    first: np.ndarray
+
+    @staticmethod
+    def held(weights: np.ndarray) -> StepPoses:
+        """Steps in which the machine held its pose: every sample at ``weights``."""
+        w = np.asarray(weights, float)
+        return StepPoses(w, w, w, w)
+
+    @staticmethod
+    def of(sample_weights: np.ndarray, dt_s: np.ndarray | None = None) -> StepPoses:
+        """One step of samples' weights (m × poses), each standing for ``dt_s`` (default: equal)."""
+        W = np.atleast_2d(np.asarray(sample_weights, float))
+        dt = np.ones(W.shape[0]) if dt_s is None else np.asarray(dt_s, float)
+        if dt.sum() <= 0:
+            dt = np.ones(W.shape[0])
+        return StepPoses(dt @ W / dt.sum(), W.min(axis=0), W.max(axis=0), W[0])
+
+    def row(self, k: int) -> StepPoses:
+        """Row ``k`` of a path's steps."""
+        return StepPoses(self.weights[k], self.low[k], self.high[k], self.first[k])
+
+    @property
+    def spread(self) -> np.ndarray | float:
+        """How far the samples' weights went from the step's mean (largest over the support poses)."""
+        d = np.maximum(self.high - self.weights, self.weights - self.low)
+        return d.max(axis=-1)
+
+
+@dataclass(frozen=True)
 class HistoryWindow:
     """Where the machine was since the pose history's last tick (:func:`history_step`).
 
@@ -310,52 +355,62 @@ class HistoryWindow:
     ----------
     since_s : time since the tick [s]
     weights : the time-weighted interpolation weights over it (None before the first step)
-    first : the weights of its first step
-    moved : whether a step's weights differed from ``first`` by more than the tolerance
+    low, high : the smallest and largest weight of each support pose over its samples
+    moved : the machine moved in it (a window saved before ``low`` and ``high`` were kept)
     """
 
     since_s: float = 0.0
     weights: np.ndarray | None = None
-    first: np.ndarray | None = None
+    low: np.ndarray | None = None
+    high: np.ndarray | None = None
     moved: bool = False
 
     def as_dict(self) -> dict:
-        return {"since_s": self.since_s, "moved": self.moved,
-                "weights": None if self.weights is None else [float(v) for v in self.weights],
-                "first": None if self.first is None else [float(v) for v in self.first]}
+        def lst(v):
+            return None if v is None else [float(x) for x in v]
+
+        return {"since_s": self.since_s, "moved": self.moved, "weights": lst(self.weights), "low": lst(self.low),
+                "high": lst(self.high)}
 
     @staticmethod
     def from_dict(d: dict) -> HistoryWindow:
         def arr(v):
             return None if v is None else np.asarray(v, float)
 
-        return HistoryWindow(float(d["since_s"]), arr(d["weights"]), arr(d["first"]), bool(d["moved"]))
+        w = arr(d["weights"])
+        if "low" not in d:  # saved before the samples' range was kept: its first step and whether it moved
+            first = arr(d.get("first"))
+            lo = hi = first if first is not None else w
+            return HistoryWindow(float(d["since_s"]), w, lo, hi, bool(d["moved"]))
+        return HistoryWindow(float(d["since_s"]), w, arr(d["low"]), arr(d["high"]), bool(d.get("moved", False)))
 
 
-def history_step(window: HistoryWindow, step_weights: np.ndarray, step_s: float, tol: float = MOVE_WEIGHT_TOL,
-                 tick_s: float = HISTORY_TICK_S, step_spread: float = 0.0) -> tuple[np.ndarray | None, HistoryWindow]:
-    """Before a step of weights ``step_weights`` and ``step_s`` seconds: blend or not, and the window after it.
+def history_step(window: HistoryWindow, step: StepPoses | np.ndarray, step_s: float, tol: float = MOVE_WEIGHT_TOL,
+                 tick_s: float = HISTORY_TICK_S) -> tuple[np.ndarray | None, HistoryWindow]:
+    """Before a step of ``step_s`` seconds at ``step`` (its samples' weights): blend or not, and the window after it.
 
     At a tick (``tick_s`` since the last one) the blocks are blended with the window's time-weighted weights when
-    the machine moved in it or moves on now (the step's weights differ from the window's by more than ``tol``);
-    a machine that held its pose all along is left alone, so each block keeps its own heat paths there.
-    ``step_spread``: how far the weights of the step's own samples went from its mean (a step with motion in it
-    is a move however long the step).  Returns the weights to blend with (None: no blend) and the window with this
-    step in it.
+    the machine moved in it or moves on now: when any support pose's weight over the window's samples and the new
+    step's first sample ranges over more than ``tol``.  A machine that held its pose all along is left alone, so
+    each block keeps its own heat paths there.  The decision reads the samples, not the steps' means, so the same
+    samples give the same blends on 1 min and on 5 min steps (``benchmarks/pose_history_step.py``).  ``step``: a
+    :class:`StepPoses` row, or weights for a step in which the machine held its pose.  Returns the weights to
+    blend with (None: no blend) and the window with this step in it.
     """
-    w = np.asarray(step_weights, float)
-    within = step_spread > tol
+    s = step if isinstance(step, StepPoses) else StepPoses.held(step)
     blend = None
     if window.weights is not None and window.since_s >= tick_s - 1e-9:
-        if window.moved or np.abs(w - window.weights).max() > tol:
+        lo, hi = np.minimum(window.low, s.first), np.maximum(window.high, s.first)
+        if window.moved or (hi - lo).max() > tol:
             blend = window.weights
         window = HistoryWindow()
+    w = np.asarray(s.weights, float)
     if window.weights is None:
-        return blend, HistoryWindow(step_s, w, w, within)
+        return blend, HistoryWindow(step_s, w, np.asarray(s.low, float), np.asarray(s.high, float))
     total = window.since_s + step_s
     avg = w if total <= 0 else (window.weights * window.since_s + w * step_s) / total
-    return blend, HistoryWindow(total, avg, window.first,
-                                window.moved or within or np.abs(w - window.first).max() > tol)
+    return blend, HistoryWindow(total, avg, np.minimum(window.low, s.low), np.maximum(window.high, s.high),
+                                window.moved)
 
 
 def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -397,20 +452,19 @@ def blend_history(prom: ReducedModel, x: np.ndarray, weights: np.ndarray) -> np.
     return y
 
 
-def history_cuts(time_s: np.ndarray, weights: np.ndarray, tol: float = MOVE_WEIGHT_TOL,
-                 tick_s: float = HISTORY_TICK_S, spread: np.ndarray | None = None) -> list[tuple[int, np.ndarray]]:
+def history_cuts(time_s: np.ndarray, weights: np.ndarray | StepPoses, tol: float = MOVE_WEIGHT_TOL,
+                 tick_s: float = HISTORY_TICK_S) -> list[tuple[int, np.ndarray]]:
     """Where a path's pose history blends its blocks, and with which weights: (row, weights) in time order.
 
-    ``weights`` (nt × poses): row k's weights hold over the step from ``time_s[k]`` to the next row (``spread``:
-    how far its samples' weights went from them, default 0); the blends are those of :func:`history_step` before
-    each step.
+    ``weights`` (nt × poses): row k's weights hold over the step from ``time_s[k]`` to the next row; or a
+    :class:`StepPoses` of the rows (where each row's samples were).  The blends are those of :func:`history_step`
+    before each step.
     """
     t = np.asarray(time_s, float)
-    W = np.asarray(weights, float)
+    steps = weights if isinstance(weights, StepPoses) else StepPoses.held(np.asarray(weights, float))
     cuts, window = [], HistoryWindow()
     for k in range(t.size - 1):
-        blend, window = history_step(window, W[k], t[k + 1] - t[k], tol, tick_s,
-                                     0.0 if spread is None else float(spread[k]))
+        blend, window = history_step(window, steps.row(k), t[k + 1] - t[k], tol, tick_s)
         if blend is not None:
             cuts.append((k, blend))
     return cuts
@@ -418,8 +472,8 @@ def history_cuts(time_s: np.ndarray, weights: np.ndarray, tol: float = MOVE_WEIG
 
 def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, positions_mm: np.ndarray,
                     initial: str | np.ndarray = "steady", history: str = "moves", hold: str = "linear",
-                    weights: np.ndarray | None = None, tol: float = MOVE_WEIGHT_TOL,
-                    tick_s: float = HISTORY_TICK_S, spread: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    weights: np.ndarray | StepPoses | None = None, tol: float = MOVE_WEIGHT_TOL,
+                    tick_s: float = HISTORY_TICK_S) -> tuple[np.ndarray, np.ndarray]:
     """A pose-aware model's outputs along a path, following the poses the machine visits (:func:`blend_history`).
 
     Parameters
@@ -432,10 +486,10 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
         with the time-weighted weights since the last tick; ``"steps"``: at every step with that step's weights
         (a comparison: it replaces each block's own heat paths by the blend every step); ``"none"``: every block
         as if the machine stood at its pose all along
-    weights : the support poses' weights per row (nt × poses) instead of those of ``positions_mm``: over a step in
-        which the machine moved, the time-weighted weights of where it was (e.g. of a trace's samples)
-    tol, tick_s, spread : what counts as a move, the history's clock, and how far each row's samples' weights went
-        from ``weights`` (:func:`history_cuts`)
+    weights : the support poses' weights per row (nt × poses) instead of those of ``positions_mm``, or where each
+        row's samples were (:class:`StepPoses`, e.g. of a trace's samples: the time-weighted weights over a step in
+        which the machine moved, and the samples' range, which decides the blends)
+    tol, tick_s : what counts as a move and the history's clock (:func:`history_cuts`)
 
     Returns
     -------
@@ -446,7 +500,9 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
     t = np.asarray(time_s, float)
     if history == "none":
         return prom.integrate(t, inputs, initial, hold=hold)
-    W = grid_of(prom).weights_along(positions_mm) if weights is None else np.asarray(weights, float)
+    steps = StepPoses.held(grid_of(prom).weights_along(positions_mm)) if weights is None else (
+        weights if isinstance(weights, StepPoses) else StepPoses.held(np.asarray(weights, float)))
+    W = steps.weights
     if W.shape[0] != t.size:
         raise ValueError(f"{W.shape[0]} rows of positions or weights for {t.size} times")
     U = np.asarray(inputs, float)
@@ -459,7 +515,7 @@ def integrate_along(prom: ReducedModel, time_s: np.ndarray, inputs: np.ndarray, 
             Y[k] = prom.outputs(x)
         return Y, x
     x, i0 = initial, 0
-    for k, w in history_cuts(t, W, tol, tick_s, spread):
+    for k, w in history_cuts(t, steps, tol, tick_s):
         Y[i0:k + 1], x = prom.integrate(t[i0:k + 1], U[i0:k + 1], x, hold=hold)
         x = blend_history(prom, x, w)
         Y[k], i0 = prom.outputs(x), k

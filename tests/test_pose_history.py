@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hybridcomp.rom.poses import blend_history, grid_of, history_cuts, integrate_along
+from hybridcomp.rom.poses import StepPoses, blend_history, grid_of, history_cuts, integrate_along
 from hybridcomp.rom.reduced import RomInputError, load_rom, save_rom
 
 
@@ -29,6 +29,32 @@ def test_the_history_blends_at_its_ticks_where_the_machine_moved():
     assert [(t5[k], w.round(12).tolist()) for k, w in history_cuts(t5, np.array([a, b, b, b, b]), 0.1, 300.0)] == \
         [(300.0, a.tolist())]
     assert [t5[k] for k, _ in history_cuts(t5, mid5, 0.1, 300.0)] == [600.0]  # as on the 1 min steps
+
+
+def _steps_of(samples_t, samples_w, t):
+    """The StepPoses of the steps of ``t`` from samples (each for the time until the next), by hand."""
+    rows = [StepPoses.of(samples_w[(samples_t >= a) & (samples_t < b)]) for a, b in zip(t[:-1], t[1:])]
+    rows.append(rows[-1])
+    return StepPoses(*(np.array([getattr(r, f) for r in rows]) for f in ("weights", "low", "high", "first")))
+
+
+def test_the_same_samples_blend_alike_on_1_and_5_min_steps():
+    """Samples every 10 s; the machine at ``a`` but for short excursions just beyond the tolerance (0.11) and
+    one within it (0.09): the blends at the same ticks with the same weights whatever the step, as the samples
+    decide.  (Deciding on a step's mean and its samples' distance from it, the 1 min steps saw no move where the
+    5 min steps saw one: a 10 s excursion is 1/6 of a 1 min step's mean, 1/30 of a 5 min step's.)"""
+    a = np.array([1.0, 0.0, 0.0])
+    ts = np.arange(0.0, 3600.0, 10.0)
+    W = np.repeat(a[None], ts.size, 0)
+    for t0, d in ((1230.0, 0.11), (2500.0, 0.09)):
+        W[ts == t0] = a + np.array([-d, d, 0.0])
+    cuts = {}
+    for dt in (60.0, 300.0):
+        t = np.arange(0.0, 3600.0 + 1.0, dt)
+        cuts[dt] = [(t[k], w.round(12).tolist()) for k, w in history_cuts(t, _steps_of(ts, W, t), 0.1, 900.0)]
+    assert [c[0] for c in cuts[60.0]] == [1800.0]  # the window 900-1800 s held the excursion beyond the tolerance
+    assert cuts[60.0] == cuts[300.0]
+    assert np.allclose(cuts[60.0][0][1], a + np.array([-0.11, 0.11, 0.0]) / 90)  # 10 s of 900
 
 
 def _blocks(prom):
@@ -131,17 +157,19 @@ def test_the_monitors_steps_follow_the_poses_as_the_path_integration_does(pose_r
     Y, x = integrate_along(prom, t, U, P, initial=prom.steady_state(U[0]), history="moves", hold="step")
     track = volumetric.start(pm, U[0], 0.0, dt)
     for k in range(1, n + 1):  # the step ending at t[k] ran at row k − 1's pose, with the inputs of row k
-        track = volumetric.advance(pm, track, U[k], t[k], dt, weights=volumetric.step_weights(pm, P[k - 1:k])[0])
+        track = volumetric.advance(pm, track, U[k], t[k], dt, weights=volumetric.step_weights(pm, P[k - 1:k]))
     assert np.allclose(track.x, x, rtol=1e-9, atol=1e-12 * np.abs(x).max())
     ignored, _ = integrate_along(prom, t, U, P, initial=prom.steady_state(U[0]), history="none", hold="step")
     assert not np.allclose(ignored[-1], Y[-1], rtol=1e-3)  # the moves did change the state
     back = volumetric.state_in(pm, volumetric.state_out(track), U[-1], dt)
     assert back.history.as_dict() == track.history.as_dict() and np.array_equal(back.x, track.x)
     assert 0 < track.history.since_s < 900.0 + dt  # since the last tick
-    w, spread = volumetric.step_weights(pm, np.array(stops[:2]), dt_s=np.array([1.0, 3.0]))
+    s = volumetric.step_weights(pm, np.array(stops[:2]), dt_s=np.array([1.0, 3.0]))
     w0, w1 = (grid_of(prom).weights(dict(zip("XYZ", p))) for p in stops[:2])
-    assert np.allclose(w, 0.25 * w0 + 0.75 * w1)
-    assert spread == pytest.approx(0.75 * np.abs(w0 - w1).max())  # the first reading, 3/4 of the way off
+    assert np.allclose(s.weights, 0.25 * w0 + 0.75 * w1)
+    assert np.array_equal(s.first, w0) and np.array_equal(s.low, np.minimum(w0, w1))
+    assert np.array_equal(s.high, np.maximum(w0, w1))
+    assert s.spread == pytest.approx(0.75 * np.abs(w0 - w1).max())  # the first reading, 3/4 of the way off
 
 
 @pytest.mark.slow
