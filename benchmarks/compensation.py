@@ -156,6 +156,11 @@ def main(argv=None) -> dict:
                         "sensor fault is the demo day's machine)")
     p.add_argument("--no-path", action="store_true",
                    help="judge at the model's pose only (no pose-aware models, no tables, no volumetric targets)")
+    p.add_argument("--dataonly", action="store_true",
+                   help="also the data-only strategy for machines without an FE model: trained on the first half of "
+                        "each case's recorded day ('diagnose --data-only --probe-every-hours 4'), the daemon run "
+                        "with it (strategy dataonly, its coefficients updated by the probes), judged on the second "
+                        "half beside the others")
     p.add_argument("--campaign-noise-um", type=float, default=0.3,
                    help="noise of the drift the diagnosis reads, as a measuring campaign records it [µm] "
                         "(default 0.3, the probes' noise; 0: the exact drift)")
@@ -183,7 +188,7 @@ def main(argv=None) -> dict:
     base = Scenario(element_size_mm=args.element_size_mm, day_hours=args.day_hours, along_path=not args.no_path)
     models = build_models(out / "models", element_size_mm=args.element_size_mm, keep_basis=True,
                           poses=not args.no_path)
-    rows, path_rows, checks, cases = [], [], [], {}
+    rows, path_rows, checks, cases, dataonly_rows = [], [], [], {}, []
     for n in names:
         t0 = time.perf_counter()
         scenario = replace(base, disturbance=DISTURBANCES[n])
@@ -196,6 +201,15 @@ def main(argv=None) -> dict:
             path_rows += [row(n, s, pm[s]) for s in PATH_ROWS if s in pm]
             checks += path_targets(n, pm, res.metrics)
         print(f"{n}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        if args.dataonly:
+            t0 = time.perf_counter()
+            held = _dataonly(out / n.replace(" ", "_"), res, models, scenario, args.campaign_noise_um,
+                             seed=100 + names.index(n))
+            cases[n]["dataonly"] = held
+            dataonly_rows += [{"case": n, "strategy": k, "RMS": cell_um(v["rms_um"]),
+                               **{w: cell_um(v["p95_range_um"][sec]) for w, sec in WINDOWS.items() if w != "E15h"}}
+                              for k, v in held["held_out"].items()]
+            print(f"{n}, data-only model and its daemon: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
         if n in diagnosed and not args.no_diagnosis:
             t0 = time.perf_counter()
             diag, after = _after_diagnosis(out, n, res, models, scenario, args.campaign_noise_um, seed=names.index(n))
@@ -220,12 +234,18 @@ def main(argv=None) -> dict:
         print("Along the path (at the commanded position):")
         print(table(path_rows, ["case", "strategy", "RMS", "P2P", *WINDOWS, "act/16h", "max step"]))
         print()
+    if dataonly_rows:
+        print("The data-only strategy (trained on the first half of the day's record, the probes every 4 h updating "
+              "it), at the model's pose, on the held-out second half:")
+        print(table(dataonly_rows, ["case", "strategy", "RMS", *[w for w in WINDOWS if w != "E15h"]]))
+        print()
     print(table([{**c, "met": "yes" if c["met"] else "NO", "bound": "" if c.get("bound") is None else f"{c['bound']:.3f}"}
                  for c in checks], ["case", "target", "value", "limit", "met", "bound"]))
     summary = {
         "benchmark": "compensation", "element_size_mm": args.element_size_mm, "day_hours": args.day_hours,
         "campaign_noise_um": args.campaign_noise_um,
         "diagnoses": {n: c["diagnosis"] for n, c in cases.items() if "diagnosis" in c},
+        "dataonly": {n: c["dataonly"] for n, c in cases.items() if "dataonly" in c},
         "machine": platform.processor() or platform.machine(), "wall_s": time.perf_counter() - t_all,
         "targets_met": sum(c["met"] for c in checks), "targets": len(checks), "checks": checks,
         "cases": {n: {"rms_3d_um": {k: v["3d"]["rms_um"] for k, v in c["metrics"].items()},
@@ -298,6 +318,55 @@ def _campaign_record(recorded: Path, noise_um: float, seed: int) -> Path:
     out = recorded.with_name("recorded_campaign.csv")
     out.write_text("\n".join([lines[0], *rows]) + "\n")
     return out
+
+
+#: the data-only strategy's training part of the recorded day; the rest is held out
+DATAONLY_TRAIN = "0:50%"
+#: the columns a machine without an FE model would not feed its data-only model (the axis positions: the online
+#: strategy rebuilds only spindle activities)
+DATAONLY_DROP = ("x_mm", "y_mm", "z_mm")
+
+
+def _dataonly(folder: Path, res, models, scenario, noise_um: float, seed: int) -> dict:
+    """The data-only strategy on a case: trained on the first half of its recorded day, run by the daemon, judged on
+    the second half at the model's pose beside the day's other strategies (:func:`main`, ``--dataonly``).
+
+    The training record is the campaign's (the drift with the probes' noise), without the axis positions; the
+    model is what ``hybridcomp diagnose --data-only --train 0:50% --probe-every-hours 4`` writes, and the daemon
+    replays the day's monitor trace with strategy ``dataonly`` (the trace's probes update its coefficients).  No
+    choice sees the second half: the family, λ and the filter's settings come from the training rows.
+    """
+    from hybridcomp.cli import main as cli
+    from hybridcomp.metrics import drift_metrics
+    from hybridcomp.scenario import NAMES, replay_strategies
+
+    rec = _campaign_record(Path(res.files["recorded"]), noise_um, seed)
+    lines = rec.read_text().splitlines()
+    head = lines[0].split(",")
+    keep = [i for i, c in enumerate(head) if c not in DATAONLY_DROP]
+    train = folder / "dataonly_training.csv"
+    train.write_text("\n".join(",".join(line.split(",")[i] for i in keep) for line in lines) + "\n")
+    diag = folder / "dataonly"
+    code = cli(["diagnose", "--data-only", "--data", str(train), "--train", DATAONLY_TRAIN,
+                "--probe-every-hours", f"{scenario.probe_every_h:g}", "--out", str(diag)])
+    model = diag / "dataonly_model.json"
+    if code != 0 or not model.is_file():
+        raise RuntimeError(f"the data-only diagnosis of {train} wrote no model (exit {code}): see {diag}/report.md")
+    sc = replace(scenario, strategies=("dataonly",), monitor_overrides={
+        **(scenario.monitor_overrides or {}),
+        "compensation": {**(scenario.monitor_overrides or {}).get("compensation", {}), "dataonly_model": str(model)}})
+    R = np.genfromtxt(folder / "residuals.csv", delimiter=",", names=True)  # the truth, then every prediction
+    t = R["time_s"]
+    truth = np.column_stack([R["dx_um"], R["dy_um"], R["dz_um"]])
+    run = replay_strategies(sc, folder, models, Path(res.files["trace"]), t, {}, volumetric=False)["dataonly"]
+    residual = {NAMES["dataonly"]: truth - run["at_t"]}
+    for name in ("no compensation", "hybrid monitor", "observer", "ROM direct"):
+        key = name.replace(" ", "_")
+        residual[name] = truth - np.column_stack([R[f"{key}_{d}_um"] for d in ("dx", "dy", "dz")])
+    held = t >= t[0] + 0.5 * (t[-1] - t[0])
+    return {"train": DATAONLY_TRAIN, "model": str(model.relative_to(folder)),
+            "held_out": {k: drift_metrics(t[held], r[held])["3d"] for k, r in residual.items()},
+            "largest_step_um": run["largest_step_um"]}
 
 
 def _after_diagnosis(out: Path, case: str, res, models, scenario, noise_um: float, seed: int):

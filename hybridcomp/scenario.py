@@ -44,8 +44,11 @@ from hybridcomp.safeio import write_text_atomic
 log = logging.getLogger(__name__)
 
 STRATEGIES = ("hybrid", "observer")
+#: every strategy a scenario can run: ``"dataonly"`` needs the data-only model in ``monitor_overrides``
+#: (``{"compensation": {"dataonly_model": path}}``, ``hybridcomp diagnose --data-only --probe-every-hours``)
+ALL_STRATEGIES = STRATEGIES + ("dataonly",)
 BOUND = "best sensor map (bound)"
-NAMES = {"hybrid": "hybrid monitor", "observer": "observer"}
+NAMES = {"hybrid": "hybrid monitor", "observer": "observer", "dataonly": "data-only + probes"}
 
 
 class ScenarioFileError(HybridcompError, ValueError):
@@ -329,7 +332,8 @@ class Scenario:
     probe_every_h : a probed drift (noise ``probe_noise_um`` [µm]) at the start and every this many hours [h];
         None: no probing
     probe_noise_um : noise of a probed drift [µm]
-    strategies : daemon strategies to run (``"hybrid"``, ``"observer"``)
+    strategies : daemon strategies to run (``"hybrid"``, ``"observer"``; ``"dataonly"`` with its model given in
+        ``monitor_overrides``, :data:`ALL_STRATEGIES`)
     plot : draw ``scenario.png``
     keep_basis : keep the ROM's projection basis in ``structure.rom.npz`` (for a diagnosis on the same model)
     seed : seed of the sensor and probe noise
@@ -366,8 +370,12 @@ class Scenario:
             raise ValueError(f"strategies must be a sequence of strategy names, got the string {self.strategies!r}")
         object.__setattr__(self, "strategies", tuple(self.strategies))
         for s in self.strategies:
-            if s not in STRATEGIES:
-                raise ValueError(f"unknown strategy {s!r} (strategies: {', '.join(STRATEGIES)})")
+            if s not in ALL_STRATEGIES:
+                raise ValueError(f"unknown strategy {s!r} (strategies: {', '.join(ALL_STRATEGIES)})")
+        if "dataonly" in self.strategies and not (self.monitor_overrides or {}).get("compensation", {}).get(
+                "dataonly_model"):
+            raise ValueError("strategy 'dataonly' needs its model: monitor_overrides={'compensation': "
+                             "{'dataonly_model': path}} (hybridcomp diagnose --data-only --probe-every-hours H)")
         check_day(self.disturbance, self.day_hours)
         for name in ("element_size_mm", "basic_hours", "dt_s", "real_dt_s", "trace_rate_hz"):
             _check_number(name, getattr(self, name), positive=True)
@@ -416,7 +424,7 @@ def run_scenario(scenario: Scenario, out_dir, models: Models | None = None) -> S
         path = _path_truth(models, real_machine, day)
         timings["real_pose_model_s"] = time.perf_counter() - t0
     measured = _measure(scenario, out, models.machine, day, path)
-    runs = _replay_strategies(scenario, out, models, measured.trace, day.t, timings, volumetric=scenario.along_path)
+    runs = replay_strategies(scenario, out, models, measured.trace, day.t, timings, volumetric=scenario.along_path)
     preds = _predictions(models, measured, day, runs)
     metrics = _metrics(day, preds, runs)
     table = metrics_table(metrics)
@@ -529,7 +537,7 @@ def _measure(scenario: Scenario, out: Path, machine, day: _Day, path: PathTruth 
     return _Measured(trace, recorded, measured, sensor_names)
 
 
-def _replay_strategies(scenario: Scenario, out: Path, models: Models, trace: Path, t: np.ndarray,
+def replay_strategies(scenario: Scenario, out: Path, models: Models, trace: Path, t: np.ndarray,
                        timings: dict, volumetric: bool = False) -> dict:
     """The daemon on the replay, once per strategy, each with its own copy of the database.
 
@@ -860,7 +868,8 @@ def _replay(strategy, machine_name, db_path, rom_path, trace, pose, pkey, machin
         "regeneration": {"enabled": True, "timeout_s": 1800.0, "element_size_mm": element_size_mm},
     }
     for sec, kv in (overrides or {}).items():
-        data.setdefault(sec, {}).update(kv)
+        data.setdefault(sec, {}).update({k: v for k, v in kv.items()
+                                         if not (sec == "compensation" and k == "dataonly_model" and strategy != "dataonly")})
     cfg = parse_config(data, f"scenario ({strategy})", db_path.parent)
     db = CDDatabase(db_path)
     try:

@@ -36,6 +36,7 @@ def test_strategies_become_a_tuple():
 
 @pytest.mark.parametrize("field, value, words", [
     ("strategies", ("hybrid", "cds"), "unknown strategy 'cds'"),
+    ("strategies", ("hybrid", "dataonly"), "strategy 'dataonly' needs its model"),
     ("day_hours", 0.0, "day_hours must be in (0, 16]"),
     ("day_hours", 17.0, "day_hours must be in (0, 16], got 17.0"),
     ("element_size_mm", 0.0, "element_size_mm must be a finite number > 0, got 0.0"),
