@@ -187,7 +187,9 @@ def run(args: argparse.Namespace) -> int:
                 fits = ", ".join(f"{c} {v['spread_over_folds_and_seeds']['min']:.1f}–"
                                  f"{v['spread_over_folds_and_seeds']['max']:.1f}" for c, v in rg.items()
                                  if v["spread_over_folds_and_seeds"])
-                print(f"  over folds 3/5/10 and seeds 0/1/2: {fits}")
+                pooled = any(v["spread_over_folds_and_seeds"] and v["spread_over_folds_and_seeds"].get("pooled_folds")
+                             for v in rg.values())
+                print(f"  over {'the pooled folds 3/5/10' if pooled else 'folds 3/5/10'} and seeds 0/1/2: {fits}")
                 fits = ", ".join(f"{c} {v['every_row_NOT_held_out']['fit_percent']:.1f} %" for c, v in rg.items())
                 print(f"  the same family fitted on every row (NOT held out): {fits}")
             if summary["coefficient_updating"]:
