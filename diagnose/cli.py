@@ -87,7 +87,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "rows, so the validation fit is held out; 'assisted': the validation rows take part in choosing the "
                    "extensions (their fit flatters; the selection check says by how much)")
     p.add_argument("--folds", type=int, default=3, help="--data-only, --selection held-out: contiguous blocks of the "
-                   "training rows for the cross-validation (default 3)")
+                   "training rows for the search's cross-validation and the probe filter's settings (default 3; the "
+                   "regularised families are chosen on the curves of 3, 5 and 10 blocks averaged)")
     p.add_argument("--criterion", choices=("bic", "bicc"), default="bic",
                    help="--data-only: the training information criterion that selects the sensor inputs and that every "
                    "search step must lower: 'bic' (Schwarz, default) or 'bicc' (BIC with McQuarrie's small-sample "
@@ -187,7 +188,9 @@ def run(args: argparse.Namespace) -> int:
                 fits = ", ".join(f"{c} {v['spread_over_folds_and_seeds']['min']:.1f}–"
                                  f"{v['spread_over_folds_and_seeds']['max']:.1f}" for c, v in rg.items()
                                  if v["spread_over_folds_and_seeds"])
-                print(f"  over folds 3/5/10 and seeds 0/1/2: {fits}")
+                pooled = any(v["spread_over_folds_and_seeds"] and v["spread_over_folds_and_seeds"].get("pooled_folds")
+                             for v in rg.values())
+                print(f"  over {'the pooled folds 3/5/10' if pooled else 'folds 3/5/10'} and seeds 0/1/2: {fits}")
                 fits = ", ".join(f"{c} {v['every_row_NOT_held_out']['fit_percent']:.1f} %" for c, v in rg.items())
                 print(f"  the same family fitted on every row (NOT held out): {fits}")
             if summary["coefficient_updating"]:

@@ -481,7 +481,7 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_g
                        beam_width: int = BEAM_WIDTH, selection_check: bool = True, selection: str = "held-out",
                        folds: int = 3, criterion: str = "bic", probe_every_h: float | None = None,
                        probe_sd_um: float = 0.5, regularised: bool = True, spread: bool = True,
-                       seed: int = 0) -> DataOnlyDiagnosis:
+                       seed: int = 0, pool_folds: bool = True) -> DataOnlyDiagnosis:
     """Diagnose a regression compensation model on a dataset alone (see the module docstring).
 
     Parameters
@@ -508,6 +508,10 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_g
         with the one-standard-error rule and selection by stability; with ``probe_every_h`` their coefficients are
         updated from the probes (:func:`hybridcomp.diagnose.updating.coefficient_updating`)
     spread : with ``regularised``: the held-out fit of the choice made with 3, 5 and 10 folds and seeds 0, 1, 2
+        (with ``pool_folds``: of the pooled choice with seeds 0, 1, 2)
+    pool_folds : with ``regularised``: choose family and λ on the cross-validation curves of 3, 5 and 10 folds
+        averaged (:func:`hybridcomp.diagnose.regularised.choose_pooled`), so the choice does not depend on the fold
+        count; False: on ``folds`` blocks alone
 
     Raises
     ------
@@ -535,7 +539,7 @@ def diagnose_data_only(ds: Dataset, split: Split, max_terms: int = 16, min_fit_g
         if not regularised:
             return d
         t0 = time.perf_counter()
-        r, cu = _regularised(ds, d, folds, seed, spread, probe_every_h, probe_sd_um)
+        r, cu = _regularised(ds, d, folds, seed, spread, probe_every_h, probe_sd_um, pool_folds)
         timings = {**d.timings_s, "regularised": time.perf_counter() - t0}
         timings["total"] = d.timings_s["total"] + timings["regularised"]
         return replace(d, regularised=r, coefficient_updating=cu, timings_s=timings)
@@ -622,7 +626,7 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
 
 
 def _regularised(ds: Dataset, d: DataOnlyDiagnosis, folds: int, seed: int, spread: bool,
-                 probe_every_h: float | None, probe_sd_um: float) -> tuple[dict, dict | None]:
+                 probe_every_h: float | None, probe_sd_um: float, pool_folds: bool = True) -> tuple[dict, dict | None]:
     """The regularised families of a diagnosed dataset (the same rows, thinning and zeros as the search)."""
     t = d.time_s
     if t.size != ds.time_s.size:  # the search thinned the record: the same rows
@@ -640,11 +644,15 @@ def _regularised(ds: Dataset, d: DataOnlyDiagnosis, folds: int, seed: int, sprea
         fams = [reg.Family(f.name, f.columns, reg.zero_runs(f.X, starts)) for f in fams]
     chans = list(d.extended)
     Y = np.column_stack([d.Y[c] for c in chans])
-    errs = reg.repeated_errors(fams, Y, tr, folds, seed, runs=ds.runs)
     dof = reg.effective_dof(fams, tr)
-    choice = reg.choose(errs, dof)
+    if pool_folds:
+        cache: dict = {}
+        choice = reg.choose_pooled([reg.repeated_errors(fams, Y, tr, k, seed, runs=ds.runs, cache=cache)
+                                    for k in reg.SPREAD_FOLDS], dof)
+    else:
+        choice = reg.choose(reg.repeated_errors(fams, Y, tr, folds, seed, runs=ds.runs), dof)
     held = reg.held_out_fits(fams, Y, tr, va)
-    sp = reg.fold_spread(fams, Y, tr, va, held, runs=ds.runs) if spread else None
+    sp = reg.fold_spread(fams, Y, tr, va, held, runs=ds.runs, pooled=pool_folds) if spread else None
     every = reg.every_row_fits(fams, Y, va)
     out, upd = {}, {}
     for j, (c, ch) in enumerate(zip(chans, choice)):
@@ -654,19 +662,26 @@ def _regularised(ds: Dataset, d: DataOnlyDiagnosis, folds: int, seed: int, sprea
         yh = m.predict(fam.X)
         f_best = int(np.argmax(every[:, j]))
         out[c] = {"family": fam.name, "lam": float(lam), "votes": ch.votes, "repeats": ch.repeats,
+                  "pool_folds": pool_folds,
                   "cv_rms": float(np.sqrt(ch.cv_mse)), "effective_dof": float(dof[ch.family, ch.lam_index]),
                   "columns": len(fam.columns), "y_hat": yh, "model": m, "inputs": spec,
                   "held_out": channel_metrics(d.Y[c][va], yh[va]),
                   "every_row": {"family": fam.name, "fit_percent": float(every[ch.family, j])},
                   "every_row_best": {"family": fams[f_best].name, "fit_percent": float(every[f_best, j])},
                   "spread": None if sp is None else {
-                      "fits": {f"{k} folds, seed {s}": v[j] for (k, s), v in sp["fits"].items()},
-                      "choices": {f"{k} folds, seed {s}": f"{v[j][0]} λ={v[j][1]:.3g}" for (k, s), v in
+                      "pooled_folds": pool_folds,
+                      "fits": {f"{_folds_label(k)} folds, seed {s}": v[j] for (k, s), v in sp["fits"].items()},
+                      "choices": {f"{_folds_label(k)} folds, seed {s}": f"{v[j][0]} λ={v[j][1]:.3g}" for (k, s), v in
                                   sp["choices"].items()},
                       "min": float(sp["min"][j]), "max": float(sp["max"][j]), "spread": float(sp["spread"][j])}}
         if probe_every_h is not None:
             upd[c] = _coefficient_updating(fam, d.Y[c], t, tr, va, lam, m, ds.runs, folds, probe_every_h, probe_sd_um)
     return out, (upd or None)
+
+
+def _folds_label(k) -> str:
+    """A fold count (``3``) or the fold counts whose curves were pooled (``3/5/10 pooled``)."""
+    return str(k) if isinstance(k, int) else "/".join(str(i) for i in k) + " pooled"
 
 
 def _coefficient_updating(fam, y: np.ndarray, t: np.ndarray, tr: np.ndarray, va: np.ndarray, lam: float, m,
@@ -813,6 +828,10 @@ def _regularised_summary(d: DataOnlyDiagnosis) -> dict | None:
     if not d.regularised:
         return None
     out = {}
+    pooled = bool(next(iter(d.regularised.values())).get("pool_folds"))
+    cv = ("blocked cross-validation with 3, 5 and 10 folds (three phases of the blocks each; the curves of the fold "
+          "counts averaged before choosing, so the choice does not depend on the fold count)" if pooled else
+          f"blocked {d.folds}-fold cross-validation (three phases of the blocks, pooled)")
     for c, r in d.regularised.items():
         ho = r["held_out"]["fit_percent"]
         out[c] = {"family": r["family"], "lambda": r["lam"], "effective_dof": r["effective_dof"], "votes": r["votes"],
@@ -822,9 +841,9 @@ def _regularised_summary(d: DataOnlyDiagnosis) -> dict | None:
                   "gap_to_every_row_points": float(r["every_row"]["fit_percent"] - ho)}
     return {"how": "ridge regressions over the temperatures, their first-order lags and the activities' transfer "
                    "functions (families T+lagT and S<n>(signal)+T+lagT), no column selected; family and λ chosen on "
-                   f"the training rows by a repeated blocked {d.folds}-fold cross-validation (three phases of the "
-                   "blocks, pooled) with the one-standard-error rule (the fewest effective degrees of freedom within "
-                   "one standard error of the best); held out: the validation rows scored the result once",
+                   f"the training rows by a repeated {cv} with the one-standard-error rule (the fewest effective "
+                   "degrees of freedom within one standard error of the best); held out: the validation rows scored "
+                   "the result once",
             "channels": out}
 
 
@@ -872,7 +891,8 @@ def _regularised_report(s: dict) -> list[str]:
     L = ["## Regularised families beside the search", "",
          f"Each channel is also fitted as one of the {rg['how']}. The votes say in how many of the repetitions on "
          "their own the choice was as good as their best. The spread is the held-out fit of the choice made with "
-         "3, 5 and 10 folds and seeds 0, 1, 2 (the phases of the blocks); the last columns are the chosen family fitted "
+         "3, 5 and 10 folds (each alone, or their curves pooled) and seeds 0, 1, 2 (the phases of the blocks); the "
+         "last columns are the chosen family fitted "
          "on every row, the validation rows too: NOT held out, what the data allow that family, and how far the "
          "held-out fit is from it.", "",
          "| channel | static, all temperatures | search, held out | regularised, held out (RMS) | over folds 3/5/10 × "

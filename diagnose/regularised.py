@@ -22,8 +22,11 @@ shifts the blocks' boundaries by a phase drawn from ``seed``, the first repetiti
   choice was as good as the best is reported (its votes).
 
 A choice made so moves little when the fold count or the phases change; :func:`fold_spread` measures by how much
-(the held-out fit of the choice made with 3, 5 and 10 folds and three seeds), and :func:`every_row_fits` gives what
-the family could reach if it had seen every row (NOT held out: how far the held-out fit is from what the data allow).
+(the held-out fit of the choice made with 3, 5 and 10 folds and three seeds). :func:`choose_pooled` goes one step
+further: the cross-validation curves of 3, 5 and 10 folds are averaged before the rule is applied, so the choice no
+longer depends on the fold count at all (the data-only diagnosis's default); only the phases (``seed``) are left to
+move it. :func:`every_row_fits` gives what the family could reach if it had seen every row (NOT held out: how far
+the held-out fit is from what the data allow).
 """
 
 from __future__ import annotations
@@ -246,13 +249,29 @@ def choose(errors: list[np.ndarray], dof: np.ndarray) -> list[Choice]:
     degrees of freedom (the most shrinkage) is chosen. ``votes`` says in how many repetitions on their own the choice
     was within one standard error of that repetition's best (its stability).
     """
-    nch = errors[0].shape[-1]
-    E = np.concatenate(errors, axis=0)
-    k = errors[0].shape[0]
-    m = E.mean(0)
-    se = E.std(0, ddof=1) / np.sqrt(k)
+    return choose_pooled([errors], dof)
+
+
+def choose_pooled(errors_by_count: list[list[np.ndarray]], dof: np.ndarray) -> list[Choice]:
+    """:func:`choose` on the cross-validation curves of several fold counts averaged before choosing.
+
+    ``errors_by_count``: per fold count (e.g. 3, 5 and 10 blocks), :func:`repeated_errors`' list. Per fold count, the
+    mean fold error of each (family, λ) over its pooled repetitions and its standard error over the folds of one
+    repetition, as in :func:`choose`; the curves and standard errors are then averaged over the fold counts (each
+    count weighs the same, however many folds it has) and the one-standard-error rule applied once. The choice no
+    longer depends on the fold count; what is left is the phases' (``seed``'s). ``votes`` counts the repetitions of
+    every fold count in which the choice was within one standard error of that repetition's best.
+    """
+    means, ses = [], []
+    for errors in errors_by_count:
+        E = np.concatenate(errors, axis=0)
+        means.append(E.mean(0))
+        ses.append(E.std(0, ddof=1) / np.sqrt(errors[0].shape[0]))
+    m, se = np.mean(means, axis=0), np.mean(ses, axis=0)
+    nch = m.shape[-1]
     votes = np.zeros(m.shape, int)
-    for Er in errors:
+    reps = [Er for errors in errors_by_count for Er in errors]
+    for Er in reps:
         mr = Er.mean(0)
         ser = Er.std(0, ddof=1) / np.sqrt(Er.shape[0]) if Er.shape[0] > 1 else np.zeros_like(mr)
         fl = mr.reshape(-1, nch)
@@ -265,7 +284,7 @@ def choose(errors: list[np.ndarray], dof: np.ndarray) -> list[Choice]:
         b = np.unravel_index(int(mc.argmin()), mc.shape)
         cand = np.argwhere(mc <= mc[b] + se[..., c][b])
         f, li = min(cand, key=lambda fl: dof[fl[0], fl[1]])
-        out.append(Choice(int(f), int(li), int(votes[f, li, c]), len(errors), float(mc[f, li])))
+        out.append(Choice(int(f), int(li), int(votes[f, li, c]), len(reps), float(mc[f, li])))
     return out
 
 
@@ -298,11 +317,13 @@ def held_out_fits(fams: list[Family], Y: np.ndarray, train: np.ndarray, validati
 
 def fold_spread(fams: list[Family], Y: np.ndarray, train: np.ndarray, validation: np.ndarray,
                 held: np.ndarray | None = None, fold_counts=SPREAD_FOLDS, seeds=SPREAD_SEEDS,
-                runs: np.ndarray | None = None) -> dict:
+                runs: np.ndarray | None = None, pooled: bool = False) -> dict:
     """The held-out fit of the choice made with each fold count and seed, per channel.
 
     Returns ``{"fits": {(folds, seed): [fit per channel]}, "choices": {(folds, seed): [(family, λ) per channel]},
     "min", "max", "spread"}`` (per channel; spread = max − min). The validation rows only score the choices.
+    ``pooled``: the choice of :func:`choose_pooled` over all ``fold_counts`` for each seed (keys
+    ``(fold_counts, seed)``): the spread is then the seeds' (the phases of the blocks) alone.
     """
     held = held_out_fits(fams, Y, train, validation) if held is None else held
     dof = effective_dof(fams, train)
@@ -310,7 +331,14 @@ def fold_spread(fams: list[Family], Y: np.ndarray, train: np.ndarray, validation
     cache: dict = {}
     by_runs = runs is not None and np.unique(runs[train]).size >= 2  # the runs are the folds: one choice
     once = None
-    for k in fold_counts:
+    if pooled:
+        for s in seeds:
+            if once is None or not by_runs:
+                once = choose_pooled([repeated_errors(fams, Y, train, k, s, runs=runs, cache=cache)
+                                      for k in fold_counts], dof)
+            fits[(tuple(fold_counts), s)] = [float(held[c.family, c.lam_index, j]) for j, c in enumerate(once)]
+            picks[(tuple(fold_counts), s)] = [(fams[c.family].name, LAMBDAS[c.lam_index]) for c in once]
+    for k in () if pooled else fold_counts:
         for s in seeds:
             if once is None or not by_runs:
                 once = choose(repeated_errors(fams, Y, train, k, s, runs=runs, cache=cache), dof)

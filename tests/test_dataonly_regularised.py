@@ -225,3 +225,57 @@ def test_monitor_strategy_step_reproduces_the_diagnosis_online():
             online.append(off["dz_um"])
     np.testing.assert_allclose(pred, d.regularised["dz_um"]["y_hat"][:va[0]], atol=1e-8)
     np.testing.assert_allclose(online, cu["y_hat"], atol=1e-6)
+
+
+def test_pooled_rule_averages_the_fold_counts_curves_by_hand():
+    """The curves (and standard errors) of each fold count averaged, then the one-standard-error rule; the choice
+    differs from that of either fold count alone, and one fold count pooled is :func:`choose` itself."""
+    rng = np.random.default_rng(11)
+    dof = np.array([[30.0, 20.0, 10.0], [35.0, 25.0, 15.0]])
+    # fold count A favours (0, 0) sharply, fold count B favours (1, 2) sharply; averaged, (0, 1) is best
+    base_a = np.array([[1.0, 4.0, 9.0], [9.0, 9.0, 9.0]])
+    base_b = np.array([[9.0, 4.0, 9.0], [9.0, 9.0, 1.0]])
+    errs_a = [base_a[None, :, :, None] + rng.normal(0, 0.05, (3, 2, 3, 1)) for _ in range(2)]
+    errs_b = [base_b[None, :, :, None] + rng.normal(0, 0.05, (5, 2, 3, 1)) for _ in range(2)]
+    m, se = [], []
+    for errs in (errs_a, errs_b):
+        E = np.concatenate(errs)
+        m.append(E.mean(0)[..., 0])
+        se.append(E.std(0, ddof=1)[..., 0] / np.sqrt(errs[0].shape[0]))
+    m, se = (m[0] + m[1]) / 2, (se[0] + se[1]) / 2
+    b = np.unravel_index(m.argmin(), m.shape)
+    want = min([(f, li) for f in range(2) for li in range(3) if m[f, li] <= m[b] + se[b]], key=lambda fl: dof[fl])
+    got = reg.choose_pooled([errs_a, errs_b], dof)[0]
+    assert (got.family, got.lam_index) == want == (0, 1)
+    assert got.repeats == 4 and got.cv_mse == pytest.approx(m[want])
+    alone = [(c.family, c.lam_index) for c in (reg.choose(errs_a, dof)[0], reg.choose(errs_b, dof)[0])]
+    assert alone == [(0, 0), (1, 2)]
+    one = reg.choose_pooled([errs_a], dof)[0]
+    assert one == reg.choose(errs_a, dof)[0]
+
+
+def test_pooled_spread_and_the_diagnosis_choice_on_planted_data():
+    """fold_spread(pooled=True) gives per seed the held-out fit of the pooled choice (recomputed by hand); the
+    diagnosis chooses so by default and, with pool_folds=False, as its fold count alone."""
+    ds, t, y = _planted(3, hours=24.0, step_s=240.0)
+    split = parse_split("0:50%", t)
+    tr, va = split.train, split.validation
+    temps = {n: ds[n] for n in ds.names if n.endswith("_degC")}
+    fams = reg.families(t, temps, {"spindle_rpm": ds["spindle_rpm"] / ds["spindle_rpm"].max()})
+    Y = y[:, None]
+    dof = reg.effective_dof(fams, tr)
+    sp = reg.fold_spread(fams, Y, tr, va, pooled=True)
+    assert sorted(sp["fits"]) == [((3, 5, 10), s) for s in (0, 1, 2)]
+    for s in (0, 1, 2):
+        c = reg.choose_pooled([reg.repeated_errors(fams, Y, tr, k, s) for k in (3, 5, 10)], dof)[0]
+        m = reg.fit_ridge(fams[c.family], y, tr, reg.LAMBDAS[c.lam_index])
+        assert sp["fits"][((3, 5, 10), s)][0] == pytest.approx(fit_percent(y[va], m.predict(fams[c.family].X)[va]),
+                                                                abs=1e-6)
+    d = diagnose_data_only(ds, split, beam_width=1, max_terms=0, spread=False)
+    c = reg.choose_pooled([reg.repeated_errors(fams, Y, tr, k, 0) for k in (3, 5, 10)], dof)[0]
+    r = d.regularised["dz_um"]
+    assert (r["family"], r["lam"], r["pool_folds"]) == (fams[c.family].name, reg.LAMBDAS[c.lam_index], True)
+    d5 = diagnose_data_only(ds, split, folds=5, beam_width=1, max_terms=0, spread=False, pool_folds=False)
+    c5 = reg.choose(reg.repeated_errors(fams, Y, tr, 5, 0), dof)[0]
+    assert (d5.regularised["dz_um"]["family"], d5.regularised["dz_um"]["lam"]) == (fams[c5.family].name,
+                                                                                   reg.LAMBDAS[c5.lam_index])
