@@ -1,6 +1,6 @@
 """Benchmark: the diagnosis on randomly planted cases of the job-shop day.
 
-    python benchmarks/diagnose_planted.py [--cases 20] [--seed 2026] [--element-size-mm 150]
+    python benchmarks/diagnose_planted.py [--cases 20] [--seed 2026] [--element-size-mm 150] [--case N ...]
 
 Each case plants what a drawn generator makes (seeded) into FE runs of the bundled 16 h job-shop day at 150 mm
 (sensor noise 0.02 K, drift noise 0.3 µm), and ``diagnose`` runs on the first 60 % with the whole library:
@@ -395,6 +395,8 @@ def main(argv=None) -> int:
                    help="the hidden-style cases instead of random ones: a source between the search's sites and the "
                         "machine's patches, on/off, constant and power law, alone and with a sensor effect (6 cases; "
                         "--cases N: the first N), diagnosed with the discretisation floor and continuous placement")
+    p.add_argument("--case", type=int, action="append", default=None,
+                   help="run only this case (1-based; repeatable), the others drawn all the same (the same planted cases)")
     a = p.parse_args(argv)
     machine = load_machine("vmc800")
     loads = jobshop_loads(machine).resample(a.dt)
@@ -420,6 +422,8 @@ def main(argv=None) -> int:
         else:
             kind = str(rng.choice(KINDS, p=WEIGHTS / WEIGHTS.sum()))
             case = make_case(kind, machine, fe, loads, rng, a.element_size_mm, activity)
+        if a.case and i + 1 not in a.case:
+            continue
         t0 = time.perf_counter()
         # the hidden cases with the opt-in discretisation floor and continuous placement; the random ones as the
         # diagnosis runs by default
@@ -432,7 +436,8 @@ def main(argv=None) -> int:
         records.append({"kind": kind, "planted": case.description, "verdict": d.verdict, "ok": ok, "snr": snr,
                         "named": [[*f.candidate.key, [float(x) for x in np.atleast_1d(f.params)]] for f in d.causes]})
         print(f"{i + 1:2d} {kind:>16} {'ok' if ok else 'NO':>3}  {case.description} -> {said}", file=sys.stderr)
-    print(table(rows, list(rows[0])))
+    if rows:
+        print(table(rows, list(rows[0])))
     passed = sum(r["ok"] for r in records)
     print(f"{passed} of {len(records)} cases pass (model preparation {prep_s:.0f} s)")
     print(jsonio.dumps({"benchmark": "diagnose_planted" + ("_hidden" if a.hidden else ""), "cases": len(records),

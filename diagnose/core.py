@@ -118,6 +118,26 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
             # a new selection with the located sources beside the machine's own effects (the screening fits and
             # joint refits it repeats are remembered)
             d, cands = _select_above_floor(problem, cands + more, max_effects, progress, memo)
+            for _ in range(RESEARCHES):
+                # still unexplained with a located source beside a sensor's effect (its lag or offset): the search
+                # ran on a residual that effect distorted (on the sensor nearest the source, often).  Searched again
+                # on the residual the sensor effects leave, and a selection from them (refitted with every effect
+                # accepted after, dropped if those make them unnecessary); kept only if it explains the data
+                found = list(d.causes) + list(d.partial)
+                sensor = [(f.candidate, f.params) for f in found if f.candidate.stage == "out"]
+                if d.verdict != "unexplained" or not sensor or all(f.candidate.kind != "located_source" for f in found):
+                    break
+                seen = {c.key for c in cands}
+                new = [c for c in located(problem, problem.Y - predicted_channels(problem, sensor), place=place)
+                       if c.key not in seen]
+                log.info("%d located-source candidates more on the residual of %s", len(new),
+                         "; ".join(c.label for c, _ in sensor))
+                if not new:
+                    break
+                d2, cands2 = _select_above_floor(problem, cands + new, max_effects, progress, memo, seed=tuple(sensor))
+                if d2.verdict != "explained":
+                    break
+                d, cands = d2, cands2
             d.timings_s["without located sources"] = timings["selection"]
         elif d.verdict == "unexplained" and wanted:
             why = ("the search for a heat source anywhere on the surface did not run: the reduced model carries no "
@@ -139,24 +159,28 @@ def diagnose(machine, dataset: Dataset, split: str | Split = DEFAULT_SPLIT, rom=
     return d
 
 
+#: searches for a located source repeated, at most, on the residual the other effects of an unexplained result leave
+RESEARCHES = 1
 #: selections repeated, at most, with the effects found within the discretisation floor left out
 FLOOR_ROUNDS = 3
 
 
-def _select_above_floor(problem, cands: list, max_effects: int, progress: bool, memo: dict):
+def _select_above_floor(problem, cands: list, max_effects: int, progress: bool, memo: dict, seed: tuple = ()):
     """:func:`select`, repeated without the effects whose contribution stays within the model's discretisation floor.
 
     Such an effect (named or partial) is what the mesh alone can make of the data: it is left out of the library and
     the selection runs again (at most ``FLOOR_ROUNDS`` times, then any still within it is dropped from the result).
     Returns the diagnosis and the candidates it chose from.  Without a floor (the default): :func:`select` once.
+    ``seed``: as :func:`select`'s (those the floor leaves out dropped from it).
     """
     if problem.floor is None:
-        return select(problem, cands, max_effects=max_effects, progress=progress, memo=memo), cands
+        return select(problem, cands, max_effects=max_effects, progress=progress, memo=memo, seed=seed), cands
     from hybridcomp.diagnose.discretisation import within_floor
 
     dropped: list = []
     for attempt in range(FLOOR_ROUNDS + 1):
-        d = select(problem, cands, max_effects=max_effects, progress=progress, memo=memo)
+        d = select(problem, cands, max_effects=max_effects, progress=progress, memo=memo,
+                   seed=tuple((c, p) for c, p in seed if c.key in {k.key for k in cands}))
         low = within_floor(problem, list(d.causes)) + within_floor(problem, list(d.partial))
         if not low:
             break

@@ -535,13 +535,20 @@ def _chi2_threshold(problem: Problem, residual: np.ndarray, best_cost: float) ->
     return 0.5 * CHI2_3_95 * s2 * (1 + rho) / (1 - rho)
 
 
+#: exponents tried at a power law's start place before its face fit (the fit refines the best)
+EXPONENT_GRID = (0.6, 1.0, 1.5, 2.0, 2.5, 3.0)
+
+
 def _face_fit(problem: Problem, at: Sites, i: int, G: np.ndarray, residual: np.ndarray, face: dict,
               power_W: float, patch_mm: float, start_mm: np.ndarray | None = None,
-              max_nfev: int | None = None) -> tuple[float, np.ndarray]:
+              max_nfev: int | None = None, power_law: np.ndarray | None = None,
+              exponent: float | None = None) -> tuple[float, np.ndarray]:
     """Power and place of a ``patch_mm`` patch on one face fitted to the weighted training ``residual``.
 
-    From the site ``i`` projected on the face, or from ``start_mm``.  Returns (misfit as ``least_squares``' cost,
-    (power, u, v)).
+    From the site ``i`` projected on the face, or from ``start_mm``.  ``power_law``: the drive's activity ``f`` of a
+    power law: its exponent ``n`` is fitted with the power and place (the response of ``f**n``), from ``exponent``
+    or, without one, from the best of ``EXPONENT_GRID`` at the start place; ``G`` is then unused.  Returns (misfit as
+    ``least_squares``' cost, (power, u, v)) or, for a power law, (power, n, u, v).
     """
     from scipy.optimize import least_squares
 
@@ -550,18 +557,44 @@ def _face_fit(problem: Problem, at: Sites, i: int, G: np.ndarray, residual: np.n
     R = (residual[tr] * problem.weights[None, :]).ravel()
     Phi = problem.rom._modes()[1]
     ref0 = _face_point(face, at.reference_mm[i] if start_mm is None else start_mm)
+    lags: dict = {}
 
-    def resid(x):
-        Br = patch_inputs(problem.machine, problem.rom, at.mesh, [at.body[i]], _face_point(face, ref0, x[1:])[None, :],
+    def G_of(n: float) -> np.ndarray:
+        key = round(float(n), 6)
+        if key not in lags:
+            lags[key] = mode_lags(problem, power_law**key)[tr]
+        return lags[key]
+
+    def unit(uv, Gn) -> np.ndarray:
+        Br = patch_inputs(problem.machine, problem.rom, at.mesh, [at.body[i]], _face_point(face, ref0, uv)[None, :],
                           patch_mm, PATCH_SAMPLING)
-        Y = site_responses(problem, G[tr], Phi.T @ Br)[:, :, 0] * w[None, :]
-        return R - x[0] * Y.ravel()
+        return (site_responses(problem, Gn, Phi.T @ Br)[:, :, 0] * w[None, :]).ravel()
 
-    lo = np.r_[0.0, face["lower_mm"]]
-    hi = np.r_[2000.0, face["upper_mm"]]
-    x0 = np.clip(np.r_[max(power_W, 1.0), ref0[list(face["free"])]], lo, hi)
-    res = least_squares(resid, x0, bounds=(lo, hi), x_scale=np.r_[max(power_W, 1.0), at.patch_mm, at.patch_mm],
-                        max_nfev=max_nfev or FACE_NFEV, method="trf")
+    uv0 = ref0[list(face["free"])]
+    lo_uv, hi_uv = np.asarray(face["lower_mm"], float), np.asarray(face["upper_mm"], float)
+    if power_law is None:
+        def resid(x):
+            return R - x[0] * unit(x[1:], G[tr])
+
+        lo, hi = np.r_[0.0, lo_uv], np.r_[2000.0, hi_uv]
+        x0 = np.clip(np.r_[max(power_W, 1.0), uv0], lo, hi)
+        scale = np.r_[max(power_W, 1.0), at.patch_mm, at.patch_mm]
+    else:
+        def resid(x):
+            return R - x[0] * unit(x[2:], G_of(x[1]))
+
+        lo, hi = np.r_[0.0, 0.2, lo_uv], np.r_[2000.0, 4.0, hi_uv]
+        trials = EXPONENT_GRID if exponent is None else (exponent,)
+        best = None
+        for n in trials:  # the power in closed form at the start place for each exponent tried
+            Y = unit(np.clip(uv0, lo_uv, hi_uv), G_of(n))
+            P = float(np.clip(Y @ R / max(Y @ Y, 1e-300), 0.0, 2000.0))
+            cost = float(np.sum((R - P * Y) ** 2))
+            if best is None or cost < best[0]:
+                best = (cost, P, n)
+        x0 = np.clip(np.r_[max(best[1], 1.0), best[2], uv0], lo, hi)
+        scale = np.r_[max(best[1], 1.0), 0.2, at.patch_mm, at.patch_mm]
+    res = least_squares(resid, x0, bounds=(lo, hi), x_scale=scale, max_nfev=max_nfev or FACE_NFEV, method="trf")
     return float(res.cost), res.x
 
 
@@ -619,19 +652,25 @@ def _continuous(problem: Problem, at: Sites, i: int, shape: Shape, where: str, i
         return None
     # the face by the evidence: near an edge, the power and place fitted on each face, the best kept as the start
     # with the search's patch; then on the best face the patch's size among three (a third, two thirds and the whole
-    # search spacing), from the place found
+    # search spacing), from the place found.  A power law's faces are compared with its exponent fitted too: the
+    # proportional shape's best face need not be the power law's
     h = float(sites_for(problem, place="continuous").patch_mm)
-    fits = [(*_face_fit(problem, at, i, G, residual, f, power_W, at.patch_mm), f, at.patch_mm) for f in faces]
+    law = shape.f if power_law else None
+    k_uv = 2 if power_law else 1  # where the place starts among a face fit's parameters
+    fits = [(*_face_fit(problem, at, i, G, residual, f, power_W, at.patch_mm, power_law=law), f, at.patch_mm)
+            for f in faces]
     _, x_best, face, _ = min(fits, key=lambda x: x[0])
-    start = _face_point(face, at.reference_mm[i], x_best[1:])
-    fits += [(*_face_fit(problem, at, i, G, residual, face, float(x_best[0]), size, start, FACE_NFEV // 2), face, size)
-             for size in (h / 3.0, 2.0 * h / 3.0, h) if abs(size - at.patch_mm) > 1e-6 * h]
+    start = _face_point(face, at.reference_mm[i], x_best[k_uv:])
+    n_best = float(x_best[1]) if power_law else None
+    fits += [(*_face_fit(problem, at, i, G, residual, face, float(x_best[0]), size, start, FACE_NFEV // 2, law, n_best),
+              face, size) for size in (h / 3.0, 2.0 * h / 3.0, h) if abs(size - at.patch_mm) > 1e-6 * h]
     _, x_best, face, patch = min(fits, key=lambda x: x[0])
     threshold = _chi2_threshold(problem, residual, min(f[0] for f in fits))
     power_W = float(x_best[0])
+    exponent = float(x_best[1]) if power_law else 1.0
     rows = list(problem.out_index)
     Phi = problem.rom._modes()[1]
-    ref0 = _face_point(face, at.reference_mm[i], x_best[1:])
+    ref0 = _face_point(face, at.reference_mm[i], x_best[k_uv:])
     body = at.body[i]
     Bms: dict = {}
     lags: dict = {}
@@ -692,16 +731,16 @@ def _continuous(problem: Problem, at: Sites, i: int, shape: Shape, where: str, i
     # faces and patch sizes that fit the training residual as well (within the Δχ² of three parameters, inflated for its
     # correlation in time): the place is known to the distance between their fits
     best = min(f[0] for f in fits)
-    alike = [_face_point(f[2], at.reference_mm[i], f[1][1:]) for f in fits if f[0] - best <= threshold]
+    alike = [_face_point(f[2], at.reference_mm[i], f[1][k_uv:]) for f in fits if f[0] - best <= threshold]
     spread = max(float(np.linalg.norm(a - ref0)) for a in alike)
     info = {**info, "face": face, "patch_mm": patch, "offset_mm": [float(v) for v in at.position_mm[i] - at.reference_mm[i]],
-            "uv_index": 2 if power_law else 1, "face_spread_mm": spread}
+            "uv_index": k_uv, "face_spread_mm": spread}
     edge = ((True, True), (True, True))  # a source at a face's edge is a result, not the wrong shape
     p0 = float(np.clip(power_W, 1.0, 2000.0))
     if power_law:
         return Candidate("located_source", f"{where}|{shape.driver} power law", label,
                          ("power [W]", "exponent [-]") + names, (0.0, 0.2) + lower,
-                         (2000.0, 4.0) + upper, (0.0, 1.0) + uv0, (p0, 1.0) + uv0, False, "raw", apply,
+                         (2000.0, 4.0) + upper, (0.0, 1.0) + uv0, (p0, exponent) + uv0, False, "raw", apply,
                          grid=(0.5 * p0, p0, 2.0 * p0), physical=((True, False), (False, False)) + edge, extra_dof=1,
                          info={**info, "form": "power law"})
     return Candidate("located_source", f"{where}|{shape.name}", label, ("power [W]",) + names,

@@ -247,17 +247,96 @@ def _joint(problem: Problem, free: list[Candidate], start: list, memo: dict | No
     return params, uncs
 
 
+def _replace(problem: Problem, chosen: list, current: Evaluation, runners: dict, banned: set, min_bic_drop: float,
+             memo: dict | None) -> tuple[list, Evaluation]:
+    """Replacement step after a sensor's effect is accepted: each accepted effect against the runners-up of its round.
+
+    An effect accepted before a sensor's lag or offset was there was ranked on the evidence that effect distorts (a
+    source's drive shape or place chosen on the lagged sensor): with it now accepted, each runner-up takes the
+    earlier effect's place in a joint refit of all.  A swap is made when the evidence prefers it: the training BIC
+    drops by ``min_bic_drop`` and the validation residual energy drops too, no parameter pinned to an artefact bound;
+    the best swap first, until none is left.
+    The effect replaced is not tried again (``banned``); its other runners-up pass to the one that replaced it.
+    """
+    for _ in range(len(chosen)):
+        best = None
+        for i, f in enumerate(chosen):
+            rest = chosen[:i] + chosen[i + 1:]
+            for cand, p0 in runners.get(f.candidate.key, ()):
+                if cand.key in banned or _conflicts(cand, [g.candidate for g in rest]):
+                    continue
+                free = [g.candidate for g in rest] + [cand]
+                try:
+                    params, uncs = _joint(problem, free, [g.params for g in rest] + [p0], memo)
+                except (ValueError, np.linalg.LinAlgError) as exc:
+                    log.debug("replacement by %s failed: %s", cand.label, exc)
+                    continue
+                ev, _ = evaluate(problem, list(zip(free, params)), dof(free, params))
+                drop = current.bic - ev.bic
+                if (drop >= min_bic_drop and ev.rss_val < current.rss_val
+                        and not any(at_bound(c, p) for c, p in zip(free, params))
+                        and (best is None or drop > best[0])):
+                    best = (drop, i, free, params, uncs, ev)
+        if best is None:
+            break
+        drop, i, free, params, uncs, ev = best
+        old, new = chosen[i].candidate, free[-1]
+        log.info("replaced %s by %s (BIC drop %.1f, validation gain %.3f)", old.label, new.describe(params[-1]), drop,
+                 1.0 - ev.rss_val / current.rss_val)
+        banned.add(old.key)
+        runners[new.key] = [(c, p) for c, p in runners.pop(old.key, ()) if c.key != new.key]
+        chosen, current = [Fitted(c, p, u, 0.0, 0.0) for c, p, u in zip(free, params, uncs)], ev
+    return chosen, current
+
+
+def _paired(problem: Problem, chosen: list, current: Evaluation, screened: list, runners: dict, banned: set,
+            min_bic_drop: float, min_gain: float, memo: dict | None) -> list[dict]:
+    """Sensor effects that pass both tests with one earlier effect replaced by a runner-up of its round.
+
+    ``screened``: (candidate, screening parameters) of the round's sensor effects that passed the screening.  Each is
+    refitted jointly with the accepted effects, one of them replaced by one of its runners-up (``runners``), and
+    judged against the model as accepted (``current``) as :func:`select` judges a new effect.  Returns the passing
+    ones as :func:`select`'s joint results, each with ``"replaced"``: (the effect replaced, its replacement).
+    """
+    out = []
+    for cand, p_new in screened:
+        for i, f in enumerate(chosen):
+            rest = chosen[:i] + chosen[i + 1:]
+            for alt, p_alt in runners.get(f.candidate.key, ()):
+                if alt.key in banned or alt.key == cand.key or _conflicts(alt, [g.candidate for g in rest]) \
+                        or _conflicts(cand, [g.candidate for g in rest] + [alt]):
+                    continue
+                free = [g.candidate for g in rest] + [alt, cand]
+                try:
+                    params, uncs = _joint(problem, free, [g.params for g in rest] + [p_alt, p_new], memo)
+                except (ValueError, np.linalg.LinAlgError) as exc:
+                    log.debug("%s with %s failed: %s", cand.label, alt.label, exc)
+                    continue
+                ev, _ = evaluate(problem, list(zip(free, params)), dof(free, params))
+                gain = 1.0 - ev.rss_val / current.rss_val if current.rss_val > 0 else 0.0
+                j = {"free": free, "params": params, "uncs": uncs, "eval": ev, "bic_drop": current.bic - ev.bic,
+                     "gain": gain, "pinned": any(at_bound(c, p) for c, p in zip(free, params)),
+                     "replaced": (f.candidate, alt)}
+                if j["bic_drop"] >= min_bic_drop and gain >= min_gain and not j["pinned"]:
+                    out.append(j)
+    return out
+
+
 def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX_EFFECTS,
            min_gain: float = MIN_VALIDATION_GAIN, min_bic_drop: float = MIN_BIC_DROP, top_joint: int = 6,
-           progress: bool = False, memo: dict | None = None) -> Diagnosis:
+           progress: bool = False, memo: dict | None = None, seed: tuple = ()) -> Diagnosis:
     """Greedy forward selection of named effects.
 
     Each round fits every remaining candidate (the accepted ones held at their values), ranks them
     by the drop of the training BIC, and accepts the best one whose fit also lowers the weighted
     validation residual energy by at least ``min_gain``; then all accepted effects are refitted
-    together.  Stops when every channel's validation residual is at its noise level, when no
-    candidate passes both tests, or after ``max_effects``.  ``memo`` keeps the screening fits of a
-    candidate next to given accepted effects, and the joint refits, for a later selection on the same problem.
+    together, an earlier one the others make unnecessary is dropped, and, once a sensor's effect is accepted, an
+    earlier one is replaced by a runner-up of its round when the joint refit prefers that (:func:`_replace`,
+    :func:`_paired`).  Stops when every channel's
+    validation residual is at its noise level, when no candidate passes both tests, or after ``max_effects``.
+    ``memo`` keeps the screening fits of a candidate next to given accepted effects, and the joint refits, for a
+    later selection on the same problem.  ``seed``: (candidate, parameters) of effects accepted before the first
+    round (refitted with every later one, dropped like any other when the others make them unnecessary).
     """
     t0 = time.perf_counter()
     base_eval, Y0 = evaluate(problem, [], 0)
@@ -268,8 +347,12 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
                          f"{NOISE_FACTOR}× the noise estimated from the data)", {"selection": time.perf_counter() - t0})
     chosen: list[Fitted] = []
     current, Ycur = base_eval, Y0
+    if seed:
+        chosen = [Fitted(c, np.asarray(p, float), np.zeros(len(p)), 0.0, 0.0) for c, p in seed]
+        current, Ycur = evaluate(problem, list(seed), dof([c for c, _ in seed], [p for _, p in seed]))
     rounds = []
     banned: set = set()
+    runners: dict = {}  # per accepted effect, the others that passed both tests in its round
     bar = None
     if progress:
         from tqdm import tqdm
@@ -320,6 +403,12 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
             joint.append({"free": free, "params": params, "uncs": uncs, "eval": ev, "bic_drop": current.bic - ev.bic,
                           "gain": gain, "pinned": pinned})
         ok = [j for j in joint if j["bic_drop"] >= min_bic_drop and j["gain"] >= min_gain and not j["pinned"]]
+        if not ok and chosen:
+            # none passes next to the effects as accepted: a sensor's effect with an earlier effect replaced by a
+            # runner-up of its round (an effect accepted on the evidence the sensor's effect distorted)
+            screened = [(s["candidate"], s["params"]) for s in scores if s["candidate"].stage == "out"
+                        and s["bic_drop"] >= min_bic_drop and s["gain"] >= min_gain][:top_joint]
+            ok = _paired(problem, chosen, current, screened, runners, banned, min_bic_drop, min_gain, memo)
         if not ok:
             rounds.append(Round(None, table))
             break
@@ -334,6 +423,13 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
                  best["gain"])
         chosen = [Fitted(c, p, u, 0.0, 0.0) for c, p, u in zip(best["free"], best["params"], best["uncs"])]
         current = best["eval"]
+        if best.get("replaced") is not None:
+            old, by = best["replaced"]
+            log.info("with it, replaced %s by %s", old.label, by.label)
+            banned.add(old.key)
+            runners[by.key] = [(c, p) for c, p in runners.pop(old.key, ()) if c.key != by.key]
+        alts = {j["free"][-1].key: (j["free"][-1], j["params"][-1]) for j in sorted(ok, key=lambda j: j["bic_drop"])}
+        runners[new.key] = [a for k, a in alts.items() if k != new.key]
         # backward step: drop an earlier effect the others now make unnecessary
         while len(chosen) > 1:
             worst = None
@@ -352,6 +448,10 @@ def select(problem: Problem, candidates: list[Candidate], max_effects: int = MAX
             log.info("dropped %s: not needed next to the others", chosen[worst[1]].candidate.label)
             banned.add(chosen[worst[1]].candidate.key)
             chosen, current = worst[2], worst[3]
+        if len(chosen) > 1 and new.stage == "out":
+            # a sensor's effect (its lag, its offset) accepted: the effects accepted before were chosen on the
+            # evidence it distorted
+            chosen, current = _replace(problem, chosen, current, runners, banned, min_bic_drop, memo)
         Ycur = predicted_channels(problem, [(f.candidate, f.params) for f in chosen])
         if at_noise_level(problem, Ycur).all():
             break
