@@ -487,6 +487,11 @@ def test_a_boundary_with_no_fitting_grid_asks_for_a_grid_generation(machine, sma
         assert [(e.kind, e.payload["status"], e.key) for e in step.events] == [("grid generation", "started",
                                                                                "900.000@started")]
     pending = step.state
+    # persisted with the boundary (a restart submits it again), under its own result key beside a set's
+    from hybridcomp.monitor.daemon import generation_key
+
+    assert T.boundary_saved(ctx, None, pending).grid_pending == req
+    assert generation_key(req) == "grid generation@vmc800@X=0,Y=0,Z=0@900.000" != generation_key(base.to_dict())
     # while it runs, the next boundary waits; its outcome activates the grid, or blocks a retry
     again = T.on_grid_decision(ctx, pending, 1800.0, temps, iter([]))
     assert not again.commands and "a grid generation is running" in again.events[0].payload["message"]
