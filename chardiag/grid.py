@@ -199,23 +199,40 @@ class CDGrid:
 
 
 def fit_grid(data: GridTrainingData, *, machine: str, machine_sha256: str = "", options=None,
-             candidates=None, source: str = "grid training data") -> CDGrid:
+             candidates=None, source: str = "grid training data", load_case: str | None = None,
+             t_reference_degC: Mapping[str, float] | None = None, weights: np.ndarray | None = None,
+             constant_when_unexplained: bool = False) -> CDGrid:
     """One CD set per support point (:func:`hybridcomp.chardiag.fit.fit_cd_set`), each under its point's pose.
 
     ``options``: :class:`~hybridcomp.chardiag.fit.FitOptions` (default its defaults); ``candidates``: as
-    :func:`~hybridcomp.chardiag.fit.fit_cd` (default every temperature column: a point's positions are constant).
+    :func:`~hybridcomp.chardiag.fit.fit_cd` (default every temperature column: a point's positions are constant);
+    ``load_case``: the sets' load case (default the training cases' names); ``t_reference_degC``: the sets' reference
+    temperatures (default the mean of each point's table); ``weights``: weight per row, the same rows at every
+    point (default equal); ``constant_when_unexplained``: a direction of a point that no sensor explains gets a
+    constant CD (its weighted mean drift) instead of the :class:`~hybridcomp.chardiag.fit.CDFitError`.
     """
-    from hybridcomp.chardiag.fit import FitOptions, fit_cd_set
+    import dataclasses
+
+    from hybridcomp.chardiag.fit import CDFitError, FitOptions, fit_cd
 
     options = FitOptions() if options is None else options
+    constant = dataclasses.replace(options, min_target_range_um=1e12)  # any range: a constant CD
     sets = []
     for i, td in enumerate(data.tables):
         pose = point_pose(data.grid, i)
-        cds = fit_cd_set(td.columns, machine=machine, machine_sha256=machine_sha256, pose_mm=pose,
-                         candidates=candidates, options=options, load_case=",".join(td.cases),
-                         signature=td.signature(), source=f"{source}, support point {pose_key(pose)}")
+        kw = dict(machine=machine, machine_sha256=machine_sha256, pose_mm=pose, candidates=candidates,
+                  load_case=",".join(td.cases) if load_case is None else load_case, signature=td.signature(),
+                  t_reference_degC=t_reference_degC, weights=weights, source=f"{source}, support point {pose_key(pose)}")
+        cds = {}
+        for d in DIRECTIONS:
+            try:
+                cds[d] = fit_cd(td.columns, d, options=options, **kw)
+            except CDFitError:
+                if not constant_when_unexplained:
+                    raise
+                cds[d] = fit_cd(td.columns, d, options=constant, **kw)
         sets.append(CDSet(cds))
-    return CDGrid(data.grid, tuple(sets), load_case=",".join(data.tables[0].cases))
+    return CDGrid(data.grid, tuple(sets), load_case=",".join(data.tables[0].cases) if load_case is None else load_case)
 
 
 def grid_residuals(grid: CDGrid, data: GridTrainingData) -> np.ndarray:

@@ -234,11 +234,12 @@ def open_everything(cfg):
                           "(the monitor creates no folders)")
     machine = load_machine(cfg.machine)
     rom = load_rom(cfg.rom, machine)  # a pose-aware one: the daemon compensates where the tool is
-    if cfg.sink.table_path is not None and not rom.meta.get("poses") and not _has_active_grid(cfg.database,
-                                                                                              machine.name):
+    if (cfg.sink.table_path is not None and not rom.meta.get("poses") and cfg.grid_rom is None
+            and not _has_active_grid(cfg.database, machine.name)):
         raise ConfigError(f"{cfg.source_file}: sink.table_path {cfg.sink.table_path} needs a pose-aware monitor.rom "
                           f"(reduce --poses star) or an active CD grid of {machine.name} in the database (cd fit-grid "
-                          f"--activate); {cfg.rom} compensates at one pose and writes no tables")
+                          f"--activate, or compensation.grid_rom to generate one); {cfg.rom} compensates at one pose "
+                          "and writes no tables")
     rom_pose = {k: float(v) for k, v in (rom.meta.get("pose_mm") or {}).items()}
     pose = machine.check_pose(dict(cfg.pose_mm or rom_pose))
     if rom_pose and any(abs(pose[k] - rom_pose.get(k, math.nan)) > 1e-9 for k in pose):

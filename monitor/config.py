@@ -122,6 +122,9 @@ class MonitorConfig:
         coefficients updated by the probes: :mod:`hybridcomp.monitor.dataonly_strategy`)
     dataonly_model : strategy ``dataonly``: the model file (``hybridcomp diagnose --data-only --probe-every-hours H
         --out DIR`` writes ``DIR/dataonly_model.json``); required for that strategy, refused for the others
+    grid_rom : a pose-aware reduced model of the same machine (``hybridcomp reduce --poses``) used only to train the
+        CD grids the daemon generates when its ``rom`` knows one pose and no stored grid fits (None: no grid is
+        generated); checked when the configuration is read (:func:`read_grid_rom`)
     sensor_filter_s : time constant of the low-pass on the sensors the CDs read [s] (0: none)
     max_offset_um : largest compensation offset magnitude [µm]
     max_step_um : largest change of an offset per compensation cycle [µm]
@@ -156,6 +159,7 @@ class MonitorConfig:
     model_drift_K: float = 1.0
     strategy: str = "hybrid"
     dataonly_model: Path | None = None
+    grid_rom: Path | None = None
     sensor_filter_s: float = 20.0
     max_offset_um: float = 200.0
     max_step_um: float = 0.2
@@ -182,7 +186,7 @@ _MONITOR_KEYS = {
 _SECTIONS = {
     "monitor": _MONITOR_KEYS,
     "compensation": {"strategy", "dataonly_model", "sensor_filter_s", "max_offset_um", "max_step_um", "blend_s",
-                     "model_transient_s", "table_points"},
+                     "model_transient_s", "table_points", "grid_rom"},
     "validity": {f.name for f in dataclass_fields(Validity)},
     "observer": {f.name for f in dataclass_fields(ObserverSettings)},
     "sensors": {"hold_s", "frozen_s", "frozen_model_K", "spike_K", "spike_rate_K_s", "min_degC", "max_degC"},
@@ -343,6 +347,10 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
     port = m.number("prometheus_port", 0, nonneg=True, integer=True)
     strategy = c.string("strategy", MonitorConfig.strategy, STRATEGIES)
     dataonly = c.path("dataonly_model", base)
+    grid_rom = c.path("grid_rom", base)
+    if grid_rom is not None and strategy == "dataonly":
+        raise ConfigError(f"{source}: compensation.grid_rom = {str(grid_rom)!r} trains CD grids, which strategy "
+                          "'dataonly' does not apply")
     if strategy == "dataonly":
         if dataonly is None:
             raise ConfigError(f"{source}: compensation.dataonly_model is missing (strategy 'dataonly' needs the model "
@@ -352,6 +360,8 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
     elif dataonly is not None:
         raise ConfigError(f"{source}: compensation.dataonly_model = {str(dataonly)!r} applies to strategy 'dataonly' "
                           f"only, not {strategy!r}")
+    if grid_rom is not None:
+        read_grid_rom(grid_rom, machine, source)
     return MonitorConfig(
         machine=machine,
         database=_database_url(m.string("database", None), base),
@@ -366,6 +376,7 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         model_drift_K=m.number("model_drift_K", 1.0, positive=True),
         strategy=strategy,
         dataonly_model=dataonly,
+        grid_rom=grid_rom,
         sensor_filter_s=c.number("sensor_filter_s", MonitorConfig.sensor_filter_s, nonneg=True),
         max_offset_um=c.number("max_offset_um", 200.0, positive=True),
         max_step_um=c.number("max_step_um", MonitorConfig.max_step_um, positive=True),
@@ -416,6 +427,35 @@ def read_dataonly_model(path: Path, source: str = "<config>"):
     return model
 
 
+def read_grid_rom(path: Path, machine: str, source: str = "<config>"):
+    """The pose-aware reduced model of ``compensation.grid_rom``, checked against the configuration's machine.
+
+    Raises
+    ------
+    ConfigError
+        the file cannot be read or is no reduced model, it was reduced from another machine file, or it knows one
+        pose only (no ``meta["poses"]``: it cannot give the drift at the grid's support points); the message names
+        the configuration, the key and the file.
+    """
+    from hybridcomp.models import load_machine
+    from hybridcomp.rom import load_rom
+    from hybridcomp.rom.reduced import RomFileError
+
+    where = f"{source}: compensation.grid_rom = {str(path)!r}"
+    try:
+        m = load_machine(machine)
+    except Exception as exc:  # noqa: BLE001 - the machine's own error, named with the key that needs it
+        raise ConfigError(f"{where}: machine {machine!r} (monitor.machine) cannot be loaded to check it: {exc}") from None
+    try:
+        rom = load_rom(path, m)
+    except RomFileError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    if not rom.meta.get("poses"):
+        raise ConfigError(f"{where}: a reduced model of one pose; a CD grid needs the drift at every support point, "
+                          "which a pose-aware model gives (hybridcomp reduce --poses star)")
+    return rom
+
+
 def load_config(path: str | Path) -> MonitorConfig:
     """Read and check a monitor TOML file."""
     path = Path(path)
@@ -453,6 +493,8 @@ blend_s = 0                        # after a change of CD set, what is left of a
 model_transient_s = 57600          # hybrid: what changes faster than this comes from the corrected structure model,
                                    # the rest from the CDs (a complementary filter; 0: the CDs alone) [s]
 table_points = 3                   # with a pose-aware rom: support points per axis of the table over the travel
+# grid_rom = "vmc800.poses.npz"    # with a one-pose rom: a pose-aware model (reduce --poses star) of the same machine
+                                   # that trains a CD grid when no stored grid fits (none: grids are not generated)
 
 [validity]                         # the active set's predicted compensation error decides
 keep_um = 1.5                      # keep while |CD(T) - drift| over the last interval stays below this [um]

@@ -222,8 +222,9 @@ class Monitor:
                         self.rom.rom_id)
             return
         self.state = self._boundary = T.restored(self.ctx, s)
-        if s.pending is not None:
-            self._outbox.append(s.pending)  # resubmit a generation the last run did not finish
+        for pending in (s.pending, s.grid_pending):  # resubmit a generation the last run did not finish
+            if pending is not None:
+                self._outbox.append(pending)
         log.info("resumed %s at machine time %s s", self.key, s.last_time_s)
 
     def reload_active(self) -> None:
@@ -263,7 +264,7 @@ class Monitor:
                         self.state = replace(self.state, counters=replace(
                             c, last_decision_s=dt, max_decision_s=max(c.max_decision_s, dt)))
                 self.persist()
-        if boundary is not None and self.state.grid is not None:
+        if boundary is not None and T.decides_grids(self.ctx, self.state):
             self._decide_grid(boundary)
         return list(step.offsets)
 
@@ -340,7 +341,10 @@ class Monitor:
         return out
 
     def regeneration_finished(self, request: dict, result: Mapping | None, error: str | None, status: str) -> None:
-        """Record the outcome of a generation job; activate its set when it succeeded."""
+        """Record the outcome of a generation job; activate its set (its CD grid) when it succeeded."""
+        if "grid" in request:
+            self._grid_generation_finished(request, result, error, status)
+            return
         new, load_error = None, None
         if status == "finished" and result is not None:
             ids = {k: int(v) for k, v in result["ids"].items()}
@@ -350,6 +354,16 @@ class Monitor:
                 except Exception as exc:  # noqa: BLE001 - a broken result must not stop the daemon
                     load_error = f"{type(exc).__name__}: {exc}"
         self._apply(T.on_regeneration_finished(self.ctx, self.state, request, result, error, status, new, load_error))
+
+    def _grid_generation_finished(self, request: dict, result: Mapping | None, error: str | None, status: str) -> None:
+        grid, load_error = None, None
+        if status == "finished" and result is not None:
+            try:
+                grid = self.db.grid(int(result["grid_id"]))
+            except Exception as exc:  # noqa: BLE001 - a broken result must not stop the daemon
+                load_error = f"{type(exc).__name__}: {exc}"
+        self._apply(T.on_grid_generation_finished(self.ctx, self.state, request, result, error, status, grid,
+                                                  load_error))
 
     def status(self) -> dict:
         """Numbers for the status command and the metrics endpoint."""
@@ -373,8 +387,9 @@ def resolve_job(spec: str) -> Callable:
 
 
 def generation_key(request: Mapping) -> str:
-    """The database key of a generation request's result: its machine, pose and machine time."""
-    return f"generation@{request.get('machine')}@{request.get('pose_key')}@{_t(float(request['machine_time_s']))}"
+    """The database key of a generation request's result: its kind (a set, a CD grid), machine, pose and machine time."""
+    kind = "grid generation" if "grid" in request else "generation"
+    return f"{kind}@{request.get('machine')}@{request.get('pose_key')}@{_t(float(request['machine_time_s']))}"
 
 
 def _job_store(request: Mapping):
@@ -392,7 +407,8 @@ def _call_job(spec: str, request: dict) -> dict:
     A request is pending in the daemon's persisted state from the decision that made it; a daemon restarted before
     it heard the result submits it again. The result is stored under the request's key (:func:`generation_key`)
     the moment the job returns, so the second submission adopts it (``notes.adopted``) instead of generating a
-    second set for one request.
+    second set for one request. A CD grid's request (its ``grid`` entry) runs the job it names there
+    (:func:`hybridcomp.monitor.regeneration.grid_job`), under the same timeout.
     """
     store = _job_store(request)
     key = generation_key(request)
@@ -403,6 +419,8 @@ def _call_job(spec: str, request: dict) -> dict:
                 done = json.loads(text)
                 return {**done, "notes": {**(done.get("notes") or {}),
                                           "adopted": f"the stored result of request {key} (a restart)"}}
+        if "grid" in request:  # a CD grid's generation names its own job
+            spec = request["grid"].get("job") or spec
         result = dict(resolve_job(spec)(request))
         if store is not None:
             store.put_state(key, jsonio.dumps(result))

@@ -12,6 +12,11 @@ state (the current load continued, a cool-down, the history's mean and its busie
 alone), so that the set covers the states ahead; at the sensors' current values it continues the offsets
 being written (an anchor of the fit) whenever its own fit is within ``bump_um`` of them. :func:`fe_job` is
 the classic generator: the recent load history run on the FE model.
+
+:func:`grid_job` generates a CD grid (one CD set per support point) for a daemon whose structure model knows one
+pose: the same request with a ``grid`` entry naming a pose-aware model of the machine (``compensation.grid_rom``);
+the corrected load history and the forecasts run through that model at every support point, one set fitted per
+point, the grid stored for the daemon to activate.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ MAX_INPUTS = 3  # FE job: at most this many sensors (chosen by BIC)
 # so that the CD learns how the drift follows the sensors when the air differs from what the histogram knows
 # (a warmer enclosure, a draught): (zones: "workspace" | "all", offset [K]).
 AIR_VARIANTS_K = (("all", 0.0), ("workspace", 2.0), ("workspace", -2.0), ("all", 1.5), ("all", -1.5))
+GRID_JOB = "hybridcomp.monitor.regeneration:grid_job"  # the job of a CD grid's request
 _MODELS: dict = {}  # models built in this worker process (FE by machine, pose and element size; ROMs by path)
 
 
@@ -327,3 +333,101 @@ def fe_job(request: dict) -> dict:
     finally:
         db.close()
     return {"ids": ids, "load_case": name, "wall_s": time.monotonic() - t0, "notes": notes}
+
+
+def grid_cases(observer, x, req: RegenerationRequest, machine) -> tuple[dict, float]:
+    """A CD grid's load cases: the request's load history and each forecast scenario after it, corrected.
+
+    The inputs as the observer's estimate ``x`` corrects them (``corrected_inputs``: its power scales and air offsets
+    at the decision).
+
+    The history (:func:`request_loads` on ``FORECAST_STEP_S`` rows) is case ``history``; each scenario of
+    :func:`forecast_scenarios` is a case of the history followed by its rows over ``forecast_h`` (the history is its
+    run-in: a model starts each case from the steady state of its first row).  Returns the cases
+    (:class:`~hybridcomp.chardiag.training.LoadCase` by name, air in °C) and the history's end [s]: the rows of a
+    forecast case up to it are the run-in, not training rows.
+    """
+    from hybridcomp.chardiag.training import LoadCase
+    from hybridcomp.fem.loads import Loads
+    from hybridcomp.rom.observer import ObserverState
+
+    state = ObserverState(req.machine_time_s, np.asarray(x, float), np.zeros((len(x), len(x))))
+    hist = request_loads(req, FORECAST_STEP_S)
+    air = np.array([n.endswith("_degC") for n in hist.names])
+    ref = req.reference_temperature_degC
+
+    def corrected(V: np.ndarray, in_degC: bool) -> np.ndarray:
+        U = V - ref * air if in_degC else np.array(V, float)
+        return np.array([observer.corrected_inputs(state, u) for u in U]) + ref * air
+
+    t_end = float(hist.time_s[-1])
+    H = corrected(hist.values, True)
+    cases = {"history": LoadCase("history", Loads(hist.time_s, H, hist.names))}
+    for name, U in forecast_scenarios(machine, req.loads_names, req.loads_inputs, req.forecast_h).items():
+        t = t_end + FORECAST_STEP_S * np.arange(1, len(U) + 1)
+        cases[name] = LoadCase(name, Loads(np.concatenate([hist.time_s, t]), np.vstack([H, corrected(U, False)]),
+                                           hist.names))
+    return cases, t_end
+
+
+def _pose_rom(path: str, machine):
+    from hybridcomp.rom import load_rom
+
+    key = ("pose rom", path, machine.sha256)
+    if key not in _MODELS:
+        _MODELS.clear()
+        rom = load_rom(path, machine)
+        if not rom.meta.get("poses"):
+            raise ValueError(f"{path}: a reduced model of one pose; a CD grid needs a pose-aware one")
+        _MODELS[key] = rom
+    return _MODELS[key]
+
+
+def grid_job(request: dict) -> dict:
+    """The corrected history and forecasts on the pose-aware model at every support point → a CD grid → database.
+
+    The request is a :class:`RegenerationRequest`'s with ``grid`` = {``rom``: the pose-aware model's file,
+    ``points``: support points per axis, ``job``}.  The cases of :func:`grid_cases` run through the pose-aware model
+    (:func:`hybridcomp.chardiag.grid.grid_training_data` on its default grid of ``points`` per axis); a point's
+    training rows are the history (weight 1) and the forecasts after it (weight ``FORECAST_WEIGHT``); one CD set per
+    point (:func:`hybridcomp.chardiag.grid.fit_grid`, ``FIT``; a direction no sensor explains: a constant CD, as
+    :func:`default_job`), its reference temperatures the corrected model's
+    sensors at the decision.  Returns ``{"grid_id", "load_case", "wall_s", "notes", "rows"}``; the daemon activates
+    the grid (the job never touches the active grid).
+    """
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.chardiag.fit import FitOptions
+    from hybridcomp.chardiag.grid import GridTrainingData, fit_grid, grid_residuals, grid_training_data
+    from hybridcomp.chardiag.training import TrainingData
+    from hybridcomp.models import load_machine
+    from hybridcomp.rom.observer import ObserverSettings, build_observer
+
+    t0 = time.monotonic()
+    spec = dict(request["grid"])
+    req = RegenerationRequest.from_dict({k: v for k, v in request.items() if k != "grid"})
+    machine = load_machine(req.machine)
+    observer = build_observer(_rom(req.rom, machine), machine, ObserverSettings(**req.observer))
+    cases, t_end = grid_cases(observer, req.observer_x, req, machine)
+    prom = _pose_rom(str(spec["rom"]), machine)
+    data = grid_training_data(prom, cases, points=int(spec["points"]))
+    tables = []
+    for td in data.tables:  # the forecasts' run-in rows are no training rows
+        keep = (td.load_case == "history") | (td.columns["time_s"] > t_end + 1e-9)
+        tables.append(TrainingData(td.load_case[keep], {k: v[keep] for k, v in td.columns.items()}, td.signatures))
+    data = GridTrainingData(data.grid, tuple(tables))
+    rows = tables[0].load_case
+    weights = np.where(rows == "history", 1.0, FORECAST_WEIGHT)
+    name = f"generated grid@{req.machine_time_s:.0f}s"
+    grid = fit_grid(data, machine=machine.name, machine_sha256=machine.sha256, options=FitOptions(**FIT),
+                    source=name, load_case=name, t_reference_degC=req.t_reference_degC, weights=weights,
+                    constant_when_unexplained=True)
+    rms = grid_residuals(grid, data)
+    db = CDDatabase(req.database)
+    try:
+        gid = int(db.add_grid(grid, load_case=name))
+    finally:
+        db.close()
+    return {"grid_id": gid, "load_case": name, "wall_s": time.monotonic() - t0,
+            "rows": {c: int(np.sum(rows == c)) for c in dict.fromkeys(rows.tolist())},
+            "notes": {"points": grid.grid.n_points, "pose_rom": str(spec["rom"]),
+                      "max_rms_residual_um": dict(zip(("X", "Y", "Z"), (float(v) for v in rms.max(axis=0))))}}

@@ -21,7 +21,7 @@ from hybridcomp.monitor.decisions import SensorState
 from hybridcomp.monitor.sources import Reading
 from hybridcomp.rom.observer import ObserverState
 
-STATE_VERSION = 7
+STATE_VERSION = 8
 ZERO_OFFSETS = {"dx_um": 0.0, "dy_um": 0.0, "dz_um": 0.0}
 NO_DROPS = {"repeated": 0, "backwards": 0, "jump": 0, "invalid": 0}
 
@@ -103,6 +103,8 @@ class MonitorState:
     signature_sum, signature_s : time-weighted load-case signature of the current interval, and its weight
     pending : a generation request not yet finished
     regen_blocked_until_s : no new generation before this machine time
+    grid_pending : a CD grid generation request not yet finished (without a pose-aware model, ``compensation.grid_rom``)
+    grid_blocked_until_s : no new grid generation before this machine time (after a failed one)
     activated_s : machine time of the last activation
     last_decision, last_error, last_delta_T_K : the last monitoring decision, its predicted error, the seeds' ΔT
     observer_flag : why the observer is not trusted now ("" when it is)
@@ -162,6 +164,8 @@ class MonitorState:
     signature_s: float = 0.0
     pending: dict | None = None
     regen_blocked_until_s: float = -math.inf
+    grid_pending: dict | None = None
+    grid_blocked_until_s: float = -math.inf
     activated_s: float = -math.inf
     last_decision: dict | None = None
     last_error: dict | None = None

@@ -16,7 +16,9 @@ The clocks of machine time, each a function ``(ctx, state, ...) -> Step``:
   correction with the sensors and a probe; at a monitoring boundary :func:`on_interval` too;
 * :func:`on_interval` — every ``monitoring_interval_s`` (15 min): the active set's predicted error decides keep,
   switch or generate (:func:`hybridcomp.monitor.decisions.decide`);
-* :func:`on_activate`, :func:`on_regeneration_finished` — a set made active, a generation job's outcome.
+* :func:`on_activate`, :func:`on_regeneration_finished` — a set made active, a generation job's outcome;
+* :func:`on_grid_decision`, :func:`on_grid_generation_finished` — without a pose-aware model, at a boundary: keep,
+  switch or generate the CD grid, and a grid generation's outcome.
 
 A :class:`Step` is the new state, the offsets to write, and what the daemon must do, in order: the
 event-log entries (:class:`Event`) and the commands (:class:`Activate` a set in the database, submit a generation
@@ -426,6 +428,7 @@ def boundary_saved(ctx: Context, boundary: State | None, st: State) -> MonitorSt
     snap = boundary.saved if boundary is not None else initial(ctx).saved
     s = st.saved
     return replace(snap, pending=s.pending, regen_blocked_until_s=s.regen_blocked_until_s,
+                   grid_pending=s.grid_pending, grid_blocked_until_s=s.grid_blocked_until_s,
                    activated_s=s.activated_s, active_ids=s.active_ids)
 
 
@@ -1159,8 +1162,9 @@ def _monitor(ctx: Context, st: State, boundary: float, stored_sets: StoredSets, 
     why = ("strategy 'dataonly' compensates without CDs: none is generated" if ctx.dataonly is not None else
            "regeneration is disabled" if not cfg.regeneration.enabled else
            f"no generation before {s.regen_blocked_until_s:.0f} s after a failed one")
-    # a generation job runs exactly while its request is pending (submitted with it, finished with it cleared)
-    running = s.pending is not None
+    # a generation job runs exactly while its request is pending (submitted with it, finished with it cleared); one
+    # job at a time: a CD grid's generation holds a set's back
+    running = s.pending is not None or s.grid_pending is not None
     since = boundary - s.activated_s
     d = decisions.decide(s.active_ids, error, since, v, [], enabled, running, why)
     candidates: list[Candidate] = []
@@ -1295,6 +1299,7 @@ def _act(ctx: Context, st: State, d: Decision, t: float, est: Mapping[str, float
 
 
 def _request(ctx: Context, st: State, t: float, est: Mapping[str, float], sig) -> dict:
+    """The generation request of a decision at ``t`` (:class:`~hybridcomp.monitor.regeneration.RegenerationRequest`)."""
     cfg = ctx.cfg
     s = st.saved
     ns = len(ctx.sensor_names)
@@ -1393,40 +1398,128 @@ def grid_temperatures(ctx: Context, st: State) -> dict[str, float]:
     return _estimate_degC(ctx, st)
 
 
+def decides_grids(ctx: Context, st: State) -> bool:
+    """Whether a monitoring boundary has a CD grid decision.
+
+    A one-pose model (not strategy ``dataonly``) with an active grid, or one that may generate grids
+    (``compensation.grid_rom``).
+    """
+    return ctx.pose is None and ctx.dataonly is None and (st.grid is not None or ctx.cfg.grid_rom is not None)
+
+
 def on_grid_decision(ctx: Context, st: State, t: float, temperatures_degC: Mapping[str, float],
                      candidates: Iterable) -> Step:
-    """At a monitoring boundary, without a pose-aware model: keep the active CD grid or switch to a stored one.
+    """At a monitoring boundary, without a pose-aware model: keep the active CD grid, switch to a stored one, generate.
 
     The active grid is kept while its sets' reference temperatures are within ``threshold_K`` of
     ``temperatures_degC`` (the structure model's sensors, :func:`grid_temperatures`; max over the sets and the
     common sensors).  Otherwise the first of ``candidates`` (stored CD grids,
     best first: the database's :meth:`~hybridcomp.chardiag.db.CDDatabase.search_grids`, read lazily by the shell)
     that is another grid and fits within ``threshold_K`` becomes active: a ``grid switch`` event and an
-    :class:`ActivateGrid` command; the table's rate limit carries the change over.  None fitting: one
-    ``grid decision`` event, the active grid kept.  No grid active, or a pose-aware model: nothing.
+    :class:`ActivateGrid` command; the table's rate limit carries the change over.  None fitting: with
+    ``compensation.grid_rom`` a grid generation (a :class:`Request` whose request carries ``grid``, a ``grid
+    generation`` event, the request pending in ``grid_pending``) when generation is enabled, not blocked after a
+    failed one and no job runs; else one ``grid decision`` event saying why, the active grid kept.  Without an active
+    grid the same order applies when grids may be generated (a stored grid, else a generation); otherwise, and with a
+    pose-aware model, nothing.
     """
     out = _Out()
     active = st.grid
-    if ctx.pose is not None or active is None or not temperatures_degC:
+    if not decides_grids(ctx, st) or not temperatures_degC:
         return out.step(st)
     limit = ctx.cfg.threshold_K
-    dT = active.delta_T_K(temperatures_degC)
+    dT = active.delta_T_K(temperatures_degC) if active is not None else math.inf
     if dT <= limit:
         return out.step(st)
+    why_active = (f"grid {active.grid_id}'s reference temperatures are {dT:.2f} K off (> {limit:g} K)"
+                  if active is not None else "no CD grid is active")
     for g in candidates:
-        if g.grid_id == active.grid_id:
+        if active is not None and g.grid_id == active.grid_id:
             continue
         d = g.delta_T_K(temperatures_degC)
         if d <= limit:
-            reason = f"grid {active.grid_id}'s reference temperatures are {dT:.2f} K off (> {limit:g} K)"
-            out.event("grid switch", t, {"from": active.grid_id, "to": g.grid_id, "delta_T_K": _finite(dT),
-                                         "new_delta_T_K": _finite(d), "load_case": g.load_case, "reason": reason},
-                      f"{_t(t)}@{g.grid_id}")
-            out.command(ActivateGrid(int(g.grid_id), reason, t))
+            out.event("grid switch", t, {"from": None if active is None else active.grid_id, "to": g.grid_id,
+                                         "delta_T_K": _finite(dT), "new_delta_T_K": _finite(d),
+                                         "load_case": g.load_case, "reason": why_active}, f"{_t(t)}@{g.grid_id}")
+            out.command(ActivateGrid(int(g.grid_id), why_active, t))
             return out.step(replace(st, grid=g))
-    out.event("grid decision", t, {"grid": active.grid_id, "delta_T_K": _finite(dT), "message":
-                                   f"the active CD grid's reference temperatures are {dT:.2f} K off (> {limit:g} K) "
-                                   "and no stored grid fits better: kept"}, _t(t))
+    s = st.saved
+    cfg = ctx.cfg
+    why = ("compensation.grid_rom is not set: the daemon does not generate grids" if cfg.grid_rom is None else
+           "regeneration is disabled" if not cfg.regeneration.enabled else
+           f"no grid generation before {s.grid_blocked_until_s:.0f} s after a failed one"
+           if t < s.grid_blocked_until_s else
+           "a grid generation is running" if s.grid_pending is not None else
+           "a set generation is running: the grid waits for the next boundary" if s.pending is not None else
+           "no load history yet: the grid waits for the next boundary" if not s.loads else "")
+    if not why:
+        req = grid_request(ctx, st, t, temperatures_degC)
+        out.command(Request(req))
+        out.event("grid generation", t, {"status": "started", "reason": f"{why_active} and no stored grid fits",
+                                         "request": _brief(req) | {"points": req["grid"]["points"]}},
+                  f"{_t(t)}@started")
+        out.command(Persist(None))
+        return out.step(_set(st, grid_pending=req))
+    kept = "kept" if active is not None else "none active"
+    out.event("grid decision", t, {"grid": None if active is None else active.grid_id, "delta_T_K": _finite(dT),
+                                   "message": f"{why_active} and no stored grid fits better: {kept} ({why})"}, _t(t))
+    return out.step(st)
+
+
+def grid_request(ctx: Context, st: State, t: float, temperatures_degC: Mapping[str, float]) -> dict:
+    """The request of a CD grid generation at ``t``.
+
+    The set generation's request (the corrected structure model's history and state) with ``grid`` = the pose-aware
+    model that trains it (``compensation.grid_rom``), the support points per axis (``compensation.table_points``) and
+    the job (:func:`hybridcomp.monitor.regeneration.grid_job`).
+    """
+    from hybridcomp.monitor.regeneration import GRID_JOB
+
+    req = _request(ctx, st, t, temperatures_degC, None)
+    return req | {"grid": {"rom": str(ctx.cfg.grid_rom), "points": int(ctx.cfg.table_points), "job": GRID_JOB}}
+
+
+def on_grid_generation_finished(ctx: Context, st: State, request: Mapping, result: Mapping | None,
+                                error: str | None, status: str, grid=None, load_error: str | None = None) -> Step:
+    """The outcome of a CD grid generation; its grid becomes the active grid when it succeeded.
+
+    Parameters
+    ----------
+    request : the job's request
+    result, error, status : its result (the new grid's ``grid_id``), error, and ``finished``, ``failed`` or
+        ``timeout``
+    grid : the result's grid as the daemon loaded it (:class:`hybridcomp.chardiag.grid.CDGrid`; None when it could
+        not be loaded)
+    load_error : why it could not be loaded, or None
+
+    A failure never touches the active grid; no grid generation starts for ``regeneration.retry_after_s`` after it.
+    """
+    out = _Out()
+    s = st.saved
+    t = float(request["machine_time_s"])
+    if status == "finished" and result is not None:
+        gid = int(result["grid_id"])
+        out.event("grid generation", t, {"status": "finished", "grid": gid, "load_case": result.get("load_case", ""),
+                                         "wall_s": result.get("wall_s"), "notes": result.get("notes") or {}},
+                  f"{_t(t)}@finished")
+        st = counted(st, generations=1)
+        if load_error is None and (grid is None or grid.machine != ctx.machine.name):
+            load_error = f"grid {gid} is for {None if grid is None else grid.machine}, not {ctx.machine.name}"
+        if load_error is None:
+            if st.grid is None or st.grid.grid_id != gid:
+                reason = f"generated for the state at {t:.0f} s"
+                out.command(ActivateGrid(gid, reason, s.last_time_s))
+                st = with_active_grid(ctx, st, grid)
+        else:
+            out.event("grid generation", t, {"status": "activation_failed", "grid": gid, "error": load_error},
+                      f"{_t(t)}@activation_failed")
+            out.log("error", f"generated CD grid {gid} for {t:.0f} s cannot be activated: {load_error}")
+    else:
+        out.event("grid generation", t, {"status": status, "error": error}, f"{_t(t)}@{status}")
+        st = _set(st, grid_blocked_until_s=(s.last_time_s or t) + ctx.cfg.regeneration.retry_after_s)
+        out.log("warning", f"CD grid generation for {t:.0f} s {status}: {error}")
+    st = _set(st, grid_pending=None)
+    out.command(Persist(None))
     return out.step(st)
 
 

@@ -422,11 +422,19 @@ def test_the_grid_decision_keeps_a_fitting_grid_and_switches_to_the_first_stored
     assert T.on_grid_decision(ctx, T.initial(ctx), 900.0, temps, iter([near])).effects == ()  # no active grid
 
 
-@pytest.mark.slow
-def test_a_daemon_switches_to_the_stored_grid_that_fits_at_its_monitoring_boundary(machine, small_rom, tmp_path):
+@pytest.fixture(scope="module")
+def small_rom_trace(machine, small_rom, tmp_path_factory):
+    """The first hour of the job-shop day at 0.2 Hz with ``small_rom``'s sensors (shared: it takes seconds)."""
     from hybridcomp.monitor.example import write_example_trace
 
-    trace = write_example_trace(tmp_path / "trace.csv", machine, small_rom, hours=1.0, rate_hz=0.2)
+    return write_example_trace(tmp_path_factory.mktemp("trace") / "trace.csv", machine, small_rom, hours=1.0,
+                               rate_hz=0.2)
+
+
+@pytest.mark.slow
+def test_a_daemon_switches_to_the_stored_grid_that_fits_at_its_monitoring_boundary(machine, small_rom, small_rom_trace,
+                                                                                  tmp_path):
+    trace = small_rom_trace
     T0 = np.mean(list(_trace_temps(trace, ["T1"]).values())[0]["T1"])
     far, fits = _vmc_grid(machine, 40.0, 1.0), _vmc_grid(machine, float(T0), 3.0)
     with CDDatabase(tmp_path / "cd.db") as db:
@@ -442,3 +450,186 @@ def test_a_daemon_switches_to_the_stored_grid_that_fits_at_its_monitoring_bounda
     temps = _trace_temps(trace, [s.name for s in machine.sensors])
     ratio = [r.dx_um / (temps[r.time_s]["T1"] - 20.0) for r in rows if abs(temps[r.time_s]["T1"] - 20.0) > 0.2]
     assert ratio[0] == pytest.approx(1.0, abs=1e-6) and ratio[-1] == pytest.approx(3.0, abs=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------- grid generation
+def _boundary_state(T, ctx, machine):
+    """A state as at a monitoring boundary: an observer estimate, one history row and one load row."""
+    u0 = np.zeros(ctx.layout.n_inputs)
+    ns = len(ctx.sensor_names)
+    return T._set(T.initial(ctx), observer=ctx.observer.initial(u0, 0.0), loads=[[600.0, *u0]],
+                  history=[[600.0, *[20.0] * ns, 0.0, 0.0, 0.0]], filtered_degC={n: 20.0 for n in ctx.sensor_names},
+                  last_time_s=900.0)
+
+
+def test_a_boundary_with_no_fitting_grid_asks_for_a_grid_generation(machine, small_rom, tmp_path):
+    from pathlib import Path
+
+    from hybridcomp.monitor import transitions as T
+    from hybridcomp.monitor.config import MonitorConfig
+    from hybridcomp.monitor.regeneration import GRID_JOB, RegenerationRequest
+
+    cfg = MonitorConfig(machine="vmc800", database="cd.db", rom="r.npz", threshold_K=1.0,
+                        grid_rom=Path("poses.npz"), table_points=2)
+    ctx = T.context(cfg, machine, small_rom, "X=0,Y=0,Z=0")
+    far = dataclasses.replace(_vmc_grid(machine, 30.0, 1.0), grid_id=1)
+    temps = {s.name: 20.0 for s in machine.sensors}
+    st = _boundary_state(T, ctx, machine)
+    assert T.decides_grids(ctx, st)  # no grid active, but grids may be generated
+    for active in (None, far):  # without an active grid, and with one 10 K off: the stored one does not fit either
+        step = T.on_grid_decision(ctx, T.with_active_grid(ctx, st, active), 900.0, temps, iter([far]))
+        assert [type(c).__name__ for c in step.commands] == ["Request", "Persist"]
+        req = step.commands[0].request
+        assert req["grid"] == {"rom": "poses.npz", "points": 2, "job": GRID_JOB}
+        base = RegenerationRequest.from_dict({k: v for k, v in req.items() if k != "grid"})  # a set's request beside
+        assert base.machine_time_s == 900.0 and base.t_reference_degC == temps and base.loads_time_s == [600.0]
+        assert step.state.saved.grid_pending == req and step.state.grid is active  # the active grid untouched
+        assert [(e.kind, e.payload["status"], e.key) for e in step.events] == [("grid generation", "started",
+                                                                               "900.000@started")]
+    pending = step.state
+    # persisted with the boundary (a restart submits it again), under its own result key beside a set's
+    from hybridcomp.monitor.daemon import generation_key
+
+    assert T.boundary_saved(ctx, None, pending).grid_pending == req
+    assert generation_key(req) == "grid generation@vmc800@X=0,Y=0,Z=0@900.000" != generation_key(base.to_dict())
+    # while it runs, the next boundary waits; its outcome activates the grid, or blocks a retry
+    again = T.on_grid_decision(ctx, pending, 1800.0, temps, iter([]))
+    assert not again.commands and "a grid generation is running" in again.events[0].payload["message"]
+    new = dataclasses.replace(_vmc_grid(machine, 20.0, 2.0), grid_id=7)
+    done = T.on_grid_generation_finished(ctx, pending, req, {"grid_id": 7}, None, "finished", new)
+    assert done.state.grid is new and done.state.saved.grid_pending is None
+    assert [(type(c).__name__, getattr(c, "grid_id", None)) for c in done.commands] == [("ActivateGrid", 7),
+                                                                                        ("Persist", None)]
+    failed = T.on_grid_generation_finished(ctx, pending, req, None, "boom", "failed")
+    assert failed.state.grid is far and failed.state.saved.grid_pending is None
+    assert failed.state.saved.grid_blocked_until_s == 900.0 + cfg.regeneration.retry_after_s
+    blocked = T.on_grid_decision(ctx, failed.state, 1800.0, temps, iter([]))
+    assert not blocked.commands and "after a failed one" in blocked.events[0].payload["message"]
+    # a set generation running holds the grid's back (one job at a time)
+    busy = T.on_grid_decision(ctx, T._set(st, pending={"machine_time_s": 0.0}), 900.0, temps, iter([]))
+    assert not busy.commands and "a set generation is running" in busy.events[0].payload["message"]
+    # without compensation.grid_rom: no generation, the decision says why; no active grid: nothing at all
+    ctx0 = T.context(dataclasses.replace(cfg, grid_rom=None), machine, small_rom, "X=0,Y=0,Z=0")
+    kept = T.on_grid_decision(ctx0, T.with_active_grid(ctx0, st, far), 900.0, temps, iter([far]))
+    assert not kept.commands and "grid_rom is not set" in kept.events[0].payload["message"]
+    assert not T.decides_grids(ctx0, st) and T.on_grid_decision(ctx0, st, 900.0, temps, iter([])).effects == ()
+
+
+def test_the_grid_rom_key_is_checked_when_the_configuration_is_read(machine, small_rom, tmp_path):
+    from pathlib import Path
+
+    from hybridcomp.monitor.config import ConfigError, parse_config
+    from hybridcomp.rom import save_rom
+
+    one = save_rom(tmp_path / "one.rom.npz", small_rom)
+
+    def cfg(grid_rom, machine_name="vmc800", **comp):
+        return parse_config({"monitor": {"machine": machine_name, "database": "cd.db", "rom": str(one)},
+                             "compensation": {"grid_rom": grid_rom, **comp},
+                             "source": {"kind": "replay", "path": "trace.csv"}, "sink": {"kind": "none"}},
+                            "test.toml", tmp_path)
+
+    with pytest.raises(ConfigError, match=r"test\.toml: compensation\.grid_rom = '.*one\.rom\.npz': a reduced model "
+                                          r"of one pose; a CD grid needs the drift at every support point"):
+        cfg("one.rom.npz")
+    with pytest.raises(ConfigError, match=r"compensation\.grid_rom = '.*nope\.npz': .*nope\.npz"):
+        cfg("nope.npz")
+    other = tmp_path / "other.toml"  # the same machine's file with one more line: another machine file
+    other.write_text(Path(machine.source).read_text() + "\n# changed\n")
+    with pytest.raises(ConfigError, match=r"compensation\.grid_rom = '.*one\.rom\.npz': .*machine\.sha256"):
+        cfg("one.rom.npz", str(other))
+    with pytest.raises(ConfigError, match=r"compensation\.grid_rom = .* strategy 'dataonly' does not apply"):
+        cfg("one.rom.npz", strategy="dataonly", dataonly_model="m.json")
+
+
+@pytest.mark.slow
+def test_a_daemon_with_no_fitting_grid_generates_one_in_its_worker_activates_it_and_applies_its_table(
+        machine, small_rom, pose_rom_200mm, small_rom_trace, tmp_path):
+    from hybridcomp.chardiag.fit import FitOptions
+    from hybridcomp.monitor.config import parse_config
+    from hybridcomp.monitor.daemon import Monitor, run_monitor
+    from hybridcomp.monitor.sinks import MemorySink
+    from hybridcomp.monitor.sources import ReplaySource
+    from hybridcomp.monitor.store import MonitorStore
+    from hybridcomp.rom import save_rom
+
+    trace = small_rom_trace
+    save_rom(tmp_path / "one.rom.npz", small_rom)
+    save_rom(tmp_path / "poses.npz", pose_rom_200mm)
+    pose = {"X": 0.0, "Y": 0.0, "Z": 0.0}
+    zero = {"T1_degC": np.linspace(18.0, 30.0, 20), **{c: np.zeros(20) for c in ("dx_um", "dy_um", "dz_um")}}
+    with CDDatabase(tmp_path / "cd.db") as db:  # an active set the decisions keep: no set generation competes
+        db.activate("vmc800", pose_key(pose), db.add_set(fit_cd_set(zero, machine="vmc800", pose_mm=pose,
+                                                                    options=FitOptions(min_target_range_um=1.0)),
+                                                         "zero"))
+    data = {"monitor": {"machine": "vmc800", "database": "cd.db", "rom": "one.rom.npz", "pose_mm": pose,
+                        "increment_s": 60.0, "threshold_K": 5.0},
+            "compensation": {"strategy": "hybrid", "max_step_um": 1000.0, "sensor_filter_s": 0.0,
+                             "grid_rom": "poses.npz", "table_points": 2},
+            "validity": {"keep_um": 1000.0, "forecast_um": 1000.0, "hard_um": 1000.0, "reject_um": 1000.0},
+            "source": {"kind": "replay", "path": str(trace), "speed": 0}, "sink": {"kind": "none"},
+            "regeneration": {"enabled": True, "timeout_s": 300.0}}
+    cfg = parse_config(data, "test.toml", tmp_path)
+    db = CDDatabase(tmp_path / "cd.db")
+    try:
+        mon = Monitor(cfg, machine, small_rom, db, pose_key(pose))
+        sink = MemorySink()
+        asyncio.run(run_monitor(cfg, mon, ReplaySource(trace, machine, speed=0), sink, await_regeneration=True))
+        again = Monitor(cfg, machine, small_rom, db, pose_key(pose))  # a restart: the generated grid is active
+        ev = {k: [(e.machine_time_s, e.payload) for e in MonitorStore(db).events(k)]
+              for k in ("grid generation", "grid activation", "grid decision")}
+        gid = db.active_grid_id("vmc800")
+        g = db.grid(gid)
+    finally:
+        db.close()
+    # the first boundary (the first sample) generates the grid, on the forecasts from its state; the grid fits after
+    assert ev["grid decision"] == []
+    assert [(t, p["status"]) for t, p in ev["grid generation"]] == [(0.0, "started"), (0.0, "finished")]
+    done = ev["grid generation"][1][1]
+    assert done["grid"] == gid and len(ev["grid activation"]) == 1 and g.grid.shape == (2, 2, 2)
+    print("grid generation:", done["wall_s"], "s,", done["notes"])
+    assert again.state.grid.grid_id == gid and again.s.grid_pending is None
+    # its sets' reference: the corrected model's sensors at the decision (the trace's are the model's own)
+    temps = _trace_temps(trace, [s.name for s in machine.sensors])
+    print("grid's reference against the first sample:", g.delta_T_K(temps[0.0]), "K")
+    assert g.delta_T_K(temps[0.0]) < 0.1
+    # before the activation the one-pose offsets, after it the grid's table at the sensors, at the position
+    after = [r for r in sink.rows if r.by == "cd-grid"]
+    assert len(after) == len(sink.rows) - 1 and sink.rows[0].by != "cd-grid"
+    for r in after[::10]:
+        want, _ = g.table(temps[r.time_s], r.time_s)
+        assert r.table.structure_um == pytest.approx(want.structure_um, abs=1e-9)
+        assert (r.dx_um, r.dy_um, r.dz_um) == pytest.approx(interpolate(r.table, np.array([r.position_mm]))[0],
+                                                            abs=1e-9)
+
+
+def test_a_grids_load_cases_are_the_history_and_the_forecasts_after_it_as_the_observer_corrects_them(machine,
+                                                                                                    small_rom):
+    from hybridcomp.monitor import transitions as T
+    from hybridcomp.monitor.config import MonitorConfig
+    from hybridcomp.monitor.regeneration import FORECAST_STEP_S, RegenerationRequest, forecast_scenarios, grid_cases
+
+    cfg = MonitorConfig(machine="vmc800", database="cd.db", rom="r.npz")
+    ctx = T.context(cfg, machine, small_rom, "X=0,Y=0,Z=0")
+    obs, lay = ctx.observer, ctx.layout
+    U = np.zeros((3, lay.n_inputs))
+    U[:, 0] = [100.0, 200.0, 50.0]  # the first heat input [W]; the air as the reference
+    st = T._set(_boundary_state(T, ctx, machine), loads=[[300.0 * (k + 1), *U[k]] for k in range(3)])
+    req = RegenerationRequest.from_dict(T._request(ctx, st, 900.0, {}, None))
+    x = np.array(st.saved.observer.x, float)
+    x[obs.slices()["air"]] = 0.5  # the estimate: every zone's air 0.5 K warmer
+    cases, t_end = grid_cases(obs, x, req, machine)
+    air = np.array([c.endswith("_degC") for c in lay.columns])
+    ref = req.reference_temperature_degC
+    h = cases["history"].loads
+    assert t_end == 900.0 and h.time_s[0] == 0.0 and h.time_s[-1] == 900.0
+    # by hand: each 300 s row's inputs over the increment ending at it, the air 0.5 K over the reference
+    want = np.array([U[min(int(np.ceil(t / 300.0)) - 1, 2) if t > 0 else 0] for t in h.time_s]) + (ref + 0.5) * air
+    assert h.values == pytest.approx(want, abs=1e-12)
+    scen = forecast_scenarios(machine, req.loads_names, req.loads_inputs, req.forecast_h)
+    assert set(cases) == {"history", *scen}
+    for name, F in scen.items():
+        c = cases[name].loads
+        assert np.array_equal(c.values[:len(h.time_s)], h.values)  # the history is the run-in
+        assert c.time_s[len(h.time_s):] == pytest.approx(900.0 + FORECAST_STEP_S * np.arange(1, len(F) + 1))
+        assert c.values[len(h.time_s):] == pytest.approx(F + (ref + 0.5) * air, abs=1e-12)
