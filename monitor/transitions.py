@@ -1371,13 +1371,21 @@ def on_regeneration_finished(ctx: Context, st: State, request: Mapping, result: 
                       f"{_t(t)}@activation_failed")
             out.log("error", f"generated set {ids} for {t:.0f} s cannot be activated: {load_error}")
     else:
-        out.event("generation", t, {"status": status, "error": error}, f"{_t(t)}@{status}")
-        # do not start another job for a while
-        st = _set(st, regen_blocked_until_s=(s.last_time_s or t) + ctx.cfg.regeneration.retry_after_s)
-        out.log("warning", f"generation job for {t:.0f} s {status}: {error}")
+        st = _job_failed(ctx, st, out, t, "generation", status, error, "regen_blocked_until_s", "generation job")
     st = _set(st, pending=None)
     out.command(Persist(None))
     return out.step(st)
+
+
+def _job_failed(ctx: Context, st: State, out, t: float, kind: str, status: str, error, blocked: str,
+                what: str) -> State:
+    """A generation job that did not finish: its event, a warning, and no other job of its kind for a while.
+
+    ``blocked``: the state's field that holds when the next may start.
+    """
+    out.event(kind, t, {"status": status, "error": error}, f"{_t(t)}@{status}")
+    out.log("warning", f"{what} for {t:.0f} s {status}: {error}")
+    return _set(st, **{blocked: (st.saved.last_time_s or t) + ctx.cfg.regeneration.retry_after_s})
 
 
 # ============================================================================================ CD grids
@@ -1515,9 +1523,8 @@ def on_grid_generation_finished(ctx: Context, st: State, request: Mapping, resul
                       f"{_t(t)}@activation_failed")
             out.log("error", f"generated CD grid {gid} for {t:.0f} s cannot be activated: {load_error}")
     else:
-        out.event("grid generation", t, {"status": status, "error": error}, f"{_t(t)}@{status}")
-        st = _set(st, grid_blocked_until_s=(s.last_time_s or t) + ctx.cfg.regeneration.retry_after_s)
-        out.log("warning", f"CD grid generation for {t:.0f} s {status}: {error}")
+        st = _job_failed(ctx, st, out, t, "grid generation", status, error, "grid_blocked_until_s",
+                         "CD grid generation")
     st = _set(st, grid_pending=None)
     out.command(Persist(None))
     return out.step(st)
