@@ -40,7 +40,7 @@ DENSE_MAX_STATES = 2000
 #: mass-spring-damper 35 s against 2 s for low-rank ADI, with the same balanced truncation to 1e-12)
 DENSE_MAX_STATES_NONSYMMETRIC = 400
 #: relative residual ‖W^T W‖ / ‖B^T B‖ at which low-rank ADI stops
-ADI_TOL = 1e-11
+ADI_TOL = 1e-13
 #: ADI steps at most (each one sparse solve with the inputs' or outputs' columns)
 ADI_MAXITER = 400
 
