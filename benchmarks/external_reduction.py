@@ -304,6 +304,7 @@ def _main(argv=None) -> dict:
     judged = [r["_"]["within_2x"] for r in rows if r["_"].get("within_2x") is not None]
     out = {"benchmark": "external_reduction", "machine": platform.machine(), "cpus": os.cpu_count(),
            "rows_within_2x_of_best_reference": sum(judged), "rows_judged": len(judged),
+           "rows_refused": sum(str(r["ours"]).startswith("refused") for r in rows),
            "all_stable": all(r["stable"] == "y" for r in rows if r["stable"] != "-"),
            "orders_delivered": all(r["order"] == r["r"] for r in rows if r["order"] != "-"),
            "rows": [{k: v for k, v in r.items() if k != "_"} | r["_"] for r in rows]}
