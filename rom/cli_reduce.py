@@ -59,8 +59,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--basis", choices=("auto", "bt", "irka", "krylov", "h2"),
                    help="auto (--matrices only, its default): bt, and at a stated --order up to 5,000 states also "
                    "irka, the smaller exact H2 error kept; bt: square-root balanced truncation, for any stable system "
-                   "(non-symmetric A, D ≠ 0), dense Lyapunov equations up to 2,000 states, low-rank ADI above; irka: "
-                   "two-sided IRKA started from bt's model; "
+                   "(non-symmetric A, D ≠ 0), dense Gramian factors up to 2,000 states (400 for non-symmetric A), "
+                   "low-rank ADI above; irka: "
+                   "two-sided IRKA from three starts (bt's model, shifts log-spaced over the spectrum and around its "
+                   "fastest rate), the best kept; "
                    "krylov: greedy rational Krylov basis, then its Gramian compression; h2: the one-sided basis "
                    "with the smallest H2 error (L-BFGS inside a large Krylov surrogate), keeping the s = 0 block when "
                    "the order allows (a machine's model); krylov and h2 keep the model symmetric, stable and affine "

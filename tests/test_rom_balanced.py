@@ -226,3 +226,87 @@ def test_irka_from_balanced_truncation_and_the_default_keeps_the_better(tmp_path
     cand = auto.meta["candidates_h2_error_relative"]
     assert set(cand) == {"bt", "irka"} and auto.meta["h2_error_relative"] == pytest.approx(min(cand.values()))
     assert auto.meta["basis"] == min(cand, key=cand.get)
+
+
+def mass_spring_damper(n=60, m_i=4.0, k_i=4.0, c_i=1.0):
+    """The chain of Gugercin, Polyuga, Beattie, van der Schaft (2012): states (q_j, p_j), forces on the first two
+    masses, their velocities measured (2 × 2, non-symmetric, lightly damped)."""
+    N = n // 2
+    A = np.zeros((n, n))
+    for j in range(N):
+        q, p = 2 * j, 2 * j + 1
+        A[q, p] = 1.0 / m_i
+        A[p, p] = -c_i / m_i
+        A[p, q] = -k_i if j == 0 else -2 * k_i
+        if j > 0:
+            A[p, q - 2] = k_i
+        if j < N - 1:
+            A[p, q + 2] = k_i
+    B = np.zeros((n, 2))
+    B[1, 0] = B[3, 1] = 1.0
+    return {"A": sp.csr_matrix(A), "B": B, "C": B.T / m_i}
+
+
+def penzl_mimo(n=200):
+    """Penzl's system (three lightly damped 2 × 2 blocks at 100, 200, 400 rad/s and −1 … −(n − 6)), 2 × 3 as in
+    pyMOR's ``penzl_mimo_example``."""
+    blocks = [np.array([[-1.0, w], [-w, -1.0]]) for w in (100.0, 200.0, 400.0)]
+    A = sp.block_diag([*blocks, sp.diags(-np.arange(1.0, n - 5))]).tocsr()
+    return {"A": A, "B": np.arange(2 * n, dtype=float).reshape(n, 2), "C": np.arange(3 * n, dtype=float).reshape(3, n)}
+
+
+def test_irka_from_several_starts_beats_the_start_from_balanced_truncation(tmp_path):
+    """On the mass-spring-damper chain at order 6, IRKA from balanced truncation's model stops in a local optimum
+    twice as bad as the one reached from shifts around the fastest rate; the default keeps the best, in either
+    time unit, and its printed error is scipy's Lyapunov figure."""
+    m = mass_spring_damper()
+    n = m["A"].shape[0]
+    E, A = sp.identity(n, format="csr"), m["A"]
+    Zp, Zq = bl.dense_gramian_factors(E, A, m["B"], m["C"], symmetric=False)
+    bt = bl.truncate(E, A, m["B"], m["C"], bl.balance(E, Zp, Zq), 6)[:4]
+    single, _, _ = bl.irka(E, A, m["B"], m["C"], bt)
+    e_single = bl.h2_error(E, A, m["B"], m["C"], Zp, *single[:4])
+    errs = []
+    for scale in (1.0, 1e6):
+        rom = reduce_matrices(_save(tmp_path, f"msd{scale:g}.mat", {**m, "E": scale * sp.identity(n)}), order=6)
+        assert rom.order == 6 and rom.meta["stable"] and rom.meta["basis"] == "irka"
+        errs.append(rom.meta["h2_error_relative"])
+    assert errs[0] == pytest.approx(lyapunov_error(m, reduce_matrices(_save(tmp_path, "m.mat", m), order=6)), rel=1e-6)
+    assert errs[0] < 0.5 * e_single
+    assert errs[1] == pytest.approx(errs[0], rel=1e-6)
+
+
+def test_penzl_mimo_reduces_to_the_same_error_in_either_time_unit(tmp_path):
+    """Every shift, start and tolerance comes from the system: E × 1e6 gives the same model in another unit."""
+    m = penzl_mimo()
+    got, roms = [], []
+    for scale in (1.0, 1e6):
+        rom = reduce_matrices(_save(tmp_path, f"p{scale:g}.mat", {**m, "E": scale * sp.identity(200)}), order=10)
+        assert rom.order == 10 and rom.meta["stable"]
+        roms.append(rom)
+        got.append((rom.meta["h2_error_relative"], rom.meta["method"].split(" (")[0], np.sort(np.abs(rom.poles())) * scale))
+    assert got[1][0] == pytest.approx(got[0][0], rel=1e-6) and got[1][1] == got[0][1]
+    np.testing.assert_allclose(got[1][2], got[0][2], rtol=1e-6)
+    assert got[0][0] == pytest.approx(lyapunov_error(m, roms[0]), rel=1e-3)
+
+
+def test_gramian_factors_resolve_hankel_singular_values_down_to_1e_12():
+    """Decoupled channels in an unbalanced realisation (inputs from 1 down to 1e-11, outputs 1), seen through a
+    non-orthogonal change of state: σ_i = |b_i c_i| / (2 a_i) by hand, from 0.5 down to 1e-13. A factor taken as
+    the square root of an assembled Gramian loses every σ below about 1e-8 σ_1 (the Gramian's eigenvalues b_i² /
+    (2 a_i) fall below its round-off); Hammarling's and the Cauchy factors, computed as factors, keep them."""
+    rng = np.random.default_rng(3)
+    n = 14
+    a = np.geomspace(1.0, 50.0, n)
+    b, c = np.geomspace(1.0, 1e-11, n), np.ones(n)
+    sigma = np.sort(b * c / (2 * a))[::-1]
+    Q = la.qr(rng.normal(size=(n, n)))[0]
+    S = Q @ (np.eye(n) + 0.3 * rng.normal(size=(n, n)) / np.sqrt(n))  # well conditioned, not orthogonal
+    Si = la.inv(S)
+    E = sp.identity(n, format="csr")
+    for sym, (A, B, C) in (("nonsymmetric", (S @ np.diag(-a) @ Si, S @ np.diag(b), np.diag(c) @ Si)),
+                           ("symmetric", (Q @ np.diag(-a) @ Q.T, Q @ np.diag(b), np.diag(c) @ Q.T))):
+        Zp, Zq = bl.dense_gramian_factors(E, sp.csr_matrix(A), B, C, symmetric=sym == "symmetric")
+        hsv = bl.balance(E, Zp, Zq).hsv
+        keep = sigma > 1e-12 * sigma[0]
+        np.testing.assert_allclose(hsv[: keep.sum()], sigma[keep], rtol=1e-3, err_msg=sym)
