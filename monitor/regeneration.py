@@ -46,7 +46,7 @@ MAX_INPUTS = 3  # FE job: at most this many sensors (chosen by BIC)
 # (a warmer enclosure, a draught): (zones: "workspace" | "all", offset [K]).
 AIR_VARIANTS_K = (("all", 0.0), ("workspace", 2.0), ("workspace", -2.0), ("all", 1.5), ("all", -1.5))
 GRID_JOB = "hybridcomp.monitor.regeneration:grid_job"  # the job of a CD grid's request
-_MODELS: dict = {}  # models built in this worker process (FE by machine, pose and element size; ROMs by path)
+_MODELS: dict = {}  # models built in this worker process, one per kind (:func:`_cached`)
 
 
 @dataclass(frozen=True)
@@ -201,19 +201,31 @@ def training_table(observer, x, req: RegenerationRequest, machine) -> tuple[dict
     return table, np.concatenate(w)[keep], parts
 
 
+def _cached(kind: str, key: tuple, build):
+    """The model of ``kind`` under ``key`` built in this worker process (the worker lives on: built once).
+
+    One model per kind is kept: a new key of a kind replaces the former one, and models of other kinds stay (a
+    grid job needs the one-pose model and the pose-aware one at once).
+    """
+    if (kind, key) not in _MODELS:
+        for k in [k for k in _MODELS if k[0] == kind]:
+            del _MODELS[k]
+        _MODELS[(kind, key)] = build()
+    return _MODELS[(kind, key)]
+
+
 def _rom(path: str, machine):
     from hybridcomp.rom import load_rom
 
-    key = ("rom", path, machine.sha256)
-    if key not in _MODELS:
-        _MODELS.clear()
+    def build():
         rom = load_rom(path, machine)
         if rom.meta.get("poses"):  # the daemon's observer runs on the model pose's block: so does the job
             from hybridcomp.rom.poses import model_pose_block
 
             rom = model_pose_block(rom)
-        _MODELS[key] = rom
-    return _MODELS[key]
+        return rom
+
+    return _cached("rom", (path, machine.sha256), build)
 
 
 def default_job(request: dict) -> dict:
@@ -284,6 +296,7 @@ def fe_job(request: dict) -> dict:
     from hybridcomp.chardiag.db import CDDatabase
     from hybridcomp.chardiag.fit import CDFitError, FitOptions, fit_cd
     from hybridcomp.chardiag.training import LoadCase, simulate_load_cases
+    from hybridcomp.fem.model import build_model
     from hybridcomp.models import load_machine
 
     t0 = time.monotonic()
@@ -293,12 +306,8 @@ def fe_job(request: dict) -> dict:
     name = f"generated@{req.machine_time_s:.0f}s"
     sig = None if req.signature is None else np.asarray(req.signature, float)
     pose = machine.check_pose(dict(req.pose_mm or {}))
-    key = (machine.sha256, tuple(sorted(pose.items())), req.element_size_mm)
-    if key not in _MODELS:  # the worker process lives on: build the FE model once
-        from hybridcomp.fem.model import build_model
-
-        _MODELS.clear()
-        _MODELS[key] = build_model(machine, pose, req.element_size_mm)
+    model = _cached("fe", (machine.sha256, tuple(sorted(pose.items())), req.element_size_mm),
+                    lambda: build_model(machine, pose, req.element_size_mm))
     cases = {}
     for zones, dK in AIR_VARIANTS_K:
         V = loads.values.copy()
@@ -309,7 +318,7 @@ def fe_job(request: dict) -> dict:
                     V[:, loads.names.index(col)] += dK
         variant = f"{name}{'' if not dK else f' {zones} {dK:+g} K'}"
         cases[variant] = LoadCase(variant, type(loads)(loads.time_s, V, loads.names), None, sig)
-    data = simulate_load_cases(machine, cases, pose_mm=pose, element_size_mm=req.element_size_mm, model=_MODELS[key])
+    data = simulate_load_cases(machine, cases, pose_mm=pose, element_size_mm=req.element_size_mm, model=model)
     kw = dict(machine=machine.name, machine_sha256=machine.sha256, pose_mm=pose, load_case=name, signature=sig,
               t_reference_degC=req.t_reference_degC, source=name)
     db = CDDatabase(req.database)
@@ -373,14 +382,13 @@ def grid_cases(observer, x, req: RegenerationRequest, machine) -> tuple[dict, fl
 def _pose_rom(path: str, machine):
     from hybridcomp.rom import load_rom
 
-    key = ("pose rom", path, machine.sha256)
-    if key not in _MODELS:
-        _MODELS.clear()
+    def build():
         rom = load_rom(path, machine)
         if not rom.meta.get("poses"):
             raise ValueError(f"{path}: a reduced model of one pose; a CD grid needs a pose-aware one")
-        _MODELS[key] = rom
-    return _MODELS[key]
+        return rom
+
+    return _cached("pose rom", (path, machine.sha256), build)
 
 
 def grid_job(request: dict) -> dict:
