@@ -320,8 +320,8 @@ def _campaign_record(recorded: Path, noise_um: float, seed: int) -> Path:
     return out
 
 
-#: the data-only strategy's training part of the recorded day; the rest is held out
-DATAONLY_TRAIN = "0:50%"
+#: the data-only strategy's training part of the recorded day (a fraction of its time); the rest is held out
+DATAONLY_TRAIN_FRACTION = 0.5
 #: the columns a machine without an FE model would not feed its data-only model (the axis positions: the online
 #: strategy rebuilds only spindle activities)
 DATAONLY_DROP = ("x_mm", "y_mm", "z_mm")
@@ -347,7 +347,8 @@ def _dataonly(folder: Path, res, models, scenario, noise_um: float, seed: int) -
     train = folder / "dataonly_training.csv"
     train.write_text("\n".join(",".join(line.split(",")[i] for i in keep) for line in lines) + "\n")
     diag = folder / "dataonly"
-    code = cli(["diagnose", "--data-only", "--data", str(train), "--train", DATAONLY_TRAIN,
+    split = f"0:{100 * DATAONLY_TRAIN_FRACTION:g}%"
+    code = cli(["diagnose", "--data-only", "--data", str(train), "--train", split,
                 "--probe-every-hours", f"{scenario.probe_every_h:g}", "--out", str(diag)])
     model = diag / "dataonly_model.json"
     if code != 0 or not model.is_file():
@@ -363,8 +364,8 @@ def _dataonly(folder: Path, res, models, scenario, noise_um: float, seed: int) -
     for name in ("no compensation", "hybrid monitor", "observer", "ROM direct"):
         key = name.replace(" ", "_")
         residual[name] = truth - np.column_stack([R[f"{key}_{d}_um"] for d in ("dx", "dy", "dz")])
-    held = t >= t[0] + 0.5 * (t[-1] - t[0])
-    return {"train": DATAONLY_TRAIN, "model": str(model.relative_to(folder)),
+    held = t >= t[0] + DATAONLY_TRAIN_FRACTION * (t[-1] - t[0])
+    return {"train": split, "model": str(model.relative_to(folder)),
             "held_out": {k: drift_metrics(t[held], r[held])["3d"] for k, r in residual.items()},
             "largest_step_um": run["largest_step_um"]}
 
