@@ -5,7 +5,8 @@ Systems, built here from their published definitions (no download):
 * ``penzl``: Penzl's FOM (1,006 states, SISO, non-symmetric, E = I; as pyMOR's ``penzl_example``);
 * ``penzl_mimo``: its MIMO variant (2,000 states, 2 inputs × 3 outputs; as pyMOR's ``penzl_mimo_example``);
 * ``msd``: the mass-spring-damper chain of Gugercin, Polyuga, Beattie, van der Schaft 2012 (1,000 states,
-  2 × 2, non-symmetric, lightly damped; pyMOR's ``msd_example(as_lti=True)``);
+  2 × 2, non-symmetric, lightly damped; pyMOR's ``msd_example(as_lti=True)``); ``msd100``: the same chain with
+  50 masses (100 states);
 * ``heat1d``: 1-D heat conduction, linear finite elements, E = FE mass (1,000 states, SISO, symmetric);
 * ``heat2d``: 2-D heat conduction on the unit square, bilinear finite elements, E = FE mass, 2 heated patches ×
   3 measured points (900 states; with ``--large`` also a 141 × 141 grid, 19,881 states, SISO, low-rank path);
@@ -143,7 +144,8 @@ def convdiff(k: int = 30, peclet: float = 20.0) -> dict:
 def builtin_systems(large: bool) -> dict[str, dict]:
     from hybridcomp.rom.external import plate_system
 
-    out = {"penzl": penzl(), "penzl_mimo": penzl_mimo(), "msd": msd(), "heat1d": heat1d(), "heat2d": heat2d(),
+    out = {"penzl": penzl(), "penzl_mimo": penzl_mimo(), "msd": msd(), "msd100": msd(100),
+           "heat1d": heat1d(), "heat2d": heat2d(),
            "convdiff": convdiff(), "plate": plate_system(32)}
     if large:
         out["heat2d_large"] = heat2d(141, mimo=False)

@@ -496,11 +496,14 @@ def logspaced_interpolation(slow: float, fast: float, r: int, m: int, q: int) ->
     return Interpolation(sigma, b.astype(complex), c.astype(complex))
 
 
-def _tangential_bases(E, A, B, C, data: Interpolation, symmetric: bool) -> tuple[np.ndarray, np.ndarray] | None:
+def _tangential_bases(E, A, B, C, data: Interpolation, symmetric: bool,
+                      rank_tol: float = 1e-13) -> tuple[np.ndarray, np.ndarray] | None:
     """Real orthonormal ``V``, ``W`` spanning ``(σ_i E − A)^{-1} B b_i`` and ``(σ_i E − A)^{-T} C^T c_i``.
 
     One sparse LU per real shift or conjugate pair; a pair contributes the real and imaginary parts of one
-    solution. ``None`` if a basis collapses (rank below r).
+    solution. ``None`` if a basis collapses (its QR's smallest diagonal at most ``rank_tol`` times its largest;
+    0: only an exactly dependent column, for orders beyond the minimal realisation, where the last directions
+    are round-off by nature).
     """
     sigma, r = data.sigma, data.sigma.size
     Vr = np.zeros((A.shape[0], r))
@@ -524,13 +527,14 @@ def _tangential_bases(E, A, B, C, data: Interpolation, symmetric: bool) -> tuple
     for X in (Vr, Wr):
         Qx, R = la.qr(X, mode="economic", check_finite=False)
         d = np.abs(np.diag(R))
-        if not d.size or d.min() <= 1e-13 * d.max():
+        if not d.size or d.min() <= rank_tol * d.max():
             return None
         out.append(Qx)
     return out[0], out[1]
 
 
-def irka(E, A, B, C, start, symmetric: bool = False, maxit: int = IRKA_MAXIT, tol: float = IRKA_TOL):
+def irka(E, A, B, C, start, symmetric: bool = False, maxit: int = IRKA_MAXIT, tol: float = IRKA_TOL,
+         rank_tol: float = 1e-13):
     """Two-sided iterative rational Krylov (Gugercin, Antoulas, Beattie 2008), tangential for MIMO.
 
     ``start``: a reduced model ``(E_r, A_r, B_r, C_r)`` (e.g. balanced truncation's: its mirrored poles are good
@@ -538,7 +542,8 @@ def irka(E, A, B, C, start, symmetric: bool = False, maxit: int = IRKA_MAXIT, to
     poles, tangential directions from its residues, real bases of the tangential rational Krylov spaces
     (:func:`_tangential_bases`), Petrov–Galerkin. Stops when the shifts move less than ``tol`` (relative, largest
     over the shifts sorted). Returns ``(E_r, A_r, B_r, C_r, V)``, the iterations and the last relative shift
-    change; ``None`` for the model if the order collapses (a real basis smaller than r).
+    change; ``None`` for the model if the order collapses (a real basis smaller than r, see
+    :func:`_tangential_bases` for ``rank_tol``).
     """
     data = start if isinstance(start, Interpolation) else interpolation_of(*(np.asarray(X) for X in start[:4]))
     A, E = sp.csc_matrix(A), sp.csc_matrix(E)
@@ -547,7 +552,7 @@ def irka(E, A, B, C, start, symmetric: bool = False, maxit: int = IRKA_MAXIT, to
         if not np.all(np.isfinite(data.sigma)):  # a reduced pole at infinity (a singular E_r): no next step
             return None, it, change
         try:
-            bases = _tangential_bases(E, A, B, C, data, symmetric)
+            bases = _tangential_bases(E, A, B, C, data, symmetric, rank_tol)
         except RuntimeError:  # a shift on a pole of the full model: "Factor is exactly singular"
             bases = None
         if bases is None:

@@ -47,7 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.add_argument("--pose", help="axis positions in mm, e.g. X=100,Y=-50,Z=0 (default: mid travel)")
     p.add_argument("--element-size-mm", type=float, help="largest element edge [mm] (default: from the machine file)")
-    p.add_argument("--order", type=int, help="reduce to exactly this order instead of to the tolerances")
+    p.add_argument("--order", type=int,
+                   help="reduce to exactly this order instead of to the tolerances (with --matrices beyond the "
+                   "system's minimal realisation: a warning, and the best of the candidates, decoupled states added)")
     p.add_argument("--tol-K", type=float, default=0.05,
                    help="sensor-temperature tolerance [K] against FE on the check load case (default 0.05); "
                    "with --matrices: the transfer-function (H∞) tolerance per unit input, in output units (bt: the smallest "
@@ -220,6 +222,13 @@ def run(args: argparse.Namespace) -> int:
             if not m["h2_tol_met"]:
                 print(f"warning: relative H2 error {m['h2_error_relative']:.3g} above --h2-tol {m['h2_tol']:g} at the "
                       f"largest order with a balanced direction ({rom.order})", file=sys.stderr)
+        if m.get("order_asked") is not None and m["order_asked"] > m["minimal_order"]:
+            print(f"warning: --order {m['order_asked']} is beyond the system's minimal realisation: only "
+                  f"{m['minimal_order']} Hankel singular values are above round-off (1e-14 σ₁), so no model of "
+                  f"{m['order_asked']} states is more accurate than one of {m['minimal_order']}"
+                  + (f"; {m['decoupled_states']} of its states are decoupled (B = 0, C = 0)"
+                     if m["decoupled_states"] else f"; {m['method'].split(' (')[0]} gave all of them")
+                  + f" (relative H2 error {m['h2_error_relative']:.3g})", file=sys.stderr)
         if not m["stable"]:
             print(f"warning: the reduced model is NOT stable (a pole with real part {m['max_pole_real_part']:.3g}); "
                   "try --basis bt, or --basis h2 / krylov for symmetric A (stable by construction)", file=sys.stderr)

@@ -384,6 +384,29 @@ def _one_sided(system: ExternalSystem, V: np.ndarray):
     return V.T @ (system.E @ V), V.T @ (system.A @ V), V.T @ system.B, system.C @ V
 
 
+def _with_decoupled_states(model, order: int, slowest_rate: float, fastest_rate: float):
+    """A model of the minimal realisation's order, padded with decoupled states up to ``order``.
+
+    ``model`` is ``(E_r, A_r, B_r, C_r, V, method)``. The added states are reached by neither input nor output
+    (``B = 0``, ``C = 0``), at rates log-spaced over the system's own band (so they scale with its time unit):
+    the same transfer function, hence the same error, in the number of states asked for (a controller's fixed
+    slot). ``V`` gets zero columns: the added states stay at zero.
+    """
+    Er, Ar, Br, Cr, V, method = model
+    r, k = Ar.shape[0], order - Ar.shape[0]
+    rates = np.geomspace(slowest_rate, fastest_rate, k) if k > 1 else np.array([slowest_rate])
+
+    def block(X, Y):
+        out = np.zeros((order, order))
+        out[:r, :r], out[r:, r:] = X, Y
+        return out
+
+    return (block(Er, np.eye(k)), block(Ar, -np.diag(rates)), np.vstack([Br, np.zeros((k, Br.shape[1]))]),
+            np.hstack([Cr, np.zeros((Cr.shape[0], k))]), np.hstack([V, np.zeros((V.shape[0], k))]),
+            f"{method}, of the minimal realisation's order {r}, with {k} decoupled states (B = 0, C = 0) up to the "
+            f"order asked for")
+
+
 def _one_blas_thread(fn):
     """Run ``fn`` with one BLAS thread.
 
@@ -481,10 +504,9 @@ def reduce_matrices(
     Zp, Zq, gram = bl.gramian_factors(E, A, B, C, system.symmetric)
     bal = bl.balance(E, Zp, Zq)
     r_max = min(n - 1, bal.max_order)
-    if order is not None and order > r_max:
-        raise ValueError(f"--order {order}: {path.name} has only {r_max} Hankel singular values above round-off "
-                         f"(σ_{r_max + 1}/σ_1 < 1e-14): its minimal realisation has {r_max} states, so a model of "
-                         f"order {order} would be as exact as one of order {r_max}; ask for at most {r_max}")
+    # beyond the minimal realisation (Hankel singular values above round-off) no projection has more to carry:
+    # balanced truncation gives its r_max-state model plus decoupled states, IRKA (where it runs) tries all r
+    beyond = order is not None and order > r_max and basis in ("bt", "auto", "irka")
 
     def band_fast(r: int) -> float:
         """The fastest rate the balanced model of order ~2r resolves (scale-free frequency band)."""
@@ -521,7 +543,19 @@ def reduce_matrices(
         return bl.h2_error(E, A, B, C, Zp, Er, Ar, Br, Cr, system.symmetric)
 
     tried: list[tuple[int, float]] = []
-    if order is not None:
+    beyond_bt: dict[str, tuple] = {}  # beyond the minimal order: balanced truncations of other orders, padded
+    if order is not None and beyond:
+        # σ_k at round-off: which truncation is best is not known from them; each candidate's exact error decides.
+        # Orders from the minimal one to the factors' rank (a truncation there may still be better, or singular)
+        ks = np.unique(np.linspace(r_max, min(order, bal.hsv.size), 5).astype(int))
+        model = _with_decoupled_states(build(r_max), order, spec.slow, spec.fast)
+        for k in ks[ks > r_max]:
+            Er, Ar, Br, Cr, V, method = build(int(k))
+            poles = bl.reduced_poles(Er, Ar)
+            if np.all(np.isfinite(poles)) and np.max(poles.real) < 0:
+                beyond_bt[f"bt{k}"] = _with_decoupled_states((Er, Ar, Br, Cr, V, method + f" at order {k}"),
+                                                             order, spec.slow, spec.fast)
+    elif order is not None:
         model = build(order)
     elif tol is not None and basis != "krylov":
         r = next((k for k in range(1, r_max + 1) if bal.hinf_bound(k) <= tol), r_max)
@@ -552,20 +586,21 @@ def reduce_matrices(
         model = at(best)[0]
     # each candidate: (model, relative H2 error by Lyapunov equations)
     found = {"bt": (model, err_of(model) if np.max(bl.reduced_poles(model[0], model[1]).real) < 0 else np.inf)}
+    found |= {key: (mdl, err_of(mdl)) for key, mdl in beyond_bt.items()}
     irka_starts: dict[str, float | None] = {}
     if basis == "irka" or (basis == "auto" and n <= IRKA_AUTO_MAX_STATES and order is not None):
         # IRKA from several starts (each may end in another local optimum): BT's model, and real shifts
         # log-spaced over the system's band and over the band around its fastest rate (pyMOR's default start
         # [0.1, 10] in units of that rate / 2); the stable one with the smallest exact error is kept
         r, m_in, q_out = model[1].shape[0], B.shape[1], C.shape[0]
-        starts = {"balanced truncation's model": model[:4],
-                  "shifts log-spaced over the spectrum": bl.logspaced_interpolation(spec.slow, spec.fast, r, m_in,
-                                                                                    q_out),
-                  "shifts log-spaced around the fastest rate": bl.logspaced_interpolation(
-                      spec.fast / 20, 5 * spec.fast, r, m_in, q_out)}
+        starts = {} if beyond else {"balanced truncation's model": model[:4]}  # decoupled states: no directions
+        starts |= {
+            "shifts log-spaced over the spectrum": bl.logspaced_interpolation(spec.slow, spec.fast, r, m_in, q_out),
+            "shifts log-spaced around the fastest rate": bl.logspaced_interpolation(
+                spec.fast / 20, 5 * spec.fast, r, m_in, q_out)}
         best = None
         for label, s0 in starts.items():
-            out, its, change = bl.irka(E, A, B, C, s0, system.symmetric)
+            out, its, change = bl.irka(E, A, B, C, s0, system.symmetric, rank_tol=0.0 if beyond else 1e-13)
             if out is None or np.max(bl.reduced_poles(out[0], out[1]).real) >= 0:
                 irka_starts[label] = None
                 continue
@@ -593,8 +628,9 @@ def reduce_matrices(
         found = {key: (found[key][0], q[i]) for i, key in enumerate(keys)}
         how = "quadrature"
     candidates = {key: e for key, (_, e) in found.items()} if len(found) > 1 else {}
-    # IRKA replaces balanced truncation (its bound, its ordering) only when clearly better, not on a tie
-    pick = "irka" if basis == "irka" or "irka" in found and found["irka"][1] < (1 - 1e-6) * found["bt"][1] else "bt"
+    # another candidate replaces balanced truncation (its bound, its ordering) only when clearly better, not on a tie
+    best_key = min(found, key=lambda key: found[key][1])
+    pick = "irka" if basis == "irka" else best_key if found[best_key][1] < (1 - 1e-6) * found["bt"][1] else "bt"
     model, err = found[pick]
     err_lyap = lyapunov[pick]
     Er, Ar, Br, Cr, V, method = model
@@ -611,6 +647,8 @@ def reduce_matrices(
         "nodes": n,
         "order": int(Ar.shape[0]),
         "order_asked": order,
+        "minimal_order": int(r_max),
+        "decoupled_states": int(np.sum(~np.any(Br, axis=1) & ~np.any(Cr, axis=0))) if beyond else 0,
         "basis": basis if basis != "auto" else ("irka" if method.startswith("two-sided IRKA") else "bt"),
         "basis_asked": basis,
         "candidates_h2_error_relative": candidates,

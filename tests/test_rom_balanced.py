@@ -104,17 +104,25 @@ def test_printed_error_equals_an_independent_lyapunov_computation(tmp_path, monk
         assert 1e-6 < ref < 0.5
 
 
-def test_the_order_asked_is_delivered_or_refused_saying_why(tmp_path):
+def test_the_order_asked_is_delivered_beyond_the_minimal_realisation_with_the_same_transfer_function(tmp_path):
     path = _save(tmp_path, "heat.mat", heat_chain())
     for r in (1, 7, 13):
         assert reduce_matrices(path, order=r).order == r
-    # three decoupled channels driven, seven not: the minimal realisation has 3 states
+    # three decoupled channels driven, seven not: the minimal realisation has 3 states, G = Σ 1/(s + i), i = 1..3
     n = 10
     B = np.zeros((n, 1))
     B[:3, 0] = 1.0
     m = {"A": sp.diags(-np.arange(1.0, n + 1)).tocsr(), "B": B, "C": np.ones((1, n))}
-    with pytest.raises(ValueError, match=r"--order 5: .* only 3 Hankel singular values .* ask for at most 3"):
-        reduce_matrices(_save(tmp_path, "min.mat", m), order=5)
+    mpath = _save(tmp_path, "min.mat", m)
+    for basis in ("bt", "auto"):
+        rom = reduce_matrices(mpath, order=5, basis=basis)
+        assert rom.order == 5 and rom.meta["minimal_order"] == 3 and rom.meta["stable"]
+        assert rom.meta["h2_error_relative"] < 1e-6
+        for s in (0.0, 0.7, 3.0j, 10.0 + 2.0j):  # the transfer function by hand
+            g = rom.C @ np.linalg.solve(s * rom.E - rom.A, rom.B) + rom.D
+            assert g[0, 0] == pytest.approx(sum(1.0 / (s + i) for i in (1, 2, 3)), rel=1e-9)
+    assert reduce_matrices(mpath, order=5, basis="bt").meta["decoupled_states"] == 2
+    assert reduce_matrices(mpath, order=3, basis="bt").meta["decoupled_states"] == 0
 
 
 def test_h2_tol_gives_the_smallest_order_reaching_it(tmp_path):
