@@ -24,7 +24,8 @@ printed figure against an independent frequency quadrature on a twice finer grid
 sharp resonances (:func:`sharp_poles`) and the reduced poles (:func:`hybridcomp.rom.balanced.quadrature_h2_error`);
 pyMOR's errors by the route our printed figure takes (Lyapunov equations of
 :func:`hybridcomp.rom.balanced.h2_error`, frequency quadrature below 1e-4 where the Lyapunov terms cancel, on
-the same panels); the seconds per call (ours: reading, checks, Gramians, reduction and both error figures;
+the same panels; every quadrature below 1e-11 with its transfer functions refined in long double, as ours); the
+seconds per call (ours: reading, checks, Gramians, reduction and both error figures;
 pyMOR's: the reduction alone; everything with one BLAS thread, as ``reduce_matrices`` runs).
 Prints a table and a final JSON line::
 
@@ -198,11 +199,24 @@ def error_of(system, Zp, spec, mdl, peaks, per_decade: int = 12) -> float:
     """The route of our printed figure for any model: Lyapunov, frequency quadrature below 1e-4 (terms cancel)."""
     from hybridcomp.rom import balanced as bl
 
-    E, A, B, C, D = system.E, system.A, system.B, system.C, system.D
+    E, A, B, C = system.E, system.A, system.B, system.C
     e = bl.h2_error(E, A, B, C, Zp, *mdl, system.symmetric)
     if e < 1e-4:
-        e = bl.quadrature_h2_error((E, A, B, C, D), (*mdl, D), spec.slow, spec.fast, per_decade, system.symmetric,
-                                   np.r_[peaks, np.linalg.eigvals(np.linalg.solve(mdl[0], mdl[1]))])
+        e = quadrature(system, spec, mdl, np.r_[peaks, np.linalg.eigvals(np.linalg.solve(mdl[0], mdl[1]))],
+                       per_decade)
+    return e
+
+
+def quadrature(system, spec, mdl, peaks, per_decade: int) -> float:
+    """Frequency quadrature of the relative H2 error, refined in long double below ``REFINE_BELOW`` (as ours)."""
+    from hybridcomp.rom import balanced as bl
+    from hybridcomp.rom.external import REFINE_BELOW
+
+    full = (system.E, system.A, system.B, system.C, system.D)
+    e = bl.quadrature_h2_error(full, (*mdl[:4], system.D), spec.slow, spec.fast, per_decade, system.symmetric, peaks)
+    if e < REFINE_BELOW:
+        e = bl.quadrature_h2_error(full, (*mdl[:4], system.D), spec.slow, spec.fast, per_decade, system.symmetric,
+                                   peaks, refined=True)
     return e
 
 
@@ -244,7 +258,7 @@ def _main(argv=None) -> dict:
             path = work / f"{name}_E{unit:g}.mat"
             scipy.io.savemat(path, {k: v for k, v in m.items() if v is not None})
             system = check_system(m, str(path))
-            E, A, B, C, D = system.E, system.A, system.B, system.C, system.D
+            E, A, B, C = system.E, system.A, system.B, system.C
             Zp, _, gram = bl.gramian_factors(E, A, B, C, system.symmetric)
             spec = bl.spectrum_bounds(E, A, system.symmetric)
             sharp = sharp_poles(system)
@@ -268,9 +282,7 @@ def _main(argv=None) -> dict:
                 peaks = np.r_[ours.poles(), sharp]
 
                 # independent of the printed figure: quadrature on a twice finer grid
-                q = (None if args.no_quadrature else
-                     bl.quadrature_h2_error((E, A, B, C, D), (*model, ours.D), spec.slow, spec.fast, 24,
-                                            system.symmetric, peaks))
+                q = None if args.no_quadrature else quadrature(system, spec, model, peaks, 24)
                 ref = {} if args.no_pymor else _pymor_models(m, r, args.irka_maxit)
                 errs = {}
                 for k in ("BT", "IRKA"):

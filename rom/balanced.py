@@ -389,6 +389,38 @@ def transfer(E, A, B, C, D, s: complex, symmetric: bool = False) -> np.ndarray:
     return C @ X + D
 
 
+def transfer_refined(E, A, B, C, s: complex, symmetric: bool = False, steps: int = 2) -> np.ndarray:
+    """``C (s E − A)^{-1} B`` to about 1e-19 relative (long double), for errors near double precision's round-off.
+
+    The solve in double, then ``steps`` of iterative refinement whose residual ``B − (s E − A) X`` is formed in
+    long double (x86: 64-bit mantissa) and corrected with the same LU: each step gains about 16 digits while
+    ``cond(s E − A) · 1e-16 < 1``. Plain double evaluation leaves a relative error near 1e-15 in ``G(iω)``, and
+    an error ``G − G_r`` at that level reads as noise (measured on a convection–diffusion system: 2e-16 to 5e-15
+    over the frequencies against a smooth 7e-16 to 1.7e-15 refined; its quadrature scattered by ±15 % between
+    grids). Returns a long-double complex array.
+    """
+    ld = np.clongdouble
+    if sp.issparse(A):
+        K = sp.csc_matrix(s * E - A)
+        lu = splu(K, symmetric)
+
+        def solve(R):
+            return lu.solve(np.asarray(R, complex))
+        KL = (ld(s) * sp.csr_matrix(E).astype(ld) - sp.csr_matrix(A).astype(ld))
+    else:
+        K = s * np.asarray(E) - np.asarray(A)
+        lu = la.lu_factor(K, check_finite=False)
+
+        def solve(R):
+            return la.lu_solve(lu, np.asarray(R, complex), check_finite=False)
+        KL = ld(s) * np.asarray(E).astype(ld) - np.asarray(A).astype(ld)
+    BL = np.asarray(B).reshape(A.shape[0], -1).astype(ld)
+    X = solve(BL.astype(complex)).reshape(A.shape[0], -1).astype(ld)
+    for _ in range(steps):
+        X = X + solve((BL - KL @ X).astype(complex)).reshape(A.shape[0], -1).astype(ld)
+    return np.asarray(C).astype(ld) @ X
+
+
 def hinf_error(full, reduced, omega: np.ndarray, symmetric: bool = False) -> tuple[float, float]:
     """Largest ``σ_max(G(iω) − G_r(iω))`` over ``omega`` and ``max σ_max(G(iω))`` (both with ``D``).
 
@@ -404,7 +436,8 @@ def hinf_error(full, reduced, omega: np.ndarray, symmetric: bool = False) -> tup
 
 
 def quadrature_h2_errors(full, reduced: list, slow: float, fast: float, per_decade: int = 12,
-                         symmetric: bool = False, peaks: np.ndarray | None = None) -> list[float]:
+                         symmetric: bool = False, peaks: np.ndarray | None = None,
+                         refined: bool = False) -> list[float]:
     """Relative H2 errors ``‖G − G_r‖₂ / ‖G − D‖₂`` of several reduced models by frequency quadrature.
 
     No cancellation, unlike the Gramians; one full solve per frequency serves them all.
@@ -412,7 +445,9 @@ def quadrature_h2_errors(full, reduced: list, slow: float, fast: float, per_deca
     ``‖H‖₂² = (1/π) ∫_0^∞ ‖H(iω)‖_F² dω`` in ``t = ln ω``: Gauss–Legendre panels of a decade from ``slow/1e3``
     to ``1e3 fast``, each split at the resonances ``peaks`` (``|Im λ|`` of lightly damped poles, with panels of
     their width around them), with the tails (constant below, ``ω^{-2}`` above) added. ``full`` and each reduced
-    model are ``(E, A, B, C, D)``.
+    model are ``(E, A, B, C, D)``. ``refined``: every transfer function by :func:`transfer_refined` (errors
+    below about 1e-12 relative, where double precision's round-off in ``G(iω)`` is a visible part of ``G − G_r``;
+    two more solves and a long-double product per frequency and model).
     """
     lo, hi = np.log10(slow) - 3, np.log10(fast) + 3
     x, wts = np.polynomial.legendre.leggauss(per_decade)
@@ -426,6 +461,12 @@ def quadrature_h2_errors(full, reduced: list, slow: float, fast: float, per_deca
     Dz = np.zeros_like(full[4])
 
     def f(w):
+        if refined:  # the feedthroughs' difference added in long double too
+            G = transfer_refined(*full[:4], 1j * w, symmetric)
+            errs = [float(np.sum(np.abs(G - transfer_refined(*red[:4], 1j * w)
+                                        - np.asarray(full[4] - red[4]).astype(np.clongdouble)) ** 2))
+                    for red in reduced]
+            return np.array(errs), float(np.sum(np.abs(G) ** 2))
         G = transfer(*full[:4], Dz, 1j * w, symmetric)
         errs = [np.sum(np.abs(G - transfer(*red[:4], full[4] - red[4], 1j * w)) ** 2) for red in reduced]
         return np.array(errs), np.sum(np.abs(G) ** 2)
@@ -446,9 +487,9 @@ def quadrature_h2_errors(full, reduced: list, slow: float, fast: float, per_deca
 
 
 def quadrature_h2_error(full, reduced, slow: float, fast: float, per_decade: int = 12, symmetric: bool = False,
-                        peaks: np.ndarray | None = None) -> float:
+                        peaks: np.ndarray | None = None, refined: bool = False) -> float:
     """:func:`quadrature_h2_errors` of one reduced model ``(E_r, A_r, B_r, C_r, D_r)``."""
-    return quadrature_h2_errors(full, [reduced], slow, fast, per_decade, symmetric, peaks)[0]
+    return quadrature_h2_errors(full, [reduced], slow, fast, per_decade, symmetric, peaks, refined)[0]
 
 
 # -- IRKA ------------------------------------------------------------------------------------------------------

@@ -318,3 +318,47 @@ def test_gramian_factors_resolve_hankel_singular_values_down_to_1e_12():
         hsv = bl.balance(E, Zp, Zq).hsv
         keep = sigma > 1e-12 * sigma[0]
         np.testing.assert_allclose(hsv[: keep.sum()], sigma[keep], rtol=1e-3, err_msg=sym)
+
+
+def test_the_refined_transfer_function_agrees_with_50_digit_arithmetic():
+    """``transfer_refined`` against mpmath at 50 digits on the same (double) matrices: to 1e-17 relative, where
+    the plain double solve is off by about 1e-16 to 1e-14 (a non-normal 12-state system)."""
+    mpmath = pytest.importorskip("mpmath")
+    rng = np.random.default_rng(3)
+    n = 12
+    A = -np.diag(np.geomspace(0.1, 100.0, n)) + np.triu(rng.normal(0, 5, (n, n)), 1)
+    E = np.eye(n) + 0.1 * rng.normal(size=(n, n)) @ rng.normal(size=(n, n)).T / n
+    B, C = rng.normal(size=(n, 2)), rng.normal(size=(3, n))
+    mpmath.mp.dps = 50
+    for s in (0.3j, 2.0 + 5.0j, 70.0j):
+        K = mpmath.matrix([[mpmath.mpc(complex(s)) * mpmath.mpf(E[i, j]) - mpmath.mpf(A[i, j]) for j in range(n)]
+                           for i in range(n)])
+        ref = np.zeros((3, 2), complex)
+        for j in range(2):
+            x = mpmath.lu_solve(K, mpmath.matrix(B[:, j].tolist()))
+            for i in range(3):
+                ref[i, j] = complex(sum(mpmath.mpf(C[i, k]) * x[k] for k in range(n)))
+        got = bl.transfer_refined(E, A, B, C, s)
+        scale = np.abs(ref).max()
+        assert np.abs(got.astype(complex) - ref).max() <= 1e-17 * scale
+        assert got.dtype == np.clongdouble
+
+
+def test_an_error_at_double_round_off_is_resolved_by_the_refined_quadrature():
+    """A non-normal 30-state system S (cond 4e4) beside a decoupled weak channel ``w / (s + 2)``; the reduced model
+    is S itself. The error is the weak channel's, by hand (S's norm from scipy's Lyapunov solver): 2.3e-16, 2.3e-18
+    relative. Refined, the quadrature gives it within 1 % (measured 0.01 % and 0.6–1.5 %) on two grids; in double
+    it read 2.4–3.6× and 230–340× too high (each G(iω) carries about 1e-15 of round-off)."""
+    rng = np.random.default_rng(5)
+    n = 30
+    S = -np.diag(np.geomspace(0.5, 50.0, n)) + np.triu(rng.normal(0, 3, (n, n)), 1)
+    Bs, Cs = rng.normal(size=(n, 1)), rng.normal(size=(1, n))
+    gs2 = (Cs @ la.solve_continuous_lyapunov(S, -Bs @ Bs.T) @ Cs.T).item()
+    red = (np.eye(n), S, Bs, Cs, np.zeros((1, 1)))
+    for w, rel in ((1e-13, 1e-3), (1e-15, 0.02)):
+        A = sp.block_diag([sp.csr_matrix(S), sp.csr_matrix([[-2.0]])]).tocsr()
+        full = (sp.identity(n + 1, format="csr"), A, np.vstack([Bs, [[w]]]), np.hstack([Cs, [[1.0]]]), np.zeros((1, 1)))
+        hand = np.sqrt(w**2 / 4.0 / (gs2 + w**2 / 4.0))
+        for per_decade in (8, 16):
+            got = bl.quadrature_h2_error(full, red, 0.5, 50.0, per_decade, refined=True)
+            assert got == pytest.approx(hand, rel=rel, abs=0.0)
