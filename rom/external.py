@@ -508,8 +508,9 @@ def reduce_matrices(
     Zp, Zq, gram = bl.gramian_factors(E, A, B, C, system.symmetric)
     bal = bl.balance(E, Zp, Zq)
     r_max = min(n - 1, bal.max_order)
-    # beyond the minimal realisation (Hankel singular values above round-off) no projection has more to carry:
-    # balanced truncation gives its r_max-state model plus decoupled states, IRKA (where it runs) tries all r
+    # beyond the minimal realisation (Hankel singular values above round-off) no projection has much more to carry:
+    # balanced truncations from r_max up to r (padded with decoupled states) and IRKA at r (where it runs) are
+    # candidates, the exact error decides
     beyond = order is not None and order > r_max and basis in ("bt", "auto", "irka")
 
     def band_fast(r: int) -> float:
