@@ -5,6 +5,7 @@
 * :mod:`hybridcomp.diagnose.problem` — the reduced model and the dataset; simulating variants
 * :mod:`hybridcomp.diagnose.effects` — the library of named, parametrised model extensions
 * :mod:`hybridcomp.diagnose.drives` — the feed drives' effects named from drift probed at several poses
+* :mod:`hybridcomp.diagnose.reduction` — the reduced model's error for heat anywhere on the surface; an order by it
 * :mod:`hybridcomp.diagnose.selection` — bounded least squares and greedy selection (BIC + validation gain)
 * :mod:`hybridcomp.diagnose.report` — report.md, plots, summary.json, machine_extended.toml
 * :mod:`hybridcomp.diagnose.dataonly` — the same on a dataset alone (a regression compensation model)
@@ -32,6 +33,7 @@ __all__, __getattr__, __dir__ = lazy_exports(__name__, {
     "data": ("Dataset", "DatasetError", "Split", "parse_split", "read_column_map", "read_dataset"),
     "effects": ("KINDS", "Candidate", "library", "predicted_channels"),
     "drives": ("diagnose_drives", "drive_candidates", "read_probes"),
+    "reduction": ("SurfaceError", "surface_error", "surface_order"),
     "selection": ("Diagnosis", "Fitted"),
     "report": ("write_report",),
 })

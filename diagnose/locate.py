@@ -206,6 +206,11 @@ def patch_inputs(machine, rom, mesh, bodies, reference_mm: np.ndarray, patch_mm:
     than a machine-file source's (the input then varies smoothly with the point, which a fit of the place needs);
     None: as a machine-file source's.
     """
+    return np.asarray(patch_rows(machine, rom, mesh, bodies, reference_mm, patch_mm, sampling) @ rom.V).T
+
+
+def patch_rows(machine, rom, mesh, bodies, reference_mm: np.ndarray, patch_mm: float, sampling: float | None = None):
+    """The FE heat input rows (sparse, n_points × n nodes) of 1 W on :func:`patch_inputs`'s patches."""
     from hybridcomp.fem.assembly import cell_basis
     from hybridcomp.fem.model import heat_input_rows
 
@@ -220,15 +225,13 @@ def patch_inputs(machine, rom, mesh, bodies, reference_mm: np.ndarray, patch_mm:
                  for i, (r, b) in enumerate(zip(reference_mm, bodies)))
     m = dataclasses.replace(machine, heat_sources=srcs)
     if sampling is None:
-        rows, _ = heat_input_rows(m, mesh, cell_basis(mesh.mesh))
-        return np.asarray(rows @ rom.V).T
+        return heat_input_rows(m, mesh, cell_basis(mesh.mesh))[0]
     key = ("cell_basis", id(mesh))  # a fit of the place makes inputs hundreds of times: the basis once per mesh
     if key not in rom._cache:
         rom._cache[key] = (mesh, cell_basis(mesh.mesh))  # the mesh kept with it: its id stays its own
     h = float(rom.meta.get("element_size_mm") or machine.mesh.element_size_mm) / float(sampling)
     m = dataclasses.replace(m, mesh=dataclasses.replace(machine.mesh, element_size_mm=h))
-    rows, _ = heat_input_rows(m, mesh, rom._cache[key][1])
-    return np.asarray(rows @ rom.V).T
+    return heat_input_rows(m, mesh, rom._cache[key][1])[0]
 
 
 def _facet_points(corners_mm: np.ndarray, body_idx: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
