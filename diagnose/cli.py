@@ -74,6 +74,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="know the model's discretisation error: the machine reduced on second, coarser meshes; a "
                         "residual within the meshes' difference counts as explained, an effect the mesh alone could "
                         "make is not named (off by default: minutes more per diagnosis)")
+    p.add_argument("--surface-tolerance", type=float, metavar="REL",
+                   help="a source anywhere on the surface located to the evidence, not to the reduced model's error: the "
+                   "order raised through 150, 200, 250, 300, 400 until the model's error at the sensors for a heat step "
+                   "at every surface site is within REL of that site's own response (σ/(3A) for a source A above "
+                   "sensor noise σ, e.g. 0.017); at 150 mm order 400, about 2 min more (default: off, the order from "
+                   "the machine's own sources)")
     p.add_argument("--place-sources", choices=("patch", "continuous"), default="patch",
                    help="a heat source found anywhere on the surface: 'patch' (default) at the best search site, known "
                         "to the search's confidence region; 'continuous' its place fitted on the face with its power, "
@@ -123,7 +129,10 @@ def run(args: argparse.Namespace) -> int:
     bad = refuse_unused(args, [
         *((opt, args.data_only, model_only) for opt in ("machine", "increment", "rom", "element_size_mm", "effects",
                                                          "max_effects", "probes", "pose_rom",
-                                                         "discretisation_floor", "place_sources")),
+                                                         "discretisation_floor", "place_sources",
+                                                         "surface_tolerance")),
+        ("surface_tolerance", args.rom is not None, "reduces the machine itself at the order it needs: give it "
+         "without --rom"),
         ("pose_rom", args.probes is None, "applies with --probes only (the feed drives' diagnosis)"),
         *((opt, not args.data_only, data_only) for opt in ("max_terms", "beam", "no_selection_check", "selection",
                                                             "folds", "criterion", "probe_every_hours",
@@ -154,6 +163,9 @@ def run(args: argparse.Namespace) -> int:
 
             if not args.increment > 0:
                 raise DatasetError(f"--increment must be positive, got {args.increment}")
+            if args.surface_tolerance is not None and not 0 < args.surface_tolerance < 1:
+                raise DatasetError(f"--surface-tolerance must be a share of a site's response in (0, 1), got "
+                                   f"{args.surface_tolerance}")
             machine = load_machine(args.machine)
             if len(args.data) > 1:
                 raise DatasetError("--data: the diagnosis on the machine's model takes one file (campaigns of several "
@@ -216,7 +228,16 @@ def run(args: argparse.Namespace) -> int:
             rom = load_rom(args.rom, machine)
         probes = _read_probes(args, machine)  # before the long work: a bad file fails at once
         print(f"preparing the reduced model of {machine.name} ...", file=sys.stderr)
-        rom = prepare_model(machine, rom=rom, element_size_mm=args.element_size_mm)
+        if args.surface_tolerance is not None:
+            from hybridcomp.diagnose.reduction import surface_order
+            from hybridcomp.fem.model import build_model
+
+            model = build_model(machine, None, args.element_size_mm)
+            rom, tried = surface_order(machine, model, args.surface_tolerance)
+            for t in tried:
+                print(f"  {t.describe()}", file=sys.stderr)
+        else:
+            rom = prepare_model(machine, rom=rom, element_size_mm=args.element_size_mm)
         d = diagnose(machine, ds, split, rom=rom, kinds=kinds, max_effects=args.max_effects, progress=True,
                      discretisation=args.discretisation_floor, place=args.place_sources)
         drives = None

@@ -78,6 +78,10 @@ CASES = {
     "diagnose model --beam": (["diagnose", "--data", "{d}/m.csv", "--beam", "4", "--out", "{out}"], "--beam"),
     "diagnose --data-only --place-sources": (["diagnose", "--data-only", "--data", "{d}/m.csv", "--place-sources",
                                               "continuous", "--out", "{out}"], "--place-sources"),
+    "diagnose --data-only --surface-tolerance": (["diagnose", "--data-only", "--data", "{d}/m.csv",
+                                                  "--surface-tolerance", "0.02", "--out", "{out}"], "--surface-tolerance"),
+    "diagnose --surface-tolerance with --rom": (["diagnose", "--data", "{d}/m.csv", "--rom", "{d}/r.npz",
+                                                 "--surface-tolerance", "0.02", "--out", "{out}"], "--surface-tolerance"),
     "monitor run --speed on OPC UA": (["monitor", "run", "--config", "{d}/monitor.toml", "--speed", "0"], "--speed"),
 }
 
