@@ -288,8 +288,10 @@ def _main(argv=None) -> dict:
                 for k in ("BT", "IRKA"):
                     got = ref.get(k, {})
                     if "model" in got:
-                        errs[k] = error_of(system, Zp, spec, got["model"], peaks)
-                        row[f"pymor {k}"] = f"{errs[k]:.3g}"
+                        e = error_of(system, Zp, spec, got["model"], peaks)
+                        if np.isfinite(e):  # an unstable reference (error inf) is no reference
+                            errs[k] = e
+                        row[f"pymor {k}"] = f"{e:.3g}" if np.isfinite(e) else "unstable"
                         row[f"{k} s"] = f"{got['s']:.2f}"
                     else:
                         row[f"pymor {k}"] = ref.get("skip") or got.get("error", "skipped (--no-pymor)")
