@@ -310,6 +310,16 @@ class Balanced:
         s = self.hsv[:r] ** -0.5
         return self.Zp @ (self.Vt[:r].T * s), self.Zq @ (self.U[:, :r] * s)
 
+    def bases_balancing_free(self, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """Orthonormal bases of the same spaces (Varga's balancing-free square root).
+
+        No ``σ^{-1/2}`` scaling, so directions with singular values at round-off stay of unit size; the model is
+        not balanced.
+        """
+        V = la.qr(self.Zp @ self.Vt[:r].T, mode="economic", check_finite=False)[0]
+        W = la.qr(self.Zq @ self.U[:, :r], mode="economic", check_finite=False)[0]
+        return V, W
+
     def hinf_bound(self, r: int) -> float:
         """``2 Σ_{k>r} σ_k``: a bound on ``‖G − G_r‖_∞`` (exact Gramians)."""
         return float(2 * self.hsv[r:].sum())
