@@ -18,7 +18,7 @@ from hybridcomp.histogram.increments import DEFAULT_MAX_GAP_S
 from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.models.toml import StrictTable, did_you_mean, read_toml
 from hybridcomp.monitor.decisions import Backoff, SensorRules, TimeRules, Validity
-from hybridcomp.rom.observer import ObserverError, ObserverSettings
+from hybridcomp.rom.observer import BOUND_SETTINGS, ObserverError, ObserverSettings
 
 
 class ConfigError(HybridcompError, ValueError):
@@ -262,7 +262,9 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         raise ConfigError(f"{source}: [validity] {exc}") from None
     o = _Reader(source, "observer", data.get("observer", {}))
     try:
-        observer = ObserverSettings(**{f.name: o.number(f.name, f.default, nonneg=True)
+        # a lower bound of a disturbance (air_min_K, scale_min, heat_min_W) is ≤ 0; ObserverSettings checks it
+        observer = ObserverSettings(**{f.name: o.number(f.name, f.default,
+                                                        nonneg=f.name not in BOUND_SETTINGS.values())
                                        for f in dataclass_fields(ObserverSettings)})
     except ObserverError as exc:
         raise ConfigError(f"{source}: [observer] {exc}") from None
