@@ -94,15 +94,19 @@ class ObserverSettings:
 
     The ranges hold after every update: an estimate beyond one is projected back (:func:`project_bounds`), its
     correlated states moving with it. Without them a heat the model has no place for (an unmodelled pump) was
-    explained by physically impossible values that the pose-aware model then ran on: a Z motor at −3.88 × its
-    power more than nominal (a negative power), the floor air 2.9 K off. The defaults: a power is never below 0
-    (scale ≥ −1); −0.9 keeps a tenth of it, since a source the machine file lists and the load model drives runs
-    (a source found at a tenth of its power is a machine file to correct, by a diagnosis), and +3 (four times the
-    nominal power) is beyond every loss estimate's error the package has met (the demo day's front bearing: +0.5).
-    The air the enclosures hold differs from the workshop's by a few K (the scenarios: a workspace 2 K warmer, an
-    ambient swing of ±1.5 K): ±3 K. The unknown heat per body may be either sign (a coolant flow takes heat
-    away, a pump adds it); its range ±100 W only keeps it within the machine's own sources' size (the
-    demonstrator's largest source, the spindle motor, is rated well below that): it rarely acts.
+    explained by physically impossible values that the pose-aware model then ran on: the Z motor's scale at −3.88
+    (a negative power), the floor air 2.9 K off. The defaults: a power is never below 0 (scale ≥ −1); −0.9 keeps a
+    tenth of it, since a source the machine file lists and the load model drives runs (one found at a tenth of its
+    power is a machine file to correct, by a diagnosis), and +3 (four times the nominal power) is beyond every loss
+    estimate's error the package has met (the demo day's front bearing: +0.5). The air the enclosures hold differs
+    from the workshop's by a few K (the scenarios: a workspace 2 K warmer, an ambient swing of ±1.5 K): ±3 K. The
+    unknown heat per body may be either sign (a coolant flow takes heat away, a pump adds it); ±100 W keeps it
+    within the size of the machine's own sources (the demonstrator's: 8 to 220 W; the benchmark's pump: 60 W).
+
+    Admissible is not right: in the compensation benchmark (150 mm) the unmodelled pump's day ends with the Z
+    motor at its bound (−0.9), the neighbouring fixed bearing taking up the rest (−0.50 → −0.67), the floor air
+    still −2.7 K; the hybrid compensation moved by 0.02 µm (2.40 → 2.38 µm RMS along the path, 2.92 → 2.90 at
+    the model's pose) and the demo day's not at all (0.515 and 0.28 µm).
 
     The priors are small: the model as its machine file describes it is taken as right until the sensors or a
     probe show otherwise. Larger priors let the first measurements' noise into the estimate and keep it there
