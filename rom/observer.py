@@ -106,7 +106,11 @@ class ObserverSettings:
     Admissible is not right: in the compensation benchmark (150 mm) the unmodelled pump's day ends with the Z
     motor at its bound (−0.9), the neighbouring fixed bearing taking up the rest (−0.50 → −0.67), the floor air
     still −2.7 K; the hybrid compensation moved by 0.02 µm (2.40 → 2.38 µm RMS along the path, 2.92 → 2.90 at
-    the model's pose) and the demo day's not at all (0.515 and 0.28 µm).
+    the model's pose); the demo day, workspace air, nut heat and seized bearing did not move (0.515 / 0.28, 1.47 /
+    0.20, 2.05 / 0.45, 4.03 / 12.63 µm). Neither did a pose-aware model given only the scales whose posterior σ
+    is below the prior (2.39 / 2.91), nor heat bounded at 0 (2.41 / 2.88). What hurt there is the air: without
+    the air offsets the pose-aware model reached 1.50 / 1.22 µm, but the workspace air's day (whose air offsets
+    are right, with the same posterior σ) went from 1.47 / 0.20 to 9.61 / 14.70 µm, so they stay.
 
     The priors are small: the model as its machine file describes it is taken as right until the sensors or a
     probe show otherwise. Larger priors let the first measurements' noise into the estimate and keep it there
