@@ -18,7 +18,7 @@ from hybridcomp.histogram.increments import DEFAULT_MAX_GAP_S
 from hybridcomp.models.layout import DRIFT_COLUMNS
 from hybridcomp.models.toml import StrictTable, did_you_mean, read_toml
 from hybridcomp.monitor.decisions import Backoff, SensorRules, TimeRules, Validity
-from hybridcomp.rom.observer import ObserverError, ObserverSettings
+from hybridcomp.rom.observer import BOUND_SETTINGS, ObserverError, ObserverSettings
 
 
 class ConfigError(HybridcompError, ValueError):
@@ -262,7 +262,9 @@ def parse_config(data: Mapping, source: str = "<config>", base_dir: Path | None 
         raise ConfigError(f"{source}: [validity] {exc}") from None
     o = _Reader(source, "observer", data.get("observer", {}))
     try:
-        observer = ObserverSettings(**{f.name: o.number(f.name, f.default, nonneg=True)
+        # a lower bound of a disturbance (air_min_K, scale_min, heat_min_W) is ≤ 0; ObserverSettings checks it
+        observer = ObserverSettings(**{f.name: o.number(f.name, f.default,
+                                                        nonneg=f.name not in BOUND_SETTINGS.values())
                                        for f in dataclass_fields(ObserverSettings)})
     except ObserverError as exc:
         raise ConfigError(f"{source}: [observer] {exc}") from None
@@ -512,6 +514,8 @@ sensor_sigma_K = 0.15              # sensor noise including model error [K]
 probe_sigma_um = 0.5               # noise of a probed drift (probe_dx_um ... columns of the trace) [um]
 # air_sigma_K, air_rate_K, scale_sigma, scale_rate, heat_sigma_W, heat_rate_W, bias_sigma_um, bias_rate_um,
 # input_sigma, initial_load, gate_sigma, probe_widen_sigma: see monitor/README.md
+# admissible ranges of the estimates, held after each update: air_min_K, air_max_K (-3, 3) [K],
+# scale_min, scale_max (-0.9, 3) [-], heat_min_W, heat_max_W (-100, 100) [W]
 
 [sensors]
 hold_s = 60                        # a bad reading is replaced by the last good value this long [s]
