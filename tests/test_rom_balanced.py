@@ -362,3 +362,16 @@ def test_an_error_at_double_round_off_is_resolved_by_the_refined_quadrature():
         for per_decade in (8, 16):
             got = bl.quadrature_h2_error(full, red, 0.5, 50.0, per_decade, refined=True)
             assert got == pytest.approx(hand, rel=rel, abs=0.0)
+
+
+def test_balancing_free_bases_are_orthonormal_and_span_the_square_root_ones():
+    m = heat_chain(60)
+    E, A, B, C = m["E"], m["A"], m["B"], m["C"]
+    bal = bl.balance(E, *bl.gramian_factors(E, A, B, C, True)[:2])
+    for r in (3, 8):
+        V, W = bal.bases(r)
+        Vf, Wf = bal.bases_balancing_free(r)
+        assert np.allclose(Vf.T @ Vf, np.eye(r), atol=1e-12) and np.allclose(Wf.T @ Wf, np.eye(r), atol=1e-12)
+        # the same spaces: projecting the square-root bases onto them leaves nothing
+        assert np.linalg.norm(V - Vf @ (Vf.T @ V)) <= 1e-9 * np.linalg.norm(V)
+        assert np.linalg.norm(W - Wf @ (Wf.T @ W)) <= 1e-9 * np.linalg.norm(W)
