@@ -331,9 +331,13 @@ def balance(E, Zp: np.ndarray, Zq: np.ndarray) -> Balanced:
     return Balanced(s, Zp, Zq, U, Vt)
 
 
-def truncate(E, A, B, C, bal: Balanced, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Reduced ``E_r, A_r, B_r, C_r`` of order ``r`` (Petrov–Galerkin ``W^T (.) V``) and ``V``."""
-    V, W = bal.bases(r)
+def truncate(E, A, B, C, bal: Balanced, r: int,
+             balancing_free: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Reduced ``E_r, A_r, B_r, C_r`` of order ``r`` (Petrov–Galerkin ``W^T (.) V``) and ``V``.
+
+    ``balancing_free``: on :meth:`Balanced.bases_balancing_free` (orthonormal, the model not balanced).
+    """
+    V, W = bal.bases_balancing_free(r) if balancing_free else bal.bases(r)
     return W.T @ (E @ V), W.T @ (A @ V), W.T @ B, C @ V, V
 
 

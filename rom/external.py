@@ -26,6 +26,7 @@ import scipy.linalg as la
 import scipy.sparse as sp
 
 from hybridcomp.errors import HybridcompError
+from hybridcomp.fem.blas import single_blas_thread
 from hybridcomp.fem.operators import ThermalOperators
 from hybridcomp.models.toml import read_bytes
 from hybridcomp.rom.krylov import ReductionError, ThermalSystem
@@ -379,7 +380,8 @@ HINF_POINTS = 60
 QUADRATURE_BELOW = 1e-4
 #: below this relative H2 error the quadrature's transfer functions are refined in long double
 #: (:func:`~hybridcomp.rom.balanced.transfer_refined`): double precision leaves about 1e-15 relative noise in each
-#: ``G(iω)``, which scattered a 3e-15 error by ±15 % between quadrature grids
+#: ``G(iω)``, which scattered a 3e-15 error by ±15 % between quadrature grids (beyond the minimal order the
+#: quadrature is refined from the start)
 REFINE_BELOW = 1e-11
 #: ADI tolerance of the factors whose truncations are the candidates beyond the minimal order: with 1e-13 every
 #: truncation of convection–diffusion at r = 40 stopped at 1.2e-15 (pyMOR's balanced truncation: 4.5e-16), with
@@ -415,26 +417,8 @@ def _with_decoupled_states(model, order: int, slowest_rate: float, fastest_rate:
             f"order asked for")
 
 
-def _one_blas_thread(fn):
-    """Run ``fn`` with one BLAS thread.
-
-    Its dense work is small (r × r models, n × r bases, triangular solves of one column), where a second thread
-    only waits: on a shared 2-core machine a 10 × 10 solve took 4 ms with two OpenBLAS threads and 0.2 ms with
-    one, a QR of 2000 × 10 0.1 s against 1 ms.
-    """
-    import functools
-
-    from hybridcomp.fem.blas import single_blas_thread
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        with single_blas_thread():
-            return fn(*args, **kwargs)
-
-    return wrapper
-
-
-@_one_blas_thread
+@single_blas_thread()  # small dense work (r × r models, n × r bases): a second BLAS thread only waits (a 10 × 10 solve
+# took 4 ms with two OpenBLAS threads on the shared 2-core machine, 0.2 ms with one)
 def reduce_matrices(
     path: str | Path,
     *,
@@ -562,8 +546,8 @@ def reduce_matrices(
         if n > bl.dense_limit(system.symmetric):
             bal_fine = bl.balance(E, *bl.lr_adi(E, A, B, C, system.symmetric, tol=BEYOND_ADI_TOL))
         for k in range(r_max + 1, min(order, bal_fine.hsv.size) + 1):
-            for label, (V, W) in (("square-root", bal_fine.bases(k)), ("balancing-free", bal_fine.bases_balancing_free(k))):
-                Er, Ar, Br, Cr = W.T @ (E @ V), W.T @ (A @ V), W.T @ B, C @ V
+            for label, free in (("square-root", False), ("balancing-free", True)):
+                Er, Ar, Br, Cr, V = bl.truncate(E, A, B, C, bal_fine, k, balancing_free=free)
                 poles = bl.reduced_poles(Er, Ar)
                 if np.all(np.isfinite(poles)) and np.max(poles.real) < 0:
                     beyond_bt[f"bt{k}-{label}"] = _with_decoupled_states(
@@ -640,11 +624,18 @@ def reduce_matrices(
         keys = [key for key, e in lyapunov.items() if np.isfinite(e)]
         peaks = np.concatenate([bl.reduced_poles(Eb, Ab)] + [bl.reduced_poles(found[key][0][0], found[key][0][1])
                                                             for key in keys])
-        q = bl.quadrature_h2_errors((E, A, B, C, D), [(*found[key][0][:4], D) for key in keys], spec.slow, spec.fast,
-                                    symmetric=system.symmetric, peaks=peaks)
-        if min(q) < REFINE_BELOW:  # near round-off: every transfer function again, refined in long double
-            q = bl.quadrature_h2_errors((E, A, B, C, D), [(*found[key][0][:4], D) for key in keys], spec.slow,
-                                        spec.fast, symmetric=system.symmetric, peaks=peaks, refined=True)
+
+        def quadrature(refined: bool) -> list[float]:
+            return bl.quadrature_h2_errors((E, A, B, C, D), [(*found[key][0][:4], D) for key in keys], spec.slow,
+                                           spec.fast, symmetric=system.symmetric, peaks=peaks, refined=refined)
+
+        # beyond the minimal order the errors are at round-off: refined at once (the plain pass would be thrown away)
+        refined = beyond
+        q = quadrature(refined)
+        if not refined and min(q) < REFINE_BELOW:  # near round-off: every transfer function again, refined
+            refined = True
+            q = quadrature(refined)
+        if refined:
             how = "quadrature (refined)"
         found = {key: (found[key][0], q[i]) for i, key in enumerate(keys)}
         how = "quadrature" if how == "lyapunov" else how
