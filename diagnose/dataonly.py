@@ -645,14 +645,16 @@ def _regularised(ds: Dataset, d: DataOnlyDiagnosis, folds: int, seed: int, sprea
     chans = list(d.extended)
     Y = np.column_stack([d.Y[c] for c in chans])
     dof = reg.effective_dof(fams, tr)
-    if pool_folds:
+    held = reg.held_out_fits(fams, Y, tr, va)
+    sp = reg.fold_spread(fams, Y, tr, va, held, runs=ds.runs, pooled=pool_folds) if spread else None
+    # the spread makes this very choice among its own (the same rows, folds and seed): taken from it, not made twice
+    choice = (sp or {}).get("made", {}).get((tuple(reg.SPREAD_FOLDS), seed) if pool_folds else (folds, seed))
+    if choice is None and pool_folds:
         cache: dict = {}
         choice = reg.choose_pooled([reg.repeated_errors(fams, Y, tr, k, seed, runs=ds.runs, cache=cache)
                                     for k in reg.SPREAD_FOLDS], dof)
-    else:
+    elif choice is None:
         choice = reg.choose(reg.repeated_errors(fams, Y, tr, folds, seed, runs=ds.runs), dof)
-    held = reg.held_out_fits(fams, Y, tr, va)
-    sp = reg.fold_spread(fams, Y, tr, va, held, runs=ds.runs, pooled=pool_folds) if spread else None
     every = reg.every_row_fits(fams, Y, va)
     out, upd = {}, {}
     for j, (c, ch) in enumerate(zip(chans, choice)):

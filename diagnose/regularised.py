@@ -321,13 +321,14 @@ def fold_spread(fams: list[Family], Y: np.ndarray, train: np.ndarray, validation
     """The held-out fit of the choice made with each fold count and seed, per channel.
 
     Returns ``{"fits": {(folds, seed): [fit per channel]}, "choices": {(folds, seed): [(family, λ) per channel]},
-    "min", "max", "spread"}`` (per channel; spread = max − min). The validation rows only score the choices.
+    "made": {(folds, seed): [Choice per channel]}, "min", "max", "spread"}`` (per channel; spread = max − min). The
+    validation rows only score the choices.
     ``pooled``: the choice of :func:`choose_pooled` over all ``fold_counts`` for each seed (keys
     ``(fold_counts, seed)``): the spread is then the seeds' (the phases of the blocks) alone.
     """
     held = held_out_fits(fams, Y, train, validation) if held is None else held
     dof = effective_dof(fams, train)
-    fits, picks = {}, {}
+    fits, picks, made = {}, {}, {}
     cache: dict = {}
     by_runs = runs is not None and np.unique(runs[train]).size >= 2  # the runs are the folds: one choice
     once = None
@@ -338,6 +339,7 @@ def fold_spread(fams: list[Family], Y: np.ndarray, train: np.ndarray, validation
                                       for k in fold_counts], dof)
             fits[(tuple(fold_counts), s)] = [float(held[c.family, c.lam_index, j]) for j, c in enumerate(once)]
             picks[(tuple(fold_counts), s)] = [(fams[c.family].name, LAMBDAS[c.lam_index]) for c in once]
+            made[(tuple(fold_counts), s)] = once
     for k in () if pooled else fold_counts:
         for s in seeds:
             if once is None or not by_runs:
@@ -345,8 +347,10 @@ def fold_spread(fams: list[Family], Y: np.ndarray, train: np.ndarray, validation
             ch = once
             fits[(k, s)] = [float(held[c.family, c.lam_index, j]) for j, c in enumerate(ch)]
             picks[(k, s)] = [(fams[c.family].name, LAMBDAS[c.lam_index]) for c in ch]
+            made[(k, s)] = ch
     F = np.array(list(fits.values()))
-    return {"fits": fits, "choices": picks, "min": F.min(0), "max": F.max(0), "spread": F.max(0) - F.min(0)}
+    return {"fits": fits, "choices": picks, "made": made, "min": F.min(0), "max": F.max(0),
+            "spread": F.max(0) - F.min(0)}
 
 
 def every_row_fits(fams: list[Family], Y: np.ndarray, validation: np.ndarray) -> np.ndarray:
