@@ -323,6 +323,8 @@ def _main(argv=None) -> dict:
            "rows_refused": sum(str(r["ours"]).startswith("refused") for r in rows),
            "all_stable": all(r["stable"] == "y" for r in rows if r["stable"] != "-"),
            "orders_delivered": all(r["order"] == r["r"] for r in rows if r["order"] != "-"),
+           "printed_within_10pct_of_independent": all(abs(r["_"]["h2_ours"] / r["_"]["h2_quadrature"] - 1) <= 0.1
+                                                       for r in rows if r["_"].get("h2_quadrature")),
            "rows": [{k: v for k, v in r.items() if k != "_"} | r["_"] for r in rows]}
     print(json.dumps(out))
     return out
