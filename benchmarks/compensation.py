@@ -28,7 +28,8 @@ met or not:
 * along the path (every case is judged at the commanded position too: the daemons run the pose-aware structure
   model and write a support-point table every cycle, the truth is the real machine's own pose-aware model):
   the hybrid ≤ the pose-aware model used directly in RMS and E_P95 at 15 min, 1 h and 4 h, ≤ 5 % of the
-  uncompensated RMS and ≤ 1.5 × its own RMS at the model's pose + 0.2 µm; no table entry moves by more than
+  uncompensated RMS and ≤ 1.5 × its own RMS at the model's pose + 0.2 µm (there as the part sees it: its tables at
+  the model's axis positions against the real structure and drives there); no table entry moves by more than
   0.2 µm per 5 s cycle.  Three disturbances act along the path only (``POSITION_DEPENDENT``: the nuts' heat into
   their screws, a scale's expansion coefficient, a screw's seized floating bearing): the daemon's probing cycles
   touch a star of poses over the workspace and it learns each drive's gain from them; the feed drives' diagnosis
@@ -56,7 +57,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's hybridcomp, installed or not
 from hybridcomp.metrics import cell_um
 from hybridcomp.models import jsonio
-from hybridcomp.scenario import POSITION_DEPENDENT
+from hybridcomp.scenario import AT_POSE_WITH_DRIVES, POSITION_DEPENDENT
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _table import table
@@ -67,7 +68,7 @@ DIAGNOSED = ("demo day", "unmodelled source", "mis-scaled source", "workspace ai
 STRATEGY_ROWS = ("no compensation", "static default CDs", "hybrid monitor", "observer", "ROM direct", "MLR on sensors",
                  "best sensor map (bound)")
 PATH_ROWS = ("no compensation", "static default CDs", "hybrid monitor at one pose", "hybrid monitor",
-             "observer", "ROM direct along the path")
+             f"hybrid monitor {AT_POSE_WITH_DRIVES}", "observer", "ROM direct along the path")
 
 
 def row(case: str, name: str, m: dict) -> dict:
@@ -135,7 +136,13 @@ def path_targets(case: str, path_metrics: dict, at_pose: dict) -> list[dict]:
         w = WINDOWS[k]
         add(f"along the path: hybrid {k} <= pose-aware ROM direct", hyb["p95_range_um"][w], direct["p95_range_um"][w])
     add("along the path: hybrid RMS <= 5 % uncompensated", hyb["rms_um"], 0.05 * m3["no compensation"]["rms_um"])
-    own = at_pose["hybrid monitor"]["3d"]["rms_um"]
+    # its own figure at the model's pose: what the part sees there, drives included (the tables at the model's axis
+    # positions against the real structure and drives there); the one-pose offsets against the structure alone
+    # where the run wrote no tables. The structure-alone figure of a volumetric daemon is no yardstick: its probes
+    # at the pose see the drives, so on a drive's disturbance it is large (12.6 µm on the seized bearing) and the
+    # target could not fail
+    with_drives = path_metrics.get(f"hybrid monitor {AT_POSE_WITH_DRIVES}")
+    own = (with_drives or at_pose["hybrid monitor"])["3d"]["rms_um"]
     add("along the path: hybrid RMS <= 1.5 x at the pose + 0.2", hyb["rms_um"], 1.5 * own + 0.2)
     add("along the path: largest table step per cycle <= 0.2 µm", path_metrics["hybrid monitor"]["largest_step_um"], 0.2)
     return out

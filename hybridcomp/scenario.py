@@ -613,11 +613,7 @@ def _write_results(scenario: Scenario, out: Path, day: _Day, preds: dict, runs: 
     t, truth = day.t, day.truth
     disturbance = scenario.disturbance
     (out / "table.md").write_text(table + "\n")
-    with (out / "residuals.csv").open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["time_s", *DIRS, *(f"{s.replace(' ', '_')}_{d}" for s in preds for d in DIRS)])
-        for i in range(t.size):
-            w.writerow([f"{t[i]:g}", *(f"{v:.4f}" for v in truth[i]), *(f"{v:.4f}" for p in preds.values() for v in p[i])])
+    _write_residuals(out / "residuals.csv", t, truth, preds)
     events = {strategy: r["events"] for strategy, r in runs.items()}
     all_events = [dict(e, strategy=s) for s, ev in events.items() for e in ev]
     (out / "events.json").write_text(jsonio.dumps(all_events, indent=1))
@@ -625,6 +621,20 @@ def _write_results(scenario: Scenario, out: Path, day: _Day, preds: dict, runs: 
                       f"{disturbance.name}: {disturbance.description}") if scenario.plot else None
     return ({"table": out / "table.md", "plot": plot_path, "events": out / "events.json",
              "residuals": out / "residuals.csv"}, all_events)
+
+
+def _write_residuals(path: Path, t: np.ndarray, truth: np.ndarray, preds: dict, positions: dict | None = None) -> None:
+    """A CSV of the day: time, positions, the true drift and every prediction, (dx, dy, dz) each [µm].
+
+    ``positions``: column name → values (e.g. the path's axis positions [mm]).
+    """
+    positions = positions or {}
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["time_s", *positions, *DIRS, *(f"{s.replace(' ', '_')}_{d}" for s in preds for d in DIRS)])
+        for i in range(t.size):
+            w.writerow([f"{t[i]:g}", *(f"{v[i]:.3f}" for v in positions.values()), *(f"{v:.4f}" for v in truth[i]),
+                        *(f"{v:.4f}" for p in preds.values() for v in p[i])])
 
 
 def _summary(scenario: Scenario, models: Models, real_machine, day: _Day, metrics: dict, runs: dict, timings: dict,
@@ -650,6 +660,8 @@ def _summary(scenario: Scenario, models: Models, real_machine, day: _Day, metric
 
 
 PATH_STRATEGY = "ROM direct along the path"
+#: the volumetric daemons judged at the model's pose with its drives (what the part sees there): "<strategy> <this>"
+AT_POSE_WITH_DRIVES = "at the model's pose, drives included"
 
 
 def trace_samples(machine, trace: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -775,10 +787,21 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
             path_preds[k] = p
     path_preds[PATH_STRATEGY] = drift_along(prom, Y, positions)
     m = {k: drift_metrics(t, truth_path - p) for k, p in path_preds.items()}
+    # at the model's pose as the part sees it there: the real machine's structure AND its drives at the model's axis
+    # positions, against what a control applies there (the tables at that pose). The one-pose figures judge the
+    # structure alone, while a volumetric daemon's probes at the pose see the drives too
+    p0 = np.array([[float(models.pose_mm[a.name]) for a in machine.axes]])
+    truth_p0 = day.truth + drift_along(path.rom, path.Y, p0) - _tcp_um(path.rom, path.Y)
+    for strategy, r in runs.items():
+        if r.get("tables"):
+            pred = tables_along(r["tables"], t, np.repeat(p0, t.size, axis=0))
+            m[f"{NAMES[strategy]} {AT_POSE_WITH_DRIVES}"] = drift_metrics(t, truth_p0 - pred)
     for strategy, r in runs.items():
         if r.get("tables"):
             m[NAMES[strategy]]["largest_step_um"] = r["table_largest_step_um"]
     (out / "table_along_path.md").write_text(metrics_table(m) + "\n")
+    _write_residuals(out / "residuals_along_path.csv", t, truth_path, path_preds,
+                     {f"{a.name}_mm": positions[:, i] for i, a in enumerate(machine.axes)})
     return {
         "rms_3d_um": {k: v["3d"]["rms_um"] for k, v in m.items()},
         "p2p_3d_um": {k: v["3d"]["p2p_um"] for k, v in m.items()},
@@ -789,6 +812,7 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
                  "real machine is the model)",
         "largest_table_step_um": {NAMES[s]: r["table_largest_step_um"] for s, r in runs.items() if r.get("tables")},
         "drive_gains": {NAMES[s]: r["drive_gains"] for s, r in runs.items() if r.get("drive_gains") is not None},
+        "nut_gains": {NAMES[s]: r["nut_gains"] for s, r in runs.items() if r.get("nut_gains") is not None},
         "metrics": m,
     }
 
@@ -892,6 +916,8 @@ def _replay(strategy, machine_name, db_path, rom_path, trace, pose, pkey, machin
             "generations": sum(1 for e in ev if e["kind"] == "generation" and e.get("status") == "finished"),
             "largest_step_um": largest_step_um(off), "tables": tables,
             "drive_gains": None if mon.gains is None else {a: float(g) for a, g in zip(mon.gains.axes, mon.gains.g)},
+            "nut_gains": None if mon.gains is None or mon.gains.h is None else {
+                a: float(h) for a, h in zip(mon.gains.axes, mon.gains.h)},
             "table_largest_step_um": table_largest_step_um(tables) if tables else None}
 
 

@@ -107,7 +107,7 @@ def context(cfg: MonitorConfig, machine, rom, pose_key: str,
     ``dataonly``: the data-only model, required with strategy ``dataonly`` (its sensors must be the machine's
     sensors or air columns), ignored otherwise.
     """
-    pose = volumetric.pose_model(rom, cfg.table_points) if rom.meta.get("poses") else None
+    pose = volumetric.pose_model(rom, cfg.table_points, machine) if rom.meta.get("poses") else None
     layout = machine.layout()
     if cfg.strategy != "dataonly":
         dataonly = None
@@ -196,6 +196,7 @@ class State:
     track : the pose-aware model's state (:class:`hybridcomp.monitor.volumetric.PoseTrack`), or None
     written_table : the support-point table written last, or None
     raw_table : the last table before the drives' gains and the rate limit, or None
+    raw_nut_table : the nuts' part of it (:func:`hybridcomp.monitor.volumetric.nut_table_now`), or None
     drive_gains : the drives' gains (:class:`hybridcomp.monitor.volumetric.DriveGains`), or None
     grid : without a pose-aware model, the active CD grid (:class:`hybridcomp.chardiag.grid.CDGrid`, loaded by the
         daemon: :func:`with_active_grid`), whose sets give the support-point table; None: none
@@ -218,6 +219,7 @@ class State:
     track: volumetric.PoseTrack | None = None
     written_table: object | None = None
     raw_table: object | None = None
+    raw_nut_table: object | None = None
     drive_gains: volumetric.DriveGains | None = None
     grid: object | None = None
     pace: tuple[tuple[float, float], ...] = ()
@@ -376,7 +378,8 @@ def initial(ctx: Context) -> State:
     saved = MonitorState(machine=ctx.machine.name, pose_key=ctx.pose_key, rom_id=ctx.rom_id,
                          sensors={s: SensorState() for s in ctx.sensor_names},
                          pos_hold=[a.mid_mm for a in ctx.machine.axes])
-    gains = volumetric.initial_gains(ctx.feedback_axes, ctx.gain_settings) if ctx.pose is not None else None
+    gains = None if ctx.pose is None else volumetric.initial_gains(ctx.feedback_axes, ctx.gain_settings,
+                                                                   nuts=ctx.pose.nut_inputs is not None)
     return State(saved, drive_gains=gains)
 
 
@@ -664,14 +667,14 @@ def _probe(ctx: Context, st: State, r: Reading) -> State:
     at_pose = True
     if ctx.pose is not None and st.raw_table is not None:
         gains = volumetric.update_gains(st.drive_gains, st.raw_table, r.position_mm, probe, r.time_s,
-                                        ctx.gain_settings)
+                                        ctx.gain_settings, st.raw_nut_table)
         st = replace(st, drive_gains=gains)
         # the observer owns the model's pose: a probe elsewhere teaches the drives' gains only (taken to the pose
         # through the table, the table's errors there would reach the one-pose estimate); one at the pose less the
         # drives' errors there, which the one-pose model does not hold
         at_pose = volumetric.at_model_pose(st.raw_table, r.position_mm)
-        if at_pose:
-            probe = volumetric.without_drives_um(volumetric.with_gains(st.raw_table, gains), r.position_mm, probe)
+        if at_pose:  # the gains' share at the pose is taken out at the step's end (:func:`_probe_at_pose`)
+            probe = volumetric.without_drives_um(st.raw_table, r.position_mm, probe)
     if not at_pose:
         return st
     mean, n = _mean_probe(st.saved.probe_um, st.saved.probe_n, probe)
@@ -765,22 +768,27 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
     # the sensors at the step's end from a line through their readings over it (their noise averages out)
     y = (decisions.step_end_values([t for t, _ in st.step_readings], [m for _, m in st.step_readings])
          if st.step_readings else np.full(len(ctx.sensor_names), math.nan))
-    st = _log_step(ctx, replace(st, step_readings=()), end_s, dt, u, y, s.probe_um, before)
+    probe = _probe_at_pose(st, s.probe_um)
+    st = _log_step(ctx, replace(st, step_readings=()), end_s, dt, u, y, probe, before)
     state, inn = obs.update_sensors(state, y)
     rejected = dict(s.rejected)
     for name in inn.rejected:
         rejected[name] = rejected.get(name, 0) + 1
     st = _set(st, observer=state, sensors=sensors, rejected=rejected)
-    if s.probe_um is not None:
-        state = obs.update_probe(state, s.probe_um)
+    if probe is not None:
+        state = obs.update_probe(state, probe)
         st = counted(_set(st, observer=state, probe_um=None, probe_n=0), probes=1)
-        payload = {"measured_um": dict(zip(DRIFT_COLUMNS, s.probe_um)), "probes": s.probe_n,
+        payload = {"measured_um": dict(zip(DRIFT_COLUMNS, probe)), "probes": s.probe_n,
                    "estimate_um": dict(zip(DRIFT_COLUMNS, map(float, obs.drift_um(state))))}
         g = st.drive_gains
         if g is not None and len(g.axes):  # what the probes at several positions taught
             payload["drive_gains"] = {a: float(v) for a, v in zip(g.axes, g.g)}
             payload["message"] = "drives' errors over the model's: " + ", ".join(
                 f"{a} {1 + v:.2f} x" for a, v in zip(g.axes, g.g))
+            if g.h is not None:
+                payload["nut_gains"] = {a: float(v) for a, v in zip(g.axes, g.h)}
+                payload["message"] += "; nuts' part added: " + ", ".join(
+                    f"{a} {v:+.2f} x" for a, v in zip(g.axes, g.h))
         out.event("probe", end_s, payload, _t(end_s))
     st = _after_update(ctx, st, end_s, u)
     s = st.saved
@@ -1028,8 +1036,9 @@ def _compensate_at_position(ctx: Context, st: State, r: Reading, at_pose: tuple,
 
     try:
         raw = volumetric.table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s, at_pose)
-        st = replace(st, raw_table=raw)
-        table = volumetric.with_gains(raw, st.drive_gains)
+        nut = volumetric.nut_table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s)
+        st = replace(st, raw_table=raw, raw_nut_table=nut)
+        table = volumetric.with_gains(raw, st.drive_gains, nut)
         table, moved = volumetric.table_step(table, st.written_table, ctx.cfg.max_step_um)
     except VolumetricError as exc:  # a model gone non-finite: the one-pose offsets, the last table held
         if not st.nonfinite_logged:
@@ -1548,6 +1557,20 @@ def digest(text: str) -> str:
     import hashlib
 
     return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def _probe_at_pose(st: State, probe_um: list | None) -> list | None:
+    """The step's probes at the model's pose as the observer takes them: less the drives' gains' share there.
+
+    The probes were taken less the drives' errors of the table without gains (:func:`_probe`); their gains' share
+    at the model's pose goes with the gains as they are at the step's end, after the whole probing cycle: a cycle
+    that starts at the model's pose and then teaches the gains elsewhere would otherwise leave the observer with the
+    gains before it until the next cycle, while the table has the new ones.
+    """
+    if probe_um is None or st.raw_table is None or st.drive_gains is None:
+        return probe_um
+    share = volumetric.gain_share_at_pose(st.raw_table, st.drive_gains, st.raw_nut_table)
+    return [float(v) - float(d) for v, d in zip(probe_um, share)]
 
 
 def _mean_probe(mean: list | None, n: int, probe: list[float]) -> tuple[list[float], int]:

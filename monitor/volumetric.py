@@ -35,12 +35,17 @@ import numpy as np
 
 @dataclass(frozen=True)
 class PoseModel:
-    """The fixed part: the pose-aware reduced model, its model-pose block, its table operator, its TCP outputs."""
+    """The fixed part: the pose-aware reduced model, its model-pose block, its table operator, its TCP outputs.
+
+    ``nut_inputs``: which inputs are the drives' nuts' heat (a mask over the inputs), or None: the model runs a second
+    time on those alone, whose drives' errors are the nuts' part of the drives' errors (:class:`DriveGains`).
+    """
 
     rom: object
     block: object
     op: object
     tcp: tuple[int, int, int]
+    nut_inputs: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -56,19 +61,41 @@ class PoseTrack:
     y_now: np.ndarray
     y_next: np.ndarray
     history: object = None
+    x_nut: np.ndarray | None = None
+    y_nut_now: np.ndarray | None = None
+    y_nut_next: np.ndarray | None = None
 
 
-def pose_model(prom, points: int = 3) -> PoseModel:
+def pose_model(prom, points: int = 3, machine=None) -> PoseModel:
     """The pose-aware reduced model ``prom`` (:func:`hybridcomp.rom.poses.reduce_at_poses`) ready for the daemon.
 
     ``block`` is the model pose's reduced model inside it (the observer's), ``op`` the table over a grid of
-    ``points`` support points per axis over the travel.
+    ``points`` support points per axis over the travel.  With ``machine`` (the model's machine file), the inputs of
+    its drives' nuts that heat their screws are ``nut_inputs`` (:class:`PoseModel`).
     """
     from hybridcomp.rom.poses import model_pose_block
     from hybridcomp.rom.volumetric import default_grid, table_operator
 
     tcp = tuple(prom.output_layout().indices("drift"))
-    return PoseModel(prom, model_pose_block(prom), table_operator(prom, default_grid(prom, points)), tcp)
+    return PoseModel(prom, model_pose_block(prom), table_operator(prom, default_grid(prom, points)), tcp,
+                     None if machine is None else nut_inputs(prom, machine))
+
+
+def nut_inputs(prom, machine) -> np.ndarray | None:
+    """The mask of ``prom``'s inputs that are the heat of a drive's nut into its screw (None: no such drive)."""
+    layout = machine.layout()  # the model's inputs are in its machine's layout (as the observer reads them)
+    if len(layout.heat_inputs) + len(layout.zones) != prom.n_inputs:
+        return None
+    mask = np.zeros(prom.n_inputs, bool)
+    for axis in prom.output_layout().feedback_axes:
+        d = machine.drive(axis)
+        if d is not None and d.nut_screw_W > 0:
+            mask[list(layout.source_columns(d.nut))] = True
+    return mask if mask.any() else None
+
+
+def _nut(pm: PoseModel, u: np.ndarray) -> np.ndarray:
+    return np.where(pm.nut_inputs, u, 0.0)
 
 
 def _outputs(pm: PoseModel, x: np.ndarray) -> np.ndarray:
@@ -78,7 +105,8 @@ def _outputs(pm: PoseModel, x: np.ndarray) -> np.ndarray:
 def start(pm: PoseModel, u: np.ndarray, time_s: float, horizon_s: float) -> PoseTrack:
     """The pose-aware model at rest in the first inputs (the observer's prior), and one step ahead."""
     x = np.asarray(pm.rom.steady_state(u), float)
-    return _track(pm, time_s, x, u, horizon_s)
+    x_nut = None if pm.nut_inputs is None else np.asarray(pm.rom.steady_state(_nut(pm, u)), float)
+    return _track(pm, time_s, x, u, horizon_s, x_nut=x_nut)
 
 
 def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizon_s: float,
@@ -96,13 +124,19 @@ def advance(pm: PoseModel, track: PoseTrack, u: np.ndarray, end_s: float, horizo
     from hybridcomp.rom.poses import blend_history, history_step
 
     dt = end_s - track.time_s
-    x, window = track.x, track.history
+    x, window, x_nut = track.x, track.history, track.x_nut
+    if pm.nut_inputs is not None and x_nut is None:  # a state saved without the nuts' part: it starts at rest
+        x_nut = np.asarray(pm.rom.steady_state(_nut(pm, u)), float)
     if weights is not None and pm.rom.pose_transfer is not None:
         blend, window = history_step(window, weights, max(dt, 0.0))
         if blend is not None:
             x = blend_history(pm.rom, x, blend)
-    x = x if dt <= 0 else np.asarray(pm.rom.step(x, u, u, dt), float)
-    return _track(pm, end_s, x, u, horizon_s, window)
+            x_nut = None if x_nut is None else blend_history(pm.rom, x_nut, blend)
+    if dt > 0:
+        x = np.asarray(pm.rom.step(x, u, u, dt), float)
+        if x_nut is not None:
+            x_nut = np.asarray(pm.rom.step(x_nut, _nut(pm, u), _nut(pm, u), dt), float)
+    return _track(pm, end_s, x, u, horizon_s, window, x_nut)
 
 
 def step_weights(pm: PoseModel, positions_mm: np.ndarray, dt_s: np.ndarray | None = None):
@@ -117,12 +151,18 @@ def step_weights(pm: PoseModel, positions_mm: np.ndarray, dt_s: np.ndarray | Non
 
 
 def _track(pm: PoseModel, time_s: float, x: np.ndarray, u: np.ndarray, horizon_s: float,
-           history=None) -> PoseTrack:
+           history=None, x_nut: np.ndarray | None = None) -> PoseTrack:
     from hybridcomp.rom.poses import HistoryWindow
 
     x_next = np.asarray(pm.rom.step(x, u, u, horizon_s), float)
+    y_nut = y_nut_next = None
+    if x_nut is not None and pm.nut_inputs is not None:
+        y_nut = _outputs(pm, x_nut)
+        y_nut_next = _outputs(pm, np.asarray(pm.rom.step(x_nut, _nut(pm, u), _nut(pm, u), horizon_s), float))
+    else:
+        x_nut = None
     return PoseTrack(float(time_s), x, _outputs(pm, x), _outputs(pm, x_next),
-                     HistoryWindow() if history is None else history)
+                     HistoryWindow() if history is None else history, x_nut, y_nut, y_nut_next)
 
 
 def outputs_at(track: PoseTrack, t: float, horizon_s: float) -> np.ndarray:
@@ -141,6 +181,16 @@ def table_now(pm: PoseModel, track: PoseTrack, t: float, horizon_s: float, offse
     y = outputs_at(track, t, horizon_s)
     at_pose = y[list(pm.tcp)] * 1e6
     return shifted(table_of(pm.op, y, t), np.asarray(offsets_um, float) - at_pose)
+
+
+def nut_table_now(pm: PoseModel, track: PoseTrack, t: float, horizon_s: float):
+    """The table of the nuts' heat alone at ``t`` (its drives' errors: the nuts' part of the drives'), or None."""
+    from hybridcomp.rom.volumetric import table_of
+
+    if track.y_nut_now is None:
+        return None
+    f = min(max((t - track.time_s) / horizon_s, 0.0), 1.0)
+    return table_of(pm.op, track.y_nut_now + f * (track.y_nut_next - track.y_nut_now), t)
 
 
 def table_step(new, old, max_step_um: float):
@@ -201,6 +251,8 @@ def state_out(track: PoseTrack | None) -> dict | None:
     out = {"time_s": track.time_s, "x": [float(v) for v in track.x]}
     if track.history is not None:
         out["history"] = track.history.as_dict()
+    if track.x_nut is not None:
+        out["x_nut"] = [float(v) for v in track.x_nut]
     return out
 
 
@@ -214,42 +266,65 @@ def state_in(pm: PoseModel, d: dict | None, u, horizon_s: float) -> PoseTrack | 
     from hybridcomp.rom.poses import HistoryWindow
 
     h = d.get("history")
+    x_nut = d.get("x_nut")
+    if pm.nut_inputs is not None:  # a state saved without the nuts' part: it starts at rest in the last inputs
+        x_nut = (np.asarray(x_nut, float) if x_nut is not None and len(x_nut) == pm.rom.order
+                 else np.asarray(pm.rom.steady_state(_nut(pm, np.asarray(u, float))), float))
     return _track(pm, float(d["time_s"]), x, np.asarray(u, float), horizon_s,
-                  None if h is None else HistoryWindow.from_dict(h))
+                  None if h is None else HistoryWindow.from_dict(h), None if pm.nut_inputs is None else x_nut)
 
 
 # ---------------------------------------------------------------------------------------------- the drives' gains
+#: the default of :attr:`GainSettings.whole_error`
+WHOLE_ERROR = True
+
+
 @dataclass(frozen=True)
 class GainSettings:
     """Priors and rates of the drives' gains (:class:`DriveGains`).
 
     Attributes
     ----------
-    gain_sigma : prior spread of each drive's relative error [-] (1: as large as the error itself)
+    gain_sigma : prior spread of each drive's relative error [-] (a machine file's drives known to 30 %; a fault,
+        a seized bearing or a scale of another material, is 3–5 spreads off and is learnt once the drives are warm)
     gain_rate : its random walk per √h [-]
     offset_sigma_um, offset_rate_um : the uniform offset's prior spread [µm] and random walk per √h [µm]
     probe_sigma_um : noise of a probed drift [µm]
+    model_sigma_um : what the probe less the table holds besides the drives' gains and the offset, at each position:
+        the pose-aware structure model's own error away from the model's pose [µm] (up to 0.7 µm against FE
+        carried along a path, ``benchmarks/pose_path.py``); without it a cycle on a cold machine, whose drives'
+        errors are a few µm, takes that error for a gain and the table carries it to the warm machine's tens of µm
+    whole_error : the gains scale each drive's whole error, its share at the model's pose included
+        (:class:`DriveGains`); False: only its change from the model's pose
+    nut_sigma : prior spread of the nuts' gains [-] (1: the nuts' part of the error twice the machine file's)
     """
 
-    gain_sigma: float = 1.0
+    gain_sigma: float = 0.3
     gain_rate: float = 0.05
     offset_sigma_um: float = 5.0
     offset_rate_um: float = 1.0
     probe_sigma_um: float = 0.5
+    model_sigma_um: float = 0.7
+    whole_error: bool = WHOLE_ERROR
+    nut_sigma: float = 1.0
 
 
 @dataclass(frozen=True)
 class DriveGains:
-    """A relative error of each drive's positioning error, learnt from drift probed at several positions.
+    """Relative errors of each drive's positioning error, learnt from drift probed at several positions.
 
     The pose-aware model's drives (a screw's elongation, a scale's expansion) are known only as well as their
-    heat inputs and coefficients: a nut that runs warmer than its machine file says, or a scale of another
-    material, scales the error along the axis.  A probing cycle that touches several positions along the axes
-    sees it: the probe less the table without gains is ``b + Σ_a g_a · sign_a · (e_a(p_a) − e_a(p0_a))`` in the
-    drive's direction (``p0`` the model's pose; ``b`` a uniform offset — the gain's share at the model's pose
-    included — that the observer at the model's pose takes care of, here a nuisance), and a Kalman filter on
-    ``(g, b)`` (random walks) estimates the gains.  The table's drive entries become ``e + g (e − e(p0))``: at the
-    model's pose nothing changes (the one-pose observer owns it), and probes there alone leave the gains alone.
+    heat inputs and coefficients: a seized floating bearing, or a scale of another material, scales the error
+    along the axis; a nut that runs warmer than its machine file says changes its shape and timing too (its heat
+    enters over the nut's travel, with the feed).  A probing cycle that touches several positions along the axes
+    sees it: the probe less the table without gains is ``b + Σ_a sign_a (g_a e_a(p_a) + h_a n_a(p_a))`` in the
+    drive's direction (``e_a`` the drive's error, ``n_a`` its nuts' part: the model run on the nuts' heat alone,
+    :func:`nut_table_now`; ``b`` a uniform offset that the observer at the model's pose takes care of, here a
+    nuisance), and a Kalman filter on ``(g, h, b)`` (random walks) estimates the gains.  The table's drive
+    entries become ``e + g e + h n``.  ``whole_error`` False: every error less its value at the model's pose
+    (``e − e(p0)``), so the table there is left to the one-pose observer.  Probes at the model's pose alone leave
+    the gains alone either way: there a gain cannot be told from the observer's structure, which owns it.
+    ``h`` is None without the nuts' part (a model without nuts' heat into screws, or a state saved before it).
     """
 
     axes: tuple[str, ...]
@@ -257,68 +332,122 @@ class DriveGains:
     b: np.ndarray
     P: np.ndarray
     time_s: float | None = None
+    whole_error: bool = False
+    h: np.ndarray | None = None
 
     def as_dict(self) -> dict:
         return {"axes": list(self.axes), "g": [float(v) for v in self.g], "b": [float(v) for v in self.b],
-                "P": [[float(v) for v in row] for row in self.P], "time_s": self.time_s}
+                "P": [[float(v) for v in row] for row in self.P], "time_s": self.time_s,
+                "whole_error": self.whole_error, "h": None if self.h is None else [float(v) for v in self.h]}
 
     @staticmethod
     def from_dict(d: dict) -> DriveGains:
+        h = d.get("h")
         return DriveGains(tuple(d["axes"]), np.asarray(d["g"], float), np.asarray(d["b"], float),
-                          np.asarray(d["P"], float), d.get("time_s"))
+                          np.asarray(d["P"], float), d.get("time_s"), bool(d.get("whole_error", False)),
+                          None if h is None else np.asarray(h, float))
+
+    def _with(self, x: np.ndarray, P: np.ndarray, time_s: float | None) -> DriveGains:
+        n = len(self.axes)
+        h = None if self.h is None else x[n:2 * n]
+        return DriveGains(self.axes, x[:n], x[-3:], P, time_s, self.whole_error, h)
+
+    @property
+    def x(self) -> np.ndarray:
+        return np.r_[self.g, [] if self.h is None else self.h, self.b]
 
 
-def initial_gains(axes, settings: GainSettings = GainSettings()) -> DriveGains:
-    """No error known yet: every gain 0 and the offset 0 at their prior spreads."""
+def initial_gains(axes, settings: GainSettings = GainSettings(), nuts: bool = False) -> DriveGains:
+    """No error known yet: every gain 0 and the offset 0 at their prior spreads (``nuts``: with the nuts' gains)."""
     n = len(axes)
-    P = np.diag(np.r_[np.full(n, settings.gain_sigma ** 2), np.full(3, settings.offset_sigma_um ** 2)])
-    return DriveGains(tuple(axes), np.zeros(n), np.zeros(3), P)
+    sig = [settings.gain_sigma ** 2] * n + ([settings.nut_sigma ** 2] * n if nuts else [])
+    P = np.diag(np.r_[sig, np.full(3, settings.offset_sigma_um ** 2)])
+    return DriveGains(tuple(axes), np.zeros(n), np.zeros(3), P, whole_error=settings.whole_error,
+                      h=np.zeros(n) if nuts else None)
 
 
-def _drive_rows(table, position_mm, axes) -> np.ndarray:
-    """(3 × n): each drive's error at ``position_mm`` less at the model's pose (sign applied), in its direction [µm]."""
+def _drive_rows(table, position_mm, axes, whole_error: bool) -> np.ndarray:
+    """(3 × n): each drive's error at ``position_mm`` (sign applied) in its direction [µm], less at the model's pose.
+
+    Its whole error (nothing less) with ``whole_error``.
+    """
     H = np.zeros((3, len(axes)))
     ref = table.grid.reference_mm()
     for f in table.feedback_um:
         if f.axis in axes:
-            H[f.direction, list(axes).index(f.axis)] = f.sign * (_drive_at(table, f, position_mm)
-                                                                 - _drive_at(table, f, ref))
+            e0 = 0.0 if whole_error else _drive_at(table, f, ref)
+            H[f.direction, list(axes).index(f.axis)] = f.sign * (_drive_at(table, f, position_mm) - e0)
     return H
 
 
+def _rows(gains: DriveGains, raw_table, nut_table, position_mm) -> np.ndarray:
+    """The measurement rows (3 × states) of a probe at ``position_mm``: the gains, the nuts' gains, the offset."""
+    H = [_drive_rows(raw_table, position_mm, gains.axes, gains.whole_error)]
+    if gains.h is not None:
+        H.append(np.zeros((3, len(gains.axes))) if nut_table is None
+                 else _drive_rows(nut_table, position_mm, gains.axes, gains.whole_error))
+    return np.hstack(H + [np.eye(3)])
+
+
 def update_gains(gains: DriveGains, raw_table, position_mm, probe_um, time_s: float,
-                 settings: GainSettings = GainSettings()) -> DriveGains:
-    """The gains after a probe at ``position_mm`` (``raw_table``: the table at that time without gains)."""
+                 settings: GainSettings = GainSettings(), nut_table=None) -> DriveGains:
+    """The gains after a probe at ``position_mm``.
+
+    ``raw_table``: the table at that time without gains; ``nut_table``: the nuts' part then (:func:`nut_table_now`).
+    """
     from hybridcomp.rom.volumetric import interpolate_one
 
-    n = len(gains.axes)
+    m = len(gains.x) - 3
     P = gains.P
     if gains.time_s is not None and time_s > gains.time_s:
         h = (time_s - gains.time_s) / 3600.0
-        P = P + np.diag(np.r_[np.full(n, settings.gain_rate ** 2 * h), np.full(3, settings.offset_rate_um ** 2 * h)])
+        P = P + np.diag(np.r_[np.full(m, settings.gain_rate ** 2 * h), np.full(3, settings.offset_rate_um ** 2 * h)])
     y = np.asarray(probe_um, float) - np.asarray(interpolate_one(raw_table, position_mm), float)
-    H = np.hstack([_drive_rows(raw_table, position_mm, gains.axes), np.eye(3)])
     ok = np.isfinite(y)
-    if not ok.any():
-        return DriveGains(gains.axes, gains.g, gains.b, P, time_s)
-    H, y = H[ok], y[ok]
-    x = np.r_[gains.g, gains.b]
-    S = H @ P @ H.T + settings.probe_sigma_um ** 2 * np.eye(H.shape[0])
+    if not ok.any() or at_model_pose(raw_table, position_mm):
+        # at the model's pose a gain's share and the observer's structure cannot be told apart: the observer owns it
+        # (it gets the probe less the drives as corrected, :func:`gain_share_at_pose`), the gains learn elsewhere
+        return gains._with(gains.x, P, time_s)
+    H, y = _rows(gains, raw_table, nut_table, position_mm)[ok], y[ok]
+    x = gains.x
+    r2 = settings.probe_sigma_um ** 2 + settings.model_sigma_um ** 2
+    S = H @ P @ H.T + r2 * np.eye(H.shape[0])
     K = np.linalg.solve(S, H @ P).T
     x = x + K @ (y - H @ x)
     IKH = np.eye(P.shape[0]) - K @ H
-    P = IKH @ P @ IKH.T + settings.probe_sigma_um ** 2 * K @ K.T  # Joseph form: stays symmetric and positive
-    return DriveGains(gains.axes, x[:n], x[n:], 0.5 * (P + P.T), time_s)
+    P = IKH @ P @ IKH.T + r2 * K @ K.T  # Joseph form: stays symmetric and positive
+    return gains._with(x, 0.5 * (P + P.T), time_s)
 
 
-def with_gains(table, gains: DriveGains | None):
-    """The table with each drive's entries ``e + g (e − e(p0))`` (``p0`` the model's pose, :class:`DriveGains`)."""
+def with_gains(table, gains: DriveGains | None, nut_table=None):
+    """The table with each drive's entries ``e + g e + h n`` (:class:`DriveGains`).
+
+    Relative to the model's pose unless ``whole_error``; ``nut_table``: the nuts' part (:func:`nut_table_now`).
+    """
     if gains is None or not len(gains.axes):
         return table
     import dataclasses
 
     g = dict(zip(gains.axes, gains.g))
+    h = dict(zip(gains.axes, gains.h)) if gains.h is not None and nut_table is not None else {}
+    nuts = {f.axis: f for f in nut_table.feedback_um} if h else {}
     ref = table.grid.reference_mm()
-    fb = tuple(f._replace(error_um=f.error_um + g.get(f.axis, 0.0) * (f.error_um - _drive_at(table, f, ref)))
-               for f in table.feedback_um)
-    return dataclasses.replace(table, feedback_um=fb)
+
+    def rel(t, f) -> np.ndarray:
+        return f.error_um - (0.0 if gains.whole_error else _drive_at(t, f, ref))
+
+    fb = []
+    for f in table.feedback_um:
+        e = f.error_um + g.get(f.axis, 0.0) * rel(table, f)
+        if f.axis in nuts:
+            nf = nuts[f.axis]
+            e = e + h[f.axis] * np.interp(f.positions_mm, nf.positions_mm, rel(nut_table, nf))
+        fb.append(f._replace(error_um=e))
+    return dataclasses.replace(table, feedback_um=tuple(fb))
+
+
+def gain_share_at_pose(table, gains: DriveGains | None, nut_table=None) -> np.ndarray:
+    """What the gains add to the drives' errors at the model's pose [µm] (dx, dy, dz); zero relative to the pose."""
+    ref = table.grid.reference_mm()
+    raw = np.asarray(without_drives_um(table, ref, np.zeros(3)), float)
+    return raw - np.asarray(without_drives_um(with_gains(table, gains, nut_table), ref, np.zeros(3)), float)
