@@ -32,7 +32,7 @@ met or not:
   the model's axis positions against the real structure and drives there); no table entry moves by more than
   0.2 µm per 5 s cycle.  Three disturbances act along the path only (``POSITION_DEPENDENT``: the nuts' heat into
   their screws, a scale's expansion coefficient, a screw's seized floating bearing): the daemon's probing cycles
-  touch a star of poses over the workspace and it learns each drive's gain from them; the feed drives' diagnosis
+  touch a star of poses over the workspace and it learns each drive's gains from them; the feed drives' diagnosis
   (``hybridcomp.diagnose.drives``, the scenario summary's ``along_path.drives``) names the drive effect from them.
 
     python benchmarks/compensation.py [--element-size-mm 150] [--cases all] [--out DIR] [--no-diagnosis]

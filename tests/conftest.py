@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 
 import pytest
+from scripts import load_script
 
 import hybridcomp as hc
 from hybridcomp.models import load_machine
@@ -80,3 +81,9 @@ def write_csv():
         return path
 
     return write
+
+
+@pytest.fixture(scope="session")
+def benchmark_script():
+    """Load a script of ``benchmarks/`` by its name as a module (its functions tested without a subprocess)."""
+    return lambda name: load_script(f"benchmarks/{name}.py", f"benchmark_{name}")

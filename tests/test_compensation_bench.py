@@ -3,18 +3,6 @@ sees there (drives included) where the run wrote tables, so the 1.5 × target ca
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "compensation.py"
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("compensation_bench", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
 
 def _m(rms: float, step: float | None = None) -> dict:
     w = {900.0: rms, 3600.0: rms, 14400.0: rms, 54000.0: rms}
@@ -28,8 +16,8 @@ def _own_target(targets: list[dict]) -> dict:
     return next(t for t in targets if t["target"].startswith("along the path: hybrid RMS <= 1.5 x"))
 
 
-def test_own_figure_at_the_pose_includes_the_drives_when_tables_were_written():
-    b = _bench()
+def test_own_figure_at_the_pose_includes_the_drives_when_tables_were_written(benchmark_script):
+    b = benchmark_script("compensation")
     path = {"no compensation": _m(30.0), "hybrid monitor": _m(4.0, 0.1), "ROM direct along the path": _m(16.0)}
     at_pose = {"hybrid monitor": _m(12.6)}  # the one-pose offsets against the structure alone: a drive's mismatch
     # without the drives-included figure the structure-alone one is the yardstick, and 4.0 <= 1.5 * 12.6 + 0.2 holds

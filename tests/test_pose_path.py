@@ -3,37 +3,26 @@ fail where the prediction passes."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "pose_path.py"
 
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("pose_path_bench", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_hold_rows_give_the_move_row_to_the_new_hold():
+def test_hold_rows_give_the_move_row_to_the_new_hold(benchmark_script):
     import numpy as np
 
     t = np.arange(0.0, 16 * 3600.0 + 1.0, 1800.0)
-    assert _bench().hold_rows(t, ((8.0, {}), (8.0, {}))) == [(0, 16), (16, 32)]
+    assert benchmark_script("pose_path").hold_rows(t, ((8.0, {}), (8.0, {}))) == [(0, 16), (16, 32)]
     with pytest.raises(ValueError, match="the holds last 12 h, the loads 16 h"):
-        _bench().hold_rows(t, ((4.0, {}), (8.0, {})))
+        benchmark_script("pose_path").hold_rows(t, ((4.0, {}), (8.0, {})))
 
 
 @pytest.mark.slow
-def test_planted_errors_fail_where_the_prediction_passes(capsys):
+def test_planted_errors_fail_where_the_prediction_passes(capsys, benchmark_script):
     """200 mm, 5 min steps, no off-grid poses held all day: the second path's first hold sits at support pose 5 (the
     Z axis' lower end), where the pose-aware model is its own block; dropping that block must fail the criterion.
     After the move to the Z axis' upper end, the model that ignores the pose history must fail too."""
-    assert _bench().main(["--fast", "--poses", "0", "--plant", "5"]) == 0
+    assert benchmark_script("pose_path").main(["--fast", "--poses", "0", "--plant", "5"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["plant"] == 5 and out["element_size_mm"] == 200.0
     hold = next(c for c in out["cases"] if c["case"] == "8 h Z low, 8 h Z high" and c["hold"].startswith("1:"))

@@ -40,18 +40,24 @@ def _gains(whole_error: bool):
     return volumetric.initial_gains(("X", "Y"), volumetric.GainSettings(whole_error=whole_error))
 
 
-def test_probes_at_several_positions_recover_each_drives_gain_and_a_uniform_offset():
-    """The gains scale each drive's whole error (the default): at the model's pose too, so the observer there gets
-    the probe less the drives' corrected error and the table follows the truth everywhere, offset aside."""
-    raw = _table()
-    truth = _table(gx=1.5, gy=-0.4)  # a nut putting 2.5 x its heat in, a screw running cooler
-    offset = np.array([3.0, -2.0, 1.0])  # what the one-pose observer has not taken out yet
+def _learnt(whole_error: bool):
+    """Four probing cycles over the star on a truth whose X nut puts 2.5 x its heat in and whose Y screw runs cooler,
+    with an offset the one-pose observer has not taken out yet: (raw table, truth, offset, gains)."""
+    raw, truth = _table(), _table(gx=1.5, gy=-0.4)
+    offset = np.array([3.0, -2.0, 1.0])
     rng = np.random.default_rng(1)
-    gains = _gains(True)
+    gains = _gains(whole_error)
     for cycle in range(4):
         for p in _star():
             probe = np.asarray(interpolate_one(truth, p)) + offset + rng.normal(0.0, 0.3, 3)
             gains = volumetric.update_gains(gains, raw, p, probe, 3600.0 * cycle + 1.0)
+    return raw, truth, offset, gains
+
+
+def test_probes_at_several_positions_recover_each_drives_gain_and_a_uniform_offset():
+    """The gains scale each drive's whole error (the default): at the model's pose too, so the observer there gets
+    the probe less the drives' corrected error and the table follows the truth everywhere, offset aside."""
+    raw, truth, offset, gains = _learnt(True)
     assert gains.g == pytest.approx([1.5, -0.4], abs=0.05)
     assert gains.b == pytest.approx(offset, abs=0.3)  # the gains' share at the model's pose is theirs
     corrected = volumetric.with_gains(raw, gains)
@@ -67,15 +73,7 @@ def test_probes_at_several_positions_recover_each_drives_gain_and_a_uniform_offs
 def test_gains_relative_to_the_model_pose_leave_the_table_there_alone():
     """``whole_error=False``: the gains scale each drive's change from the model's pose; their share there is in the
     uniform offset, which the one-pose observer owns."""
-    raw = _table()
-    truth = _table(gx=1.5, gy=-0.4)
-    offset = np.array([3.0, -2.0, 1.0])
-    rng = np.random.default_rng(1)
-    gains = _gains(False)
-    for cycle in range(4):
-        for p in _star():
-            probe = np.asarray(interpolate_one(truth, p)) + offset + rng.normal(0.0, 0.3, 3)
-            gains = volumetric.update_gains(gains, raw, p, probe, 3600.0 * cycle + 1.0)
+    raw, truth, offset, gains = _learnt(False)
     assert gains.g == pytest.approx([1.5, -0.4], abs=0.05)
     share = np.asarray(interpolate_one(truth, np.zeros(3))) - np.asarray(interpolate_one(raw, np.zeros(3)))
     assert gains.b == pytest.approx(offset + share, abs=0.3)
