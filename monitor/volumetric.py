@@ -16,8 +16,10 @@ the inputs as the observer corrects them (its air offsets and power scales).  It
 pose's reduced model itself, so the bracket is zero at the model's pose: at that pose the table gives the
 one-pose offsets plus the drives' error at the model's axis positions.
 
-Probes: one at the model's pose goes to the observer less the drives' errors there (the one-pose model holds
-none); one elsewhere teaches the drives' gains (:class:`DriveGains`) and nothing else.
+Probes: one at the model's pose goes to the observer less the drives' errors there, the gains' share as the
+gains stand at the model step's end (the one-pose model holds none); one elsewhere teaches the drives' gains
+(:class:`DriveGains`: each drive's whole error and its nuts' part, the model run on the nuts' heat alone) and
+nothing else.
 
 Each entry of the table moves at most ``max_step_um`` per cycle (the rate limit of the one-pose offsets,
 per support point); the offsets at the commanded position are the table interpolated there, as the control
