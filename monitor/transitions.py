@@ -768,7 +768,7 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
     # the sensors at the step's end from a line through their readings over it (their noise averages out)
     y = (decisions.step_end_values([t for t, _ in st.step_readings], [m for _, m in st.step_readings])
          if st.step_readings else np.full(len(ctx.sensor_names), math.nan))
-    st, probe = _probe_at_pose(st, s.probe_um)
+    probe = _probe_at_pose(st, s.probe_um)
     st = _log_step(ctx, replace(st, step_readings=()), end_s, dt, u, y, probe, before)
     state, inn = obs.update_sensors(state, y)
     rejected = dict(s.rejected)
@@ -1032,14 +1032,13 @@ def _compensate_at_position(ctx: Context, st: State, r: Reading, at_pose: tuple,
 
     The one-pose offsets carried to every pose, each entry rate limited against the last table.
     """
-    from hybridcomp.rom.volumetric import VolumetricError, interpolate_one, shifted
+    from hybridcomp.rom.volumetric import VolumetricError, interpolate_one
 
     try:
         raw = volumetric.table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s, at_pose)
         nut = volumetric.nut_table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s)
         st = replace(st, raw_table=raw, raw_nut_table=nut)
-        table = shifted(volumetric.with_gains(raw, st.drive_gains, nut),
-                        volumetric.fed_shift_um(raw, st.drive_gains, nut))
+        table = volumetric.with_gains(raw, st.drive_gains, nut)
         table, moved = volumetric.table_step(table, st.written_table, ctx.cfg.max_step_um)
     except VolumetricError as exc:  # a model gone non-finite: the one-pose offsets, the last table held
         if not st.nonfinite_logged:
@@ -1560,20 +1559,18 @@ def digest(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-def _probe_at_pose(st: State, probe_um: list | None) -> tuple[State, list | None]:
+def _probe_at_pose(st: State, probe_um: list | None) -> list | None:
     """The step's probes at the model's pose as the observer takes them: less the drives' gains' share there.
 
     The probes were taken less the drives' errors of the table without gains (:func:`_probe`); their gains' share
     at the model's pose goes with the gains as they are at the step's end, after the whole probing cycle: a cycle
     that starts at the model's pose and then teaches the gains elsewhere would otherwise leave the observer with the
-    gains before it until the next cycle, while the table has the new ones.  The gains are marked as given
-    (:meth:`~hybridcomp.monitor.volumetric.DriveGains.as_fed`): what changes them before the next such probe
-    shifts the table at the model's pose no further (:func:`hybridcomp.monitor.volumetric.fed_shift_um`).
+    gains before it until the next cycle, while the table has the new ones.
     """
     if probe_um is None or st.raw_table is None or st.drive_gains is None:
-        return st, probe_um
+        return probe_um
     share = volumetric.gain_share_at_pose(st.raw_table, st.drive_gains, st.raw_nut_table)
-    return replace(st, drive_gains=st.drive_gains.as_fed()), [float(v) - float(d) for v, d in zip(probe_um, share)]
+    return [float(v) - float(d) for v, d in zip(probe_um, share)]
 
 
 def _mean_probe(mean: list | None, n: int, probe: list[float]) -> tuple[list[float], int]:

@@ -30,7 +30,6 @@ Everything here is pure: :class:`PoseTrack` is the pose-aware model's state, eac
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -328,8 +327,6 @@ class DriveGains:
     (``e − e(p0)``), so the table there is left to the one-pose observer.  Probes at the model's pose alone leave
     the gains alone either way: there a gain cannot be told from the observer's structure, which owns it.
     ``h`` is None without the nuts' part (a model without nuts' heat into screws, or a state saved before it).
-    ``fed``: the gains (``g`` then ``h``) as the observer was last given them with a probe at the model's pose
-    (:func:`fed_shift_um`); None: none yet (zero).
     """
 
     axes: tuple[str, ...]
@@ -339,37 +336,23 @@ class DriveGains:
     time_s: float | None = None
     whole_error: bool = False
     h: np.ndarray | None = None
-    fed: np.ndarray | None = None
 
     def as_dict(self) -> dict:
-        def lst(v):
-            return None if v is None else [float(x) for x in v]
-
-        return {"axes": list(self.axes), "g": lst(self.g), "b": lst(self.b),
+        return {"axes": list(self.axes), "g": [float(v) for v in self.g], "b": [float(v) for v in self.b],
                 "P": [[float(v) for v in row] for row in self.P], "time_s": self.time_s,
-                "whole_error": self.whole_error, "h": lst(self.h), "fed": lst(self.fed)}
+                "whole_error": self.whole_error, "h": None if self.h is None else [float(v) for v in self.h]}
 
     @staticmethod
     def from_dict(d: dict) -> DriveGains:
-        def arr(v):
-            return None if v is None else np.asarray(v, float)
-
-        return DriveGains(tuple(d["axes"]), arr(d["g"]), arr(d["b"]), arr(d["P"]), d.get("time_s"),
-                          bool(d.get("whole_error", False)), arr(d.get("h")), arr(d.get("fed")))
+        h = d.get("h")
+        return DriveGains(tuple(d["axes"]), np.asarray(d["g"], float), np.asarray(d["b"], float),
+                          np.asarray(d["P"], float), d.get("time_s"), bool(d.get("whole_error", False)),
+                          None if h is None else np.asarray(h, float))
 
     def _with(self, x: np.ndarray, P: np.ndarray, time_s: float | None) -> DriveGains:
         n = len(self.axes)
         h = None if self.h is None else x[n:2 * n]
-        return DriveGains(self.axes, x[:n], x[-3:], P, time_s, self.whole_error, h, self.fed)
-
-    def as_fed(self) -> DriveGains:
-        """These gains, marked as given to the observer (with a probe at the model's pose)."""
-        return dataclasses.replace(self, fed=np.r_[self.g, [] if self.h is None else self.h])
-
-    def _fed_gains(self) -> DriveGains:
-        n = len(self.axes)
-        f = np.zeros(n + (0 if self.h is None else n)) if self.fed is None else self.fed
-        return dataclasses.replace(self, g=f[:n], h=None if self.h is None else f[n:2 * n])
+        return DriveGains(self.axes, x[:n], x[-3:], P, time_s, self.whole_error, h)
 
     @property
     def x(self) -> np.ndarray:
@@ -445,6 +428,8 @@ def with_gains(table, gains: DriveGains | None, nut_table=None):
     """
     if gains is None or not len(gains.axes):
         return table
+    import dataclasses
+
     g = dict(zip(gains.axes, gains.g))
     h = dict(zip(gains.axes, gains.h)) if gains.h is not None and nut_table is not None else {}
     nuts = {f.axis: f for f in nut_table.feedback_um} if h else {}
@@ -468,17 +453,3 @@ def gain_share_at_pose(table, gains: DriveGains | None, nut_table=None) -> np.nd
     ref = table.grid.reference_mm()
     raw = np.asarray(without_drives_um(table, ref, np.zeros(3)), float)
     return raw - np.asarray(without_drives_um(with_gains(table, gains, nut_table), ref, np.zeros(3)), float)
-
-
-def fed_shift_um(table, gains: DriveGains | None, nut_table=None) -> np.ndarray:
-    """The uniform shift [µm] that keeps the table at the model's pose on the gains the observer was given.
-
-    The observer holds the structure at the model's pose less the gains' share as it was given them
-    (:meth:`DriveGains.as_fed`); gains changed since (probes elsewhere after it, a cycle across a model step's end)
-    would move the table there by their change of share, which the observer has not taken out.  Until the next probe
-    at the model's pose the table is shifted by that change, less (:func:`gain_share_at_pose` of the gains as fed
-    against as they are); zero when they are the same.
-    """
-    if gains is None or not len(gains.axes):
-        return np.zeros(3)
-    return gain_share_at_pose(table, gains._fed_gains(), nut_table) - gain_share_at_pose(table, gains, nut_table)

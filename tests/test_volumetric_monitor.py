@@ -5,7 +5,6 @@ position, rate limit per table entry, a restart that continues the pose-aware st
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 
 import numpy as np
 import pytest
@@ -297,30 +296,3 @@ def test_the_nuts_part_is_the_model_on_the_nuts_heat_alone(pose_roms_200mm, mach
         assert fn.axis == fw.axis == fo.axis
         assert np.asarray(fn.error_um) == pytest.approx(np.asarray(fw.error_um) - np.asarray(fo.error_um), abs=1e-6)
     assert max(np.abs(f.error_um).max() for f in nut.feedback_um) > 0.5  # the nuts' heat moves the drives
-
-
-def test_the_table_at_the_model_pose_keeps_the_gains_the_observer_was_given():
-    """Gains learnt after the observer took a probe at the model's pose (a cycle across a model step's end) move the
-    table there only once the observer is given them (with its next probe there); elsewhere they act at once."""
-    from hybridcomp.rom.volumetric import shifted
-
-    raw = _table()
-    given = volumetric.DriveGains(("X", "Y"), np.array([0.5, 0.0]), np.zeros(3), np.eye(5), whole_error=True).as_fed()
-    now = dataclasses.replace(given, g=np.array([1.5, -0.4]))  # probes elsewhere after the feed
-
-    def table(g):
-        return shifted(volumetric.with_gains(raw, g), volumetric.fed_shift_um(raw, g))
-
-    p0, p = np.zeros(3), np.array([360.0, -290.0, 0.0])
-    assert np.asarray(interpolate_one(table(now), p0)) == pytest.approx(
-        np.asarray(interpolate_one(volumetric.with_gains(raw, given), p0)), abs=1e-12)
-    moved = np.asarray(interpolate_one(table(now), p)) - np.asarray(interpolate_one(table(given), p))
-    want = (np.asarray(interpolate_one(volumetric.with_gains(raw, now), p))
-            - np.asarray(interpolate_one(volumetric.with_gains(raw, given), p)))
-    assert abs(moved[0]) > 1.0  # the new gains reach p
-    # the change of the gains' share from the model's pose to p acts at once, the share at the pose waits
-    share = volumetric.gain_share_at_pose(raw, now) - volumetric.gain_share_at_pose(raw, given)
-    assert moved == pytest.approx(want - share, abs=1e-12)
-    assert volumetric.fed_shift_um(raw, now.as_fed()) == pytest.approx([0.0, 0.0, 0.0], abs=1e-12)  # once given
-    back = volumetric.DriveGains.from_dict(now.as_dict())
-    assert np.array_equal(back.fed, given.fed)
