@@ -794,11 +794,9 @@ def _along_path(out: Path, models: Models, day: _Day, preds: dict, runs: dict, p
     truth_p0 = day.truth + drift_along(path.rom, path.Y, p0) - _tcp_um(path.rom, path.Y)
     for strategy, r in runs.items():
         if r.get("tables"):
+            m[NAMES[strategy]]["largest_step_um"] = r["table_largest_step_um"]
             pred = tables_along(r["tables"], t, np.repeat(p0, t.size, axis=0))
             m[f"{NAMES[strategy]} {AT_POSE_WITH_DRIVES}"] = drift_metrics(t, truth_p0 - pred)
-    for strategy, r in runs.items():
-        if r.get("tables"):
-            m[NAMES[strategy]]["largest_step_um"] = r["table_largest_step_um"]
     (out / "table_along_path.md").write_text(metrics_table(m) + "\n")
     _write_residuals(out / "residuals_along_path.csv", t, truth_path, path_preds,
                      {f"{a.name}_mm": positions[:, i] for i, a in enumerate(machine.axes)})

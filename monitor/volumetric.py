@@ -277,10 +277,6 @@ def state_in(pm: PoseModel, d: dict | None, u, horizon_s: float) -> PoseTrack | 
 
 
 # ---------------------------------------------------------------------------------------------- the drives' gains
-#: the default of :attr:`GainSettings.whole_error`
-WHOLE_ERROR = True
-
-
 @dataclass(frozen=True)
 class GainSettings:
     """Priors and rates of the drives' gains (:class:`DriveGains`).
@@ -307,7 +303,7 @@ class GainSettings:
     offset_rate_um: float = 1.0
     probe_sigma_um: float = 0.5
     model_sigma_um: float = 0.7
-    whole_error: bool = WHOLE_ERROR
+    whole_error: bool = True
     nut_sigma: float = 1.0
 
 

@@ -285,8 +285,7 @@ def test_the_nuts_part_is_the_model_on_the_nuts_heat_alone(pose_roms_200mm, mach
     track = volumetric.start(pm, 0.5 * u, 0.0, 300.0)
     for k in range(1, 13):  # an hour
         track = volumetric.advance(pm, track, u, 300.0 * k, 300.0)
-    rest = volumetric.start(volumetric.PoseModel(pm.rom, pm.block, pm.op, pm.tcp), 0.5 * np.where(pm.nut_inputs, 0.0, u),
-                            0.0, 300.0)
+    rest = volumetric.start(pm, 0.5 * np.where(pm.nut_inputs, 0.0, u), 0.0, 300.0)
     for k in range(1, 13):
         rest = volumetric.advance(pm, rest, np.where(pm.nut_inputs, 0.0, u), 300.0 * k, 300.0)
     nut = volumetric.nut_table_now(pm, track, 3600.0, 300.0)
