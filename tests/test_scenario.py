@@ -65,3 +65,14 @@ def test_zero_noise_and_no_probing_are_allowed():
 def test_run_scenario_takes_a_scenario_and_a_folder_only():
     with pytest.raises(TypeError):
         run_scenario(Scenario(), "out", disturbance=NOMINAL)  # the settings live in the Scenario
+
+
+def test_activations_per_day_count_the_half_open_day():
+    """A set activated at the day's last sample belongs to the next day: two days in a row must not both count it."""
+    from hybridcomp.scenario import activations_within
+
+    ev = [{"kind": "activation", "machine_time_s": t} for t in (0.0, 9000.0, 57600.0)]
+    ev += [{"kind": "decision", "machine_time_s": 30000.0}, {"kind": "generation", "machine_time_s": 9000.0}]
+    assert activations_within(ev, 0.0, 57600.0) == 2
+    assert activations_within(ev, 57600.0, 115200.0) == 1
+    assert activations_within(ev, 0.0, 57600.0) + activations_within(ev, 57600.0, 115200.0) == 3
