@@ -512,7 +512,7 @@ reject_um = 50                     # a set predicted this far off is never appli
 [observer]                         # the Kalman filter that keeps the structure model on the machine
 sensor_sigma_K = 0.15              # sensor noise including model error [K]
 probe_sigma_um = 0.5               # noise of a probed drift (probe_dx_um ... columns of the trace) [um]
-# air_sigma_K, air_rate_K, scale_sigma, scale_rate, heat_sigma_W, heat_rate_W, bias_sigma_um, bias_rate_um,
+# air_sigma_K, air_rate_K, air_common, scale_sigma, scale_rate, heat_sigma_W, heat_rate_W, bias_sigma_um, bias_rate_um,
 # input_sigma, initial_load, gate_sigma, probe_widen_sigma: see monitor/README.md
 # admissible ranges of the estimates, held after each update: air_min_K, air_max_K (-3, 3) [K],
 # scale_min, scale_max (-0.9, 3) [-], heat_min_W, heat_max_W (-100, 100) [W]
