@@ -1,7 +1,7 @@
 """Benchmark: the pose-aware structure model against FE carried along paths with moves, and at off-grid poses.
 
-    python benchmarks/pose_path.py [--element-size-mm 80] [--fast] [--dt-s 60] [--poses 5] [--plant K]
-                                   [--at-table-reference]
+    python benchmarks/pose_path.py [--element-size-mm 80] [--fast] [--dt-s 60] [--poses 5] [--scheme star]
+                                   [--plant K] [--at-table-reference]
 
 Truth: FE models built at the poses a path visits (one per distinct pose), stepped with Crank–Nicolson on the
 loads' times (the 16 h example day, ``hybridcomp.fem.loads.example_loads``) from the steady state of its first row
@@ -12,7 +12,8 @@ its upper end (support poses: no interpolation error, so what is left is the pos
 visited in turn for 15 min each all day (64 moves, a job shop's pattern).  Besides, five off-grid poses held all
 day (``benchmarks/pose_drift.py``'s poses), each against an FE model built there.
 
-Prediction: the pose-aware reduced model (:func:`hybridcomp.rom.poses.reduce_at_poses`, star) along the path
+Prediction: the pose-aware reduced model (:func:`hybridcomp.rom.poses.reduce_at_poses`; ``--scheme``: ``star``,
+the model's pose and each axis at its two ends, 2 n + 1 support poses, or ``grid``, the full 3^n grid) along the path
 with its pose history (:func:`hybridcomp.rom.poses.integrate_along`, ``history="moves"``: the support poses'
 blocks blended at every move with the weights of the pose left, :func:`~hybridcomp.rom.poses.blend_history`),
 ``drift_along(..., feedback=False)`` at the path's positions.  Beside it on the paths:
@@ -27,9 +28,10 @@ Criterion per case and direction: the largest error ≤ max(0.3 µm, 5 % of the 
 the local range being the range within the hold (the hold paths), over the rows at that pose (the 15 min path) or
 over the day (a pose held all day).  ``--plant K`` adds a planted error beside the prediction: support pose K's
 drift replaced by the model pose's (its block dropped), judged alike (``within_limit``: ``*_planted``); at support
-pose K itself (K = 5: the Z axis' lower end, the first hold of the second path) it must fail where the prediction
-passes.  ``--at-table-reference`` takes the drift at the table reference instead of the table point under the
-tool.  Prints a table and a final JSON line.
+pose K itself (star: K = 5, the Z axis' lower end, the first hold of the second path; grid: K = 13 is that pose) it
+must fail where the prediction passes.  Support poses are numbered as :func:`hybridcomp.fem.poses.support_poses`
+lists them, the model's pose 0: star 1 .. 2 n, grid 1 .. 3^n − 1.  ``--at-table-reference`` takes the drift at the
+table reference instead of the table point under the tool.  Prints a table and a final JSON line.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ from pose_drift import random_poses
 
 from hybridcomp.fem.loads import example_loads
 from hybridcomp.fem.model import build_model
-from hybridcomp.fem.poses import carry_field
+from hybridcomp.fem.poses import SCHEMES, carry_field, support_poses
 from hybridcomp.models import jsonio, load_machine
 from hybridcomp.models.layout import Loads
 from hybridcomp.rom.machine import reduce_model
@@ -128,15 +130,21 @@ def main(argv=None) -> int:
     p.add_argument("--dt-s", type=float, default=60.0, help="loads and FE step [s] (default 60)")
     p.add_argument("--poses", type=int, default=5, help="off-grid poses held all day")
     p.add_argument("--seed", type=int, default=16)
+    p.add_argument("--scheme", choices=SCHEMES, default="star",
+                   help="support poses of the pose-aware model: star (2 n + 1) or grid (3^n) (default star)")
     p.add_argument("--plant", type=int, default=None, metavar="K",
-                   help="plant an error: support pose K's drift replaced by the model pose's")
+                   help="plant an error: support pose K's drift replaced by the model pose's; K numbers the scheme's "
+                        "support poses after the model's (star 1..2 n: the i-th axis' lower end 2 i - 1, upper "
+                        "2 i; grid 1..3^n - 1 in product order, the model's pose left out; vmc800: Z low is star 5, "
+                        "grid 13)")
     p.add_argument("--at-table-reference", action="store_true",
                    help="the drift at the table reference, not at the table point under the tool (under_tool off)")
     a = p.parse_args(argv)
     h_mm, dt_s = (200.0, 300.0) if a.fast else (a.element_size_mm, a.dt_s)
     m = load_machine("vmc800")
-    if a.plant is not None and not 1 <= a.plant <= 2 * len(m.axes):  # the star's support poses after the model's
-        p.error(f"--plant must name a support pose 1..{2 * len(m.axes)}, got {a.plant}")
+    n_support = len(support_poses(len(m.axes), a.scheme)) - 1  # the support poses after the model's
+    if a.plant is not None and not 1 <= a.plant <= n_support:
+        p.error(f"--plant must name a {a.scheme} support pose 1..{n_support}, got {a.plant}")
     if a.at_table_reference:
         m = dataclasses.replace(m, table_under_tool=False)
     loads = example_loads(m, 16.0, dt_s)
@@ -146,7 +154,7 @@ def main(argv=None) -> int:
     model = build_model(m, None, h_mm)
     rom = reduce_model(model)
     scale = np.abs(m.layout().inputs(example_loads(m, 16.0, 60.0))).max(axis=0)
-    prom = reduce_at_poses(model, rom, "star", input_scale=scale)
+    prom = reduce_at_poses(model, rom, a.scheme, input_scale=scale)
     cost["pose_rom_s"] = time.perf_counter() - t0
     cost["pose_rom_order"] = prom.order
     grid = grid_of(prom)
@@ -236,11 +244,13 @@ def main(argv=None) -> int:
     cost["fe_models"] = len(cache)
     print(f"pose-aware model along paths and at off-grid poses, example day 16 h at {dt_s:g} s, {model.n} nodes "
           f"({h_mm:g} mm), drift at the {'table point under the tool' if m.table_under_tool else 'table reference'}"
-          f"{'' if a.plant is None else f', planted: support pose {a.plant} dropped'} "
+          f", {a.scheme} ({len(grid.poses)} support poses)"
+          f"{'' if a.plant is None else f', planted: support pose {a.plant} {grid.pose_mm(a.plant)} dropped'} "
           f"(limit per direction: max(0.3 um, 5 % of the local range))")
     print(table(rows_out, list(rows_out[0])))
     print("cost: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in cost.items()))
     print(jsonio.dumps({"benchmark": "pose_path", "nodes": model.n, "element_size_mm": h_mm, "dt_s": dt_s,
+                        "scheme": a.scheme,
                         "table_point": "under the tool" if m.table_under_tool else "table reference", "plant": a.plant,
                         "within_limit": ok, "cost": cost, "cases": records}))
     return 0
