@@ -179,3 +179,41 @@ def test_probe_noise_on_a_right_model_stays_out_of_the_estimate(machine, rom):
     noise = np.sqrt(np.mean([np.sum((p - truth[k]) ** 2) for k, p in probes.items()]))
     assert errors["2 µm prior"] > 0.5 * noise
     assert errors["small prior"] < 0.6 * errors["2 µm prior"]  # seeds 1, 2, 7: 0.40, 0.47, 0.52
+
+
+def test_the_zones_air_walks_share_their_common_part(machine, rom):
+    """``air_common``: the air block of the process noise is rate² h (c 11ᵀ + (1 − c) I); 0 is a walk per zone."""
+    for c in (0.0, 0.8, 1.0):
+        obs = build_observer(rom, machine, ObserverSettings(air_common=c))
+        k, m = obs.slices()["air"], len(obs.zone_names)
+        Q = obs._process_noise(1800.0)
+        want = (c * np.ones((m, m)) + (1 - c) * np.eye(m)) * ObserverSettings().air_rate_K ** 2 * 0.5
+        np.testing.assert_allclose(Q[k, k], want, rtol=1e-12, atol=1e-15)
+    with pytest.raises(ObserverError, match="air_common.*0 to 1, got 1.5"):
+        ObserverSettings(air_common=1.5)
+
+
+def test_an_air_swing_in_every_zone_is_estimated_alike_with_a_common_walk(machine, rom):
+    """The workshop's air swings ±1.5 K (6 h) in every zone and no sensor measures it: with the common part each
+    zone's estimate follows the swing (the evidence of every body's sensors for all), better than a walk per zone."""
+    loads = example_loads(machine, 12.0, 60.0)
+    layout = machine.layout()
+    U = layout.inputs(loads.names, loads.values)
+    swing = 1.5 * np.sin(2 * np.pi * loads.time_s / (6 * 3600.0))
+    Ut = U.copy()
+    for z in machine.zones:
+        Ut[:, layout.columns.index(f"{z.name}_degC")] += swing
+    Yt, _ = rom.integrate(loads.time_s, Ut, hold="step")
+    T = Yt[:, :8] + 20.0 + np.random.default_rng(2).normal(0.0, 0.02, (len(U), 8))
+    err = {}
+    for c in (0.0, 0.8):
+        obs = build_observer(rom, machine, ObserverSettings(air_common=c))
+        s = obs.initial(U[0])
+        s, _ = obs.update_sensors(s, T[0])
+        e = []
+        for k in range(1, len(U)):
+            s = obs.predict(s, U[k], 60.0)
+            s, _ = obs.update_sensors(s, T[k])
+            e.append(np.array(list(obs.disturbances(s)["air_K"].values())) - swing[k])
+        err[c] = float(np.sqrt(np.mean(np.square(e[len(e) // 3:]))))  # after the first swing's third
+    assert err[0.8] < 0.75 * err[0.0], err
