@@ -369,12 +369,11 @@ class Observer:
         G = g0[:, None] * self.W * (s.input_sigma * self.rated)
         Q = np.zeros((self.n, self.n))
         Q[sl["z"], sl["z"]] = G @ G.T
-        for name, rate in (("air", s.air_rate_K), ("scale", s.scale_rate), ("heat", s.heat_rate_W),
-                           ("bias", s.bias_rate_um)):
-            k = sl[name]
-            Q[k, k] = np.eye(k.stop - k.start) * rate**2 * h
         k, m, c = sl["air"], len(self.zone_names), s.air_common  # the zones' walks share a common part
         Q[k, k] = (c * np.ones((m, m)) + (1.0 - c) * np.eye(m)) * s.air_rate_K**2 * h
+        for name, rate in (("scale", s.scale_rate), ("heat", s.heat_rate_W), ("bias", s.bias_rate_um)):
+            k = sl[name]
+            Q[k, k] = np.eye(k.stop - k.start) * rate**2 * h
         return Q
 
     # -- the filter ---------------------------------------------------------------------------------------
