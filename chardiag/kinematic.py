@@ -180,10 +180,10 @@ def tcp_error_um(model: ErrorModel, poses_mm) -> np.ndarray:
 def identify(chain: Chain, poses_mm, error_um, degree: int = DEFAULT_DEGREE) -> ErrorModel:
     """The error model whose TCP errors fit ``error_um`` (m × 3 [µm], NaN: a direction not measured) at the poses.
 
-    Least squares with the minimum-norm solution: the coefficient combinations that no TCP error at these poses can
-    see (a constant offset shared by every axis, a rotation whose lever arm never changes) are left at zero and
-    counted in ``rank_deficit``; they change no prediction at poses whose per-axis positions the data span with
-    ``degree + 1`` levels or more.
+    Least squares with the minimum-norm solution over the coefficients scaled to their columns' norms: the
+    combinations that no TCP error at these poses can see (a constant offset shared by every axis, a rotation whose
+    lever arm never changes) are left at zero in those scaled coordinates and counted in ``rank_deficit``; they
+    change no prediction at poses whose per-axis positions the data span with ``degree + 1`` levels or more.
     """
     D = design_matrix(chain, poses_mm, degree)
     y = np.asarray(error_um, float).ravel()
