@@ -182,8 +182,12 @@ def identify(chain: Chain, poses_mm, error_um, degree: int = DEFAULT_DEGREE) -> 
 
     Least squares with the minimum-norm solution over the coefficients scaled to their columns' norms: the
     combinations that no TCP error at these poses can see (a constant offset shared by every axis, a rotation whose
-    lever arm never changes) are left at zero in those scaled coordinates and counted in ``rank_deficit``; they
-    change no prediction at poses whose per-axis positions the data span with ``degree + 1`` levels or more.
+    lever arm never changes) are left at zero in those scaled coordinates and counted in ``rank_deficit``.  They
+    change no prediction anywhere when the poses form a grid with ``degree + 1`` levels of every axis whose lever
+    arm to the tool tip stays the same as it moves (a tool-side axis) and ``degree + 2`` levels of every axis whose
+    lever arm changes with its own position (a table-side axis: its rotation, a polynomial of ``degree``, acts
+    with a lever arm linear in the same position, so the TCP error is of ``degree + 1`` in it).  With fewer
+    levels the unseen combinations are zero at the poses and not between them.
     """
     D = design_matrix(chain, poses_mm, degree)
     y = np.asarray(error_um, float).ravel()

@@ -30,6 +30,8 @@ SUBCOMMANDS = {
     "batch": ("hybridcomp.fem.cli_batch", "run a directory of load cases on the FE model: local process pool or Dask cluster"),
     "iso230": ("hybridcomp.fem.cli_iso230",
                "ISO 230-3 thermal tests, simulated: moving linear axis (feed drives) and ETVE"),
+    "verify": ("hybridcomp.cli_verify",
+               "the compensation verified as a builder signs it off: calibrations, the ambient, a machined part"),
     "monitor": ("hybridcomp.monitor.cli",
                 "the monitoring daemon: run, status, example-config, example-trace, and the hybrid scenario"),
 }

@@ -261,13 +261,22 @@ def build_models(out_dir, machine_name: str = "vmc800", element_size_mm: float =
 
 @dataclass(frozen=True)
 class ScenarioResult:
-    """What :func:`run_scenario` produced: metrics per strategy, the Markdown table, events, files, a summary."""
+    """What :func:`run_scenario` produced: metrics per strategy, the Markdown table, events, files, a summary.
+
+    For a study on the same day (the verification, :mod:`hybridcomp.verify`): ``path`` the real machine's drift at
+    any pose and time (``along_path`` runs, else None), ``runs`` each daemon strategy's run (its offsets at the
+    model's pose over time, its support-point tables), ``sensors`` what the controller read (``time_s``,
+    ``degC`` with noise and fault, ``filtered_degC``) in the machine's sensor order.
+    """
 
     metrics: dict
     table: str
     events: list
     files: dict
     summary: dict
+    path: PathTruth | None = None
+    runs: dict | None = None
+    sensors: dict | None = None
 
 
 def planted_air(machine, loads, d: Disturbance):
@@ -441,7 +450,7 @@ def run_scenario(scenario: Scenario, out_dir, models: Models | None = None) -> S
     return ScenarioResult(metrics, table, all_events,
                           {**files, "recorded": measured.recorded, "rom": models.rom_path,
                            "controller": day.controller, "trace": measured.trace},
-                          summary)
+                          summary, path, runs, measured.sensors)
 
 
 def _models_and_real_machine(scenario: Scenario, out: Path, models: Models | None) -> tuple[Models, object]:

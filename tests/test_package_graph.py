@@ -31,7 +31,7 @@ BESIDE = {"diagnose": ("models", "histogram", "fem", "rom")}
 #: top-level modules of hybridcomp every package may import (they import none)
 BASE = ("errors", "_lazy", "_version", "_packages", "safeio", "plotaxes")
 #: top-level modules that compose every package (and the command-line modules, ``cli*``): no package imports them
-COMPOSERS = ("__init__", "__main__", "demo", "scenario", "metrics")
+COMPOSERS = ("__init__", "__main__", "demo", "scenario", "metrics", "verify")
 PACKAGES = ORDER + tuple(BESIDE)
 
 

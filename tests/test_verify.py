@@ -1,0 +1,182 @@
+"""The verification studies on hand-made machines: plans, calibrations, the ambient and its correction, the part.
+
+Every truth here is a formula written in the test (a drift linear in the pose and the time, an ambient response of
+a uniform expansion plus a scale), never the code under test; each check plants an error that makes it fail.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from hybridcomp.chardiag.kinematic import chain_of
+from hybridcomp.models import load_machine
+from hybridcomp.verify import (
+    AmbientOptions,
+    CalibrationPlan,
+    MachiningOptions,
+    VerifyError,
+    ambient_study,
+    bores_of,
+    calibrate,
+    machining_study,
+    part_point_mm,
+    reading_offset_um,
+    sensors_between,
+    workspace_grid,
+)
+
+
+@pytest.fixture(scope="module")
+def chain():
+    return chain_of(load_machine("vmc800"))
+
+
+@dataclass(frozen=True)
+class LinearDay:
+    """A drift linear in the pose and in time: ``a(t) + B (p − centre)`` with ``a`` growing 1 µm/h per direction."""
+
+    B: np.ndarray  # 3 × axes [µm/mm]
+    centre: np.ndarray
+    t: np.ndarray
+
+    def at(self, t_s, P):
+        P = np.atleast_2d(P)
+        return (t_s / 3600.0) * np.ones((P.shape[0], 3)) + (P - self.centre) @ self.B.T
+
+
+def _day(chain, hours=15.0):
+    centre = np.array([(lo + hi) / 2 for lo, hi in chain.travel_mm])
+    B = np.array([[0.02, 0.0, 0.0], [0.0, -0.03, 0.0], [0.0, 0.0, 0.01]])
+    return LinearDay(B, centre, np.arange(0.0, hours * 3600.0 + 1, 60.0))
+
+
+def test_plan_is_a_serpentine_over_the_travel(chain):
+    plan = CalibrationPlan((3, 2, 2), seconds_per_point=30.0, margin=0.1)
+    P = plan.poses_mm(chain.travel_mm)
+    assert P.shape == (12, 3) and plan.duration_s() == 360.0
+    assert len({tuple(p) for p in P}) == 12  # every pose once
+    steps = np.abs(np.diff(P, axis=0))
+    assert np.all(np.count_nonzero(steps > 1e-9, axis=1) == 1)  # one axis moves from one pose to the next
+    for i, (lo, hi) in enumerate(chain.travel_mm):
+        assert P[:, i].min() == pytest.approx(lo + 0.1 * (hi - lo)) and P[:, i].max() == pytest.approx(hi - 0.1 * (hi - lo))
+    with pytest.raises(VerifyError, match="at least 2 levels"):
+        CalibrationPlan((3, 1, 2))
+    with pytest.raises(VerifyError, match="noise_um"):
+        CalibrationPlan(noise_um=-1.0)
+
+
+def test_calibration_measures_each_pose_at_its_own_time(chain):
+    day = _day(chain)
+    plan = CalibrationPlan((2, 2, 2), seconds_per_point=360.0, noise_um=0.0)
+    m = calibrate(day.at, plan, chain.travel_mm, 3600.0, np.random.default_rng(0))
+    assert np.allclose(m.time_s, 3600.0 + 360.0 * np.arange(8))
+    # the hand formula: 1 µm/h plus the pose's linear part; a calibration taken at one instant misses the 0.7 h
+    expected = (m.time_s / 3600.0)[:, None] + (m.poses_mm - day.centre) @ day.B.T
+    assert np.allclose(m.error_um, expected, atol=1e-12)
+    assert not np.allclose(m.error_um, 1.0 + (m.poses_mm - day.centre) @ day.B.T, atol=0.5)
+    noisy = calibrate(day.at, CalibrationPlan((4, 4, 4), noise_um=2.0), chain.travel_mm, 0.0, np.random.default_rng(1))
+    clean = calibrate(day.at, CalibrationPlan((4, 4, 4), noise_um=0.0), chain.travel_mm, 0.0, np.random.default_rng(1))
+    assert np.std(noisy.error_um - clean.error_um) == pytest.approx(2.0, rel=0.15)
+
+
+def test_sensors_between_averages_the_calibration(chain):
+    s = {"time_s": np.arange(0.0, 100.0, 10.0), "degC": np.column_stack([np.arange(10.0), 2 * np.arange(10.0)])}
+    assert np.allclose(sensors_between(s, 20.0, 40.0), [3.0, 6.0])
+    assert np.allclose(sensors_between(s, 25.0, 26.0), [3.0, 6.0])  # no reading inside: the next one
+
+
+def test_reading_offset_of_a_tracker_and_an_artefact_by_hand(chain):
+    # vmc800: X and Y move the table (side −1), Z the spindle (+1): the tool at X = +200 mm stands 200 mm on the
+    # −x side of the table's centre.  3 K warmer, the cast-iron table top (10.5e-6 1/K) carries the point under the
+    # tool 200 mm · 10.5e-6 · 3 = 6.3 µm further out (−x), which a tracker on the table reads; a steel artefact
+    # (11.5e-6) has grown 6.9 µm there itself, so it reads +0.6 µm.  In z the table does not grow (the height
+    # above it is air); the artefact's feature 100 mm below its reference has moved 3.45 µm down: +3.45 µm read
+    assert chain.sides == (-1.0, -1.0, 1.0)
+    P = np.array([[200.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, -100.0]])
+    assert np.allclose(part_point_mm(chain, P), [[-200, 0, 0], [0, -100, 0], [0, 0, -100]])
+    tracker = reading_offset_um(P, chain, 10.5e-6, 0.0, 3.0)
+    assert np.allclose(tracker, [[-6.3, 0, 0], [0, -3.15, 0], [0, 0, 0]], atol=1e-9)
+    steel = reading_offset_um(P, chain, 10.5e-6, 11.5e-6, 3.0)
+    assert np.allclose(steel, [[0.6, 0, 0], [0, 0.3, 0], [0, 0, 3.45]], atol=1e-9)
+
+
+def _uniform(chain, alpha_per_K, z_scale_per_K=0.0):
+    """A machine that grows uniformly (α per K about the workspace centre) and whose Z scale adds its own slope."""
+
+    def response(P):
+        r = alpha_per_K * part_point_mm(chain, P) * 1e3
+        r[:, 2] += z_scale_per_K * (np.atleast_2d(P)[:, 2] - 0.0) * 1e3
+        return r
+
+    return response
+
+
+def test_ambient_correction_restores_the_working_temperature_functions(chain):
+    day = _day(chain)
+    real = _uniform(chain, 1e-6, z_scale_per_K=-3.5e-6)
+    opts = AmbientOptions(plan=CalibrationPlan((5, 5, 4)), state_h=2.0, ambient_K=3.0, sigmas_um=(0.0, 1.0),
+                          air_noise_K=0.0, artefacts=(("laser tracker", 0.0), ("steel artefact", 11.5e-6)),
+                          grid_levels=(3, 3, 3))
+    r = ambient_study(day, real, real, chain, 10.5e-6, opts)
+    rows = {(x["artefact"], x["sigma_um"]): x for x in r["rows"]}
+    tracker = rows[("laser tracker", 0.0)]
+    # uncorrected, the tracker's functions carry the soak: 3 K · (1 + 10.5) µm/m over up to 400 mm in x
+    assert tracker["uncorrected"]["max_um"] > 3 * 11.5e-6 * 400.0 * 1e3
+    assert tracker["at working temperature"]["max_um"] < 1e-9  # a linear drift is inside the cubic functions
+    assert tracker["corrected_vs_reference_max_um"] < 1e-9
+    # the steel artefact grows nearly as the table does: less to correct, and the correction still exact
+    steel = rows[("steel artefact", 0.0)]
+    assert steel["uncorrected"]["max_um"] < tracker["uncorrected"]["max_um"]
+    assert steel["corrected_vs_reference_max_um"] < 1e-9
+    # noise: the corrected functions differ from the reference's by the correction alone, whatever the noise
+    assert rows[("laser tracker", 1.0)]["corrected_vs_reference_max_um"] < 1e-9
+    assert rows[("laser tracker", 1.0)]["at working temperature"]["max_um"] > 0.3
+    # a model that does not know the Z scale's own slope leaves it: 3 K · 3.5 µm/m · 275 mm ≈ 2.9 µm
+    wrong = ambient_study(day, real, _uniform(chain, 1e-6), chain, 10.5e-6, opts)
+    miss = {(x["artefact"], x["sigma_um"]): x for x in wrong["rows"]}[("laser tracker", 0.0)]
+    assert miss["corrected_vs_reference_max_um"] == pytest.approx(3 * 3.5e-6 * 275.0 * 1e3, rel=1e-6)
+
+
+def test_the_air_thermometer_noise_enters_the_correction(chain):
+    day = _day(chain)
+    real = _uniform(chain, 10e-6)
+    opts = AmbientOptions(plan=CalibrationPlan((3, 3, 3)), ambient_K=3.0, sigmas_um=(0.0,), air_noise_K=0.2,
+                          artefacts=(("laser tracker", 0.0),), degree=2, grid_levels=(3, 3, 3))
+    row = ambient_study(day, real, real, chain, 10.5e-6, opts, seed=3)["rows"][0]
+    # the residual is (measured − true air) times the response: at most a few times 0.2 K · 20.5 µm/m · 500 mm
+    assert 1e-6 < row["corrected_vs_reference_max_um"] < 3 * 0.2 * 20.5e-6 * 520.0 * 1e3
+
+
+def test_bores_are_cut_over_the_plate_in_time(chain):
+    pose = {"X": 0.0, "Y": 0.0, "Z": 50.0}
+    b = bores_of(MachiningOptions(columns=3, rows=2, span=0.5, first_h=1.0, every_h=2.0), chain, pose, 16 * 3600.0)
+    assert np.allclose(b.time_s / 3600.0, [1, 3, 5, 7, 9, 11])
+    assert b.place == ((0, 0), (1, 0), (2, 0), (2, 1), (1, 1), (0, 1))
+    assert np.allclose(b.positions_mm[:, 2], 50.0)
+    assert np.allclose(sorted(set(b.positions_mm[:, 0])), [-200.0, 0.0, 200.0])
+    with pytest.raises(VerifyError, match="after the day"):
+        bores_of(MachiningOptions(columns=5, rows=4), chain, pose, 15 * 3600.0)
+
+
+def test_machined_part_deviations_and_distances(chain):
+    day = _day(chain)
+    pose = {"X": 0.0, "Y": 0.0, "Z": 0.0}
+    opts = MachiningOptions(columns=3, rows=2, span=0.5, first_h=0.5, every_h=1.0)
+    comps = {
+        "no compensation": lambda t, P: np.zeros((len(t), 3)),
+        "at one pose": lambda t, P: day.at(0.0, np.zeros((1, 3))) + (np.asarray(t) / 3600.0)[:, None],
+        "everywhere": lambda t, P: np.vstack([day.at(ti, P[i:i + 1]) for i, ti in enumerate(t)]),
+    }
+    r = machining_study(day, comps, chain, pose, opts)["results"]
+    assert r["everywhere"]["largest_position_um"] < 1e-12
+    # one pose leaves the position-dependent part: at X = ±200 mm, 0.02 µm/mm · 200 mm = 4 µm in x; at
+    # Y = ±162.5 mm, 0.03 · 162.5 = 4.875 µm in y
+    assert r["at one pose"]["largest_position_um"] == pytest.approx(np.hypot(4.0, 4.875), rel=1e-9)
+    # the distance between neighbouring bores 200 mm apart in x: their x deviations differ by 0.02 · 200 = 4 µm
+    # (the table side: a bore further +x on the part is cut at a lower X), plus the hour between the cuts
+    x_pairs = r["at one pose"]["distance_um"][:4]
+    assert np.allclose(np.abs(x_pairs), 4.0)
+    assert r["no compensation"]["largest_distance_um"] > 4.0
