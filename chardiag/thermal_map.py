@@ -47,10 +47,11 @@ How it is fitted
 4. **Back to the coefficients.** ``c0`` is the mean of the projected state coefficients and ``G`` the components'
    gains mapped back through the whitening and the scaling.
 
-Why these choices (the planted problem of ``tests/test_thermal_map.py``: a cubic model of the demonstrator from a
-5 × 5 × 5 calibration plan with 0.5 µm noise, 2 true inputs among 8 sensors correlated with them through two
-common heat sources, 10 training and 5 held-out states; 40 seeds; held-out TCP error rms over a 3 × 3 × 3 grid,
-median (max); in how many seeds the input set was not the planted one):
+Why these choices (``python benchmarks/thermal_map_selection.py``: the planted problem of
+``tests/test_thermal_map.py``, a cubic model of the demonstrator from a 5 × 5 × 5 calibration plan with 0.5 µm
+noise, 2 true inputs among 8 sensors correlated with them through two common heat sources, 10 training and 5
+held-out states; 40 seeds; held-out TCP error rms over a 3 × 3 × 3 grid, median (max); in how many seeds the input
+set was not the planted one):
 
 =================================================  ===================  =================
 variant                                            held-out [µm]        wrong input set
@@ -67,13 +68,15 @@ one input (``max_inputs=1``)                       10.6 (18.9)          —
 no input (``max_inputs=0``)                        17.8 (28.1)          —
 =================================================  ===================  =================
 
-With 6 training states the shared exhaustive BICc set is still right in 40 of 40 (0.181 µm), the greedy one
-predicts as badly as 21.5 µm in some seed, BIC takes a distractor in every seed and the per-coefficient selection
-predicts to 2.7 µm.  A coefficient-wise selection fits 54 to 72 coefficients, many poorly determined by one
-calibration, as if independent: the noise of the poorly determined ones picks up spurious inputs.  The components
-filter the noise before any input is chosen, and one shared set pools every component's evidence for a sensor,
-which is what keeps a distractor out.  A machine whose thermal causes each act through their own sensor still gets
-them all in the shared set (at most ``max_inputs`` in total), each component with a gain on every selected sensor.
+With 6 training states (``--states 6``) the shared exhaustive BICc set is still right in 40 of 40 (0.181 µm), the
+greedy one predicts as badly as 21.5 µm in some seed, BIC takes a distractor in every seed and the per-coefficient
+selection predicts to 2.7 µm; with 16 states BICc takes a distractor in 4 seeds, BIC in 17, each with a gain too
+small to change the held-out error (0.087 µm, as the oracle's).  A coefficient-wise selection fits 54 to 72
+coefficients, many poorly determined by one calibration, as if independent: the noise of the poorly determined
+ones picks up spurious inputs.  The components filter the noise before any input is chosen, and one shared set
+pools every component's evidence for a sensor, which is what keeps a distractor out.  A machine whose thermal
+causes each act through their own sensor still gets them all in the shared set (at most ``max_inputs`` in total),
+each component with a gain on every selected sensor.
 
 Units: positions [mm], TCP errors [µm], temperatures [°C], gains [µm/K] for translation coefficients and [µrad/K]
 for rotation coefficients.  Temperatures outside the training states' range are extrapolated linearly; nothing is
@@ -86,6 +89,7 @@ import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -386,16 +390,38 @@ def fit_thermal_map(chain: Chain, calibrations: Sequence[Calibration], sensor_na
         error, poses outside the travel or of another width, a bad name, criterion or count
     """
     names, cals = _check_inputs(chain, calibrations, sensor_names, degree, criterion, max_inputs, min_range_K)
-    degree = int(degree)
+    d = _drift(chain, cals, int(degree))
+    T = np.array([c.sensors_degC for c in cals])
+    candidates = [j for j in range(len(names)) if np.ptp(T[:, j]) >= max(min_range_K, 1e-12)]
+    selected, g = _select(d.dT, d.scores, candidates, criterion, int(max_inputs), limit=EXHAUSTIVE_LIMIT)
+    coef0, gains = _coefficients(chain, int(degree), d, d.directions.T @ g.T)
+    return ThermalErrorModel(chain, int(degree), names, d.reference_degC, coef0, gains, selected, criterion, len(cals),
+                             noise_um=d.noise_um, rank_deficit=d.rank_deficit, components=d.scores.shape[1],
+                             range_degC=np.column_stack([T.min(axis=0), T.max(axis=0)]))
+
+
+class _Drift(NamedTuple):
+    """The states' coefficients reduced to their drift components (:func:`_drift`)."""
+
+    scale: np.ndarray  # (coefficients,) the common column scaling
+    from_w: np.ndarray  # (coefficients × r) whitened coordinates → scaled coefficients
+    w0: np.ndarray  # (r,) the states' mean, whitened
+    scores: np.ndarray  # (states × K) the kept components' scores
+    directions: np.ndarray  # (K × r) the kept components' directions, whitened
+    reference_degC: np.ndarray  # (sensors,) the states' mean temperatures
+    dT: np.ndarray  # (states × sensors) the temperatures less the reference
+    noise_um: float
+    rank_deficit: int
+
+
+def _drift(chain: Chain, cals: list[Calibration], degree: int) -> _Drift:
+    """Steps 1 and 2 of the module docstring: every state identified, the drift components above the noise."""
     S = len(cals)
-    # 1. every state identified; its measured rows in common column-scaled coordinates
     rows, models = [], []
     for i, c in enumerate(cals):
         try:
             D = design_matrix(chain, c.poses_mm, degree)
             models.append(identify(chain, c.poses_mm, c.error_um, degree))
-        except ThermalMapError:
-            raise
         except ValueError as exc:
             raise ThermalMapError(f"calibration {i}" + (f" ({c.label!r})" if c.label else "") + f": {exc}") from None
         y = c.error_um.ravel()
@@ -404,7 +430,7 @@ def fit_thermal_map(chain: Chain, calibrations: Sequence[Calibration], sensor_na
     scale = np.sqrt(sum(np.einsum("ij,ij->j", D, D) for D, _, _ in rows))
     scale = np.where(scale > 0, scale, 1.0)
     n_coef = scale.size
-    Z = np.array([m.coef.ravel() * scale for m in models])  # S × coefficients, scaled
+    Z = np.array([m.coef.ravel() * scale for m in models])  # states × coefficients, scaled
     rss, dof = 0.0, 0
     for (D, y, _), m in zip(rows, models):
         r = y - D @ m.coef.ravel()
@@ -412,17 +438,16 @@ def fit_thermal_map(chain: Chain, calibrations: Sequence[Calibration], sensor_na
         dof += y.size - (n_coef - m.rank_deficit)
     noise = math.sqrt(rss / dof) if dof > 0 else math.nan
     # the space every plan sees: the complement of all plans' null spaces (one SVD per distinct plan)
-    nulls, gram, seen = [], np.zeros((n_coef, n_coef)), {}
+    nulls, gram, seen = [], np.zeros((n_coef, n_coef)), set()
     for (D, _, ok), c in zip(rows, cals):
         A = D / scale
         gram += A.T @ A / S
         key = (c.poses_mm.tobytes(), ok.tobytes())
         if key in seen:
             continue
+        seen.add(key)
         _, s, Vt = np.linalg.svd(A, full_matrices=True)
-        rank = int(np.sum(s > _RCOND * s[0])) if s.size else 0
-        seen[key] = rank
-        nulls.append(Vt[rank:])
+        nulls.append(Vt[int(np.sum(s > _RCOND * s[0])):])
     N = np.vstack(nulls)
     if N.shape[0]:
         _, s, Vt = np.linalg.svd(N, full_matrices=True)
@@ -435,31 +460,25 @@ def fit_thermal_map(chain: Chain, calibrations: Sequence[Calibration], sensor_na
         raise ThermalMapError("calibrations: their plans have no coefficient combination in common to identify")
     lam, E = np.linalg.eigh(Q.T @ gram @ Q)
     lam = np.maximum(lam, 1e-300)
-    to_w = (E * np.sqrt(lam)).T @ Q.T  # r × coefficients: z → whitened [µm over a plan]
-    from_w = Q @ (E / np.sqrt(lam))  # coefficients × r: whitened → z (in the common space)
-    # 2. components of the drift between states, kept above the noise
+    to_w = (E * np.sqrt(lam)).T @ Q.T  # r × coefficients: scaled coefficients → whitened [µm over a plan]
+    from_w = Q @ (E / np.sqrt(lam))
     W = Z @ to_w.T
     w0 = W.mean(axis=0)
     U, sv, Vt = np.linalg.svd(W - w0, full_matrices=False)
-    if math.isfinite(noise):
-        edge = noise * (math.sqrt(S - 1) + math.sqrt(r))
-    else:
-        edge = _RCOND * (sv[0] if sv.size else 0.0)
-    keep = np.flatnonzero(sv > max(edge, _RCOND * (sv[0] if sv.size else 0.0)))
-    # 3. the inputs of each component
+    floor = _RCOND * (sv[0] if sv.size else 0.0)
+    edge = noise * (math.sqrt(S - 1) + math.sqrt(r)) if math.isfinite(noise) else floor
+    keep = np.flatnonzero(sv > max(edge, floor))
     T = np.array([c.sensors_degC for c in cals])
     ref = T.mean(axis=0)
-    dT = T - ref
-    candidates = [j for j in range(len(names)) if np.ptp(T[:, j]) >= max(min_range_K, 1e-12)]
-    selected, g = _select(dT, U[:, keep] * sv[keep], candidates, criterion, int(max_inputs))
-    gains_w = Vt[keep].T @ g.T  # r × sensors
-    # 4. back to the coefficients
-    coef0 = (from_w @ w0) / scale
-    gains = (from_w @ gains_w) / scale[:, None]
+    return _Drift(scale, from_w, w0, U[:, keep] * sv[keep], Vt[keep], ref, T - ref, noise, n_coef - r)
+
+
+def _coefficients(chain: Chain, degree: int, d: _Drift, gains_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Step 4: ``c0`` and the gains (whitened: r × sensors) back in the coefficients' units and shape."""
     shape = (len(chain.axes), len(COMPONENTS), degree + 1)
-    return ThermalErrorModel(chain, degree, names, ref, coef0.reshape(shape), gains.reshape(*shape, len(names)),
-                             selected, criterion, S, noise_um=noise, rank_deficit=n_coef - r, components=int(keep.size),
-                             range_degC=np.column_stack([T.min(axis=0), T.max(axis=0)]))
+    coef0 = (d.from_w @ d.w0) / d.scale
+    gains = (d.from_w @ gains_w) / d.scale[:, None]
+    return coef0.reshape(shape), gains.reshape(*shape, gains_w.shape[1])
 
 
 def _chain_to_dict(chain: Chain) -> dict:
