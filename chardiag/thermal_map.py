@@ -34,7 +34,8 @@ How it is fitted
    inputs are the one set of at most ``max_inputs`` sensors that minimises the sum over the components of the
    criterion over the ``S`` training states (a component's parameters: its intercept and one gain per input):
    ``bicc``, the small-sample BIC of McQuarrie (1999, *Statistics & Probability Letters* 45, 195–199),
-   ``n ln(RSS/n) + n k ln n / (n − k − 2)``, infinite for ``n − k − 2 ≤ 0``, or ``bic``, ``n ln(RSS/n) + k ln n``.
+   ``n ln(RSS/n) + n k ln n / (n − k − 2)``, infinite for ``n − k − 2 ≤ 0``, or ``bic``, ``n ln(RSS/n) + k ln n``
+   (infinite for ``k ≥ n``).
    With 6 to 16 states the correction matters: at ``n = 10`` the first, second and third input cost 4.4, 6.1 and
    9.2 per component in BICc against 2.3 each in BIC; BICc takes no input from fewer than 5 states and at most two
    from 6.  The
@@ -122,13 +123,14 @@ class ThermalMapError(HybridcompError, ValueError):
 def _ic(rss: float, n: int, k: int, criterion: str) -> float:
     """BIC or BICc (McQuarrie 1999) of a least-squares fit: ``n`` rows, ``k`` parameters, residual sum ``rss``.
 
-    ``bic``: ``n ln(RSS/n) + k ln n``; ``bicc``: ``n ln(RSS/n) + n k ln n / (n − k − 2)``, ``inf`` for
-    ``n − k − 2 ≤ 0``.  (The project's data-only diagnosis has the same formula; this package may not import it.)
+    ``bic``: ``n ln(RSS/n) + k ln n``, ``inf`` for ``k ≥ n`` (a fit through every row scores no evidence);
+    ``bicc``: ``n ln(RSS/n) + n k ln n / (n − k − 2)``, ``inf`` for ``n − k − 2 ≤ 0``.  (The project's data-only
+    diagnosis has the same formula; this package may not import it.)
     """
     fit = n * math.log(max(rss, 1e-300) / n)
     if criterion == "bicc":
         return fit + (n * k * math.log(n) / (n - k - 2) if n - k - 2 > 0 else math.inf)
-    return fit + k * math.log(n)
+    return fit + k * math.log(n) if n > k else math.inf
 
 
 @dataclass(frozen=True, eq=False)

@@ -183,6 +183,7 @@ def test_bicc_is_above_bic_on_few_states_and_selects_no_more_inputs():
     assert _ic(rss, n, k, "bic") == pytest.approx(n * math.log(rss / n) + k * math.log(n))
     assert _ic(rss, n, k, "bicc") > _ic(rss, n, k, "bic") + 5.0
     assert _ic(rss, n, n - 2, "bicc") == _ic(rss, n, n + 1, "bicc") == math.inf
+    assert _ic(rss, n, n - 1, "bic") < math.inf == _ic(0.0, n, n, "bic")  # an exact fit through every row: no score
     assert _ic(rss, 10**7, k, "bicc") == pytest.approx(_ic(rss, 10**7, k, "bic"), rel=1e-6)
     spurious = {"bic": 0, "bicc": 0}
     for seed in range(40):
