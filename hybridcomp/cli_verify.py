@@ -89,15 +89,16 @@ def options_of(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     """Run ``hybridcomp verify``; returns the exit code (2: bad option, named on stderr)."""
     from hybridcomp.histogram.scenarios import JOBSHOP_HOURS
-    from hybridcomp.verify import VerifyError, run_verification
+    from hybridcomp.verify import VerifyError, check_options, run_verification
 
-    try:
-        opts = options_of(args)
-    except VerifyError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     if not 0 < args.day_hours <= JOBSHOP_HOURS:
         print(f"error: --day-hours must be in (0, {JOBSHOP_HOURS:g}], got {args.day_hours}", file=sys.stderr)
+        return 2
+    try:
+        opts = options_of(args)
+        check_options(opts)  # before any file: a study that does not fit in the day
+    except VerifyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
         start_folder(args.out, force=args.force, finals=("summary.json", "report.md"))

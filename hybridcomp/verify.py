@@ -207,6 +207,19 @@ class VolumetricOptions:
         _positive("every_h", self.every_h)
         if self.criterion not in ("bic", "bicc"):
             raise VerifyError(f"criterion must be 'bic' or 'bicc', got {self.criterion!r}")
+        if self.every_h * 3600.0 < self.plan.duration_s():
+            raise VerifyError(f"a calibration takes {self.plan.duration_s() / 60:g} min "
+                              f"({int(np.prod(self.plan.levels))} poses, {self.plan.seconds_per_point:g} s each): "
+                              f"calibrations every {self.every_h:g} h would overlap; calibrate less often, on fewer "
+                              "poses or faster")
+
+    def starts_s(self, day_end_s: float) -> list[float]:
+        """The calibrations' start times within a day that ends at ``day_end_s`` [s]."""
+        out, s = [], self.first_h * 3600.0
+        while s + self.plan.duration_s() <= day_end_s + 1e-9:
+            out.append(s)
+            s += self.every_h * 3600.0
+        return out
 
 
 def workspace_grid(travel_mm, levels) -> np.ndarray:
@@ -215,6 +228,16 @@ def workspace_grid(travel_mm, levels) -> np.ndarray:
 
     axes = [np.linspace(float(lo), float(hi), int(n)) for (lo, hi), n in zip(travel_mm, levels)]
     return np.array(list(itertools.product(*axes)))
+
+
+def _check_calibrations(options: VolumetricOptions, day_end_s: float) -> list[float]:
+    """The calibrations' start times; refuses a day that holds fewer than 4 (2 to fit, 2 to judge)."""
+    starts = options.starts_s(day_end_s)
+    if len(starts) < 4:
+        raise VerifyError(f"the day ({day_end_s / 3600:g} h) holds {len(starts)} calibrations of "
+                          f"{options.plan.duration_s() / 60:g} min every {options.every_h:g} h; the study needs 4 (2 "
+                          "to fit, 2 to judge): calibrate more often or take a longer day")
+    return starts
 
 
 def volumetric_study(path, table_at, sensors: dict, sensor_names, chain, options: VolumetricOptions,
@@ -233,16 +256,7 @@ def volumetric_study(path, table_at, sensors: dict, sensor_names, chain, options
     from hybridcomp.chardiag.thermal_map import Calibration, fit_thermal_map, predict_um
 
     plan = options.plan
-    day_end = float(path.t[-1])
-    starts = []
-    s = options.first_h * 3600.0
-    while s + plan.duration_s() <= day_end + 1e-9:
-        starts.append(s)
-        s += options.every_h * 3600.0
-    if len(starts) < 4:
-        raise VerifyError(f"the day ({day_end / 3600:g} h) holds {len(starts)} calibrations of "
-                          f"{plan.duration_s() / 60:g} min every {options.every_h:g} h; the study needs 4 (2 to fit, "
-                          f"2 to judge): calibrate more often or take a longer day")
+    starts = _check_calibrations(options, float(path.t[-1]))
     cals = []
     for s in starts:
         m = calibrate(path.at, plan, chain.travel_mm, s, rng)
@@ -271,7 +285,9 @@ def volumetric_study(path, table_at, sensors: dict, sensor_names, chain, options
                  "seconds_per_point": plan.seconds_per_point, "noise_um": plan.noise_um,
                  "duration_min": plan.duration_s() / 60.0},
         "grid_points": int(G.shape[0]),
-        "model": model.summary() if hasattr(model, "summary") else {},
+        "model": {"inputs": list(model.inputs), "components": int(model.components), "states": int(model.n_states),
+                  "criterion": model.criterion, "noise_um": float(model.noise_um),
+                  "held_out_outside_training_range": sorted({n for c in held for n in model.outside(c.sensors_degC)})},
         "held_out": {k: error_stats(np.vstack(v)) for k, v in errors.items()},
         "per_state": per_state,
     }
@@ -512,6 +528,24 @@ def compensations_of(run: dict) -> dict:
             "hybrid volumetric": lambda t, P: tables_along(run["tables"], np.asarray(t, float), P)}
 
 
+def check_options(o: VerifyOptions) -> None:
+    """Refuse, before any work, a verification whose studies do not fit in its day (VerifyError naming why)."""
+    from hybridcomp.scenario import DISTURBANCES
+
+    if o.disturbance not in DISTURBANCES:
+        raise VerifyError(f"unknown disturbance {o.disturbance!r} (known: {', '.join(DISTURBANCES)})")
+    day_end_s = o.day_hours * 3600.0
+    _check_calibrations(o.volumetric, day_end_s)
+    m = o.machining
+    last_h = m.first_h + m.every_h * (int(m.columns) * int(m.rows) - 1)
+    if last_h > o.day_hours + 1e-9:
+        raise VerifyError(f"{int(m.columns) * int(m.rows)} bores every {m.every_h:g} h from {m.first_h:g} h end at "
+                          f"{last_h:g} h, after the day's {o.day_hours:g} h: fewer bores or a shorter interval")
+    if o.ambient.state_h > o.day_hours:
+        raise VerifyError(f"the ambient study's state at {o.ambient.state_h:g} h is after the day's "
+                          f"{o.day_hours:g} h")
+
+
 def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress: bool = True) -> dict:
     """Simulate the day, run the three studies, write ``report.md``, ``summary.json`` and the plots into ``out_dir``.
 
@@ -525,8 +559,7 @@ def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress
     from hybridcomp.scenario import DISTURBANCES, Scenario, build_models, run_scenario, tables_along
 
     o = options
-    if o.disturbance not in DISTURBANCES:
-        raise VerifyError(f"unknown disturbance {o.disturbance!r} (known: {', '.join(DISTURBANCES)})")
+    check_options(o)
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -597,8 +630,12 @@ def report_text(summary: dict, part: dict) -> str:
               + ", ".join(c["state"] for c in vol["calibrations"] if c["role"] == "fit")
               + "; judged on " + ", ".join(c["state"] for c in vol["calibrations"] if c["role"] == "held out")
               + f" (held out: no choice saw them), over a workspace grid of {vol['grid_points']} points.", ""]
-    if vol.get("model"):
-        lines += [f"Thermal map: {vol['model']}", ""]
+    mo = vol["model"]
+    lines += [f"Thermal map: {mo['components']} drift components over {mo['states']} states, inputs by "
+              f"{mo['criterion'].upper().replace('BICC', 'BICc')}: {', '.join(mo['inputs']) or 'none'}; residual noise "
+              f"{mo['noise_um']:.2f} µm"
+              + (f"; held-out states outside the training range of {', '.join(mo['held_out_outside_training_range'])}"
+                 if mo["held_out_outside_training_range"] else "") + ".", ""]
     lines += ["| compensation | max [µm] | RMS [µm] | P95 [µm] |", "|---|---|---|---|"]
     for k, s in vol["held_out"].items():
         lines.append(f"| {k} | {_fmt(s['max_um'])} | {_fmt(s['rms_um'])} | {_fmt(s['p95_um'])} |")

@@ -6,6 +6,7 @@ a uniform expansion plus a scale), never the code under test; each check plants 
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -180,3 +181,105 @@ def test_machined_part_deviations_and_distances(chain):
     x_pairs = r["at one pose"]["distance_um"][:4]
     assert np.allclose(np.abs(x_pairs), 4.0)
     assert r["no compensation"]["largest_distance_um"] > 4.0
+
+
+@dataclass(frozen=True)
+class WarmingDay:
+    """A drift that follows one sensor: ``(T1 − 20 K) · (a + B (p − centre))``, T1 warming over 3 h."""
+
+    centre: np.ndarray
+    t: np.ndarray
+
+    @staticmethod
+    def T1(t_s):
+        return 20.0 + 5.0 * (1.0 - np.exp(-np.asarray(t_s, float) / (3 * 3600.0)))
+
+    def at(self, t_s, P):
+        P = np.atleast_2d(P)
+        field = np.array([1.0, -2.0, 3.0]) + (P - self.centre) @ np.diag([0.01, 0.004, -0.006]).T
+        return (self.T1(t_s) - 20.0) * field
+
+
+def test_volumetric_study_fits_on_half_the_states_and_judges_on_the_rest(chain):
+    from hybridcomp.verify import VolumetricOptions, volumetric_study
+
+    centre = np.array([(lo + hi) / 2 for lo, hi in chain.travel_mm])
+    day = WarmingDay(centre, np.arange(0.0, 15 * 3600.0 + 1, 60.0))
+    t = np.arange(0.0, 15 * 3600.0 + 1, 30.0)
+    rng = np.random.default_rng(5)
+    # T2 an air sensor that knows nothing of the drift
+    sensors = {"time_s": t, "degC": np.column_stack([day.T1(t), 20.0 + 0.5 * np.sin(t / 7000.0)
+                                                     + 0.01 * rng.standard_normal(t.size)])}
+    opts = VolumetricOptions(plan=CalibrationPlan((5, 5, 4), seconds_per_point=5.0, noise_um=0.2), every_h=1.0,
+                             grid_levels=(3, 3, 3))
+    late = lambda tt, P: np.vstack([day.at(ti - 1800.0, P[i:i + 1]) for i, ti in enumerate(tt)])  # noqa: E731
+    r = volumetric_study(day, late, sensors, ["T1", "T2"], chain, opts, np.random.default_rng(0))
+    roles = [c["role"] for c in r["calibrations"]]
+    assert len(roles) == 15 and roles[:4] == ["fit", "held out", "fit", "held out"]
+    assert r["model"]["inputs"] == ["T1"]
+    assert r["grid_points"] == workspace_grid(chain.travel_mm, (3, 3, 3)).shape[0] == 27
+    held = r["held_out"]
+    # the map knows T1, so it follows the drift to the calibrations' noise; tables 30 min late miss the warming
+    assert held["volumetric model"]["max_um"] < 0.5
+    assert held["support-point tables"]["max_um"] > 1.0
+    with pytest.raises(VerifyError, match="overlap"):
+        volumetric_study(day, late, sensors, ["T1", "T2"], chain,
+                         VolumetricOptions(plan=CalibrationPlan((5, 5, 4), seconds_per_point=60.0), every_h=1.0),
+                         np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--bores", "5", "4"], "20 bores every 1 h from 0.5 h end at 19.5 h, after the day's 15 h"),
+    (["--bores", "1", "1"], "at least 2 × 1 bores"),
+    (["--seconds-per-point", "60"], "would overlap"),
+    (["--day-hours", "3"], "the day (3 h) holds 3 calibrations"),
+    (["--day-hours", "17"], "--day-hours must be in (0, 16]"),
+    (["--noise-um", "-1"], "noise_um must be a finite number ≥ 0"),
+    (["--plan-levels", "5", "1", "4"], "at least 2 levels"),
+    (["--criterion", "aic"], "invalid choice"),
+])
+def test_verify_refuses_a_study_that_cannot_run_before_any_file(tmp_path, capsys, argv, words):
+    from hybridcomp.cli import main
+
+    out = tmp_path / "v"
+    with pytest.raises(SystemExit) if "invalid choice" in words else contextlib.nullcontext():
+        assert main(["verify", "--out", str(out), *argv]) == 2
+    assert words in capsys.readouterr().err
+    assert not out.exists()
+
+
+
+@pytest.mark.slow
+def test_verify_end_to_end_on_a_short_day(tmp_path, caplog):
+    """The command as a user types it, on a short day (150 mm, 5 h): every study, the report, the plots.
+
+    The criteria are the benchmark's (``benchmarks/verification.py``, the whole day): the ambient correction restores
+    the working-temperature functions within 0.5 µm, the volumetric compensation keeps the bores at ≤ 0.3 × the
+    one-pose compensation's largest deviation.
+    """
+    import json
+    import logging
+
+    pytest.importorskip("sqlalchemy", reason="the daemon's CD database needs SQLAlchemy (pip install 'hybridcomp[db]')")
+    from hybridcomp.cli import main
+
+    out = tmp_path / "v"
+    assert main(["verify", "--out", str(out), "--element-size-mm", "150", "--day-hours", "5", "--seconds-per-point",
+                 "5", "--bores", "3", "2", "--bore-every-h", "0.75", "--sigmas-um", "0", "1"]) == 0
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], "verify logged errors"
+    s = json.loads((out / "summary.json").read_text())
+    assert [c["role"] for c in s["volumetric"]["calibrations"]] == ["fit", "held out"] * 2 + ["fit"]
+    assert set(s["volumetric"]["held_out"]) == {"volumetric model", "support-point tables", "identified at the state"}
+    rows = s["ambient"]["rows"]
+    assert {(r["artefact"], r["sigma_um"]) for r in rows} == {(a, g) for a in ("laser tracker", "steel artefact")
+                                                             for g in (0.0, 1.0)}
+    for r in rows:
+        assert r["uncorrected"]["max_um"] > 5.0  # 3 K of soak is seen
+        if r["sigma_um"] == 0:
+            assert r["corrected_vs_reference_max_um"] <= 0.5
+    part = s["machining"]
+    assert len(part["bores"]) == 6 and part["ratio_volumetric_to_one_pose"] <= 0.3
+    assert part["largest"]["hybrid at one pose"]["largest_position_um"] > 2.0
+    report = (out / "report.md").read_text()
+    assert "| hybrid volumetric |" in report and "![the part](part.png)" in report
+    assert (out / "part.png").stat().st_size > 10_000 and (out / "volumetric.png").stat().st_size > 5_000
