@@ -108,6 +108,7 @@ from hybridcomp.chardiag.kinematic import (
     tcp_error_um,
 )
 from hybridcomp.errors import HybridcompError
+from hybridcomp.models.jsonio import check_versioned
 
 #: the dict form's format name and version (:func:`to_dict`)
 MAP_FORMAT = "hybridcomp.thermal_error_map"
@@ -526,11 +527,7 @@ def to_dict(model: ThermalErrorModel) -> dict:
 
 def from_dict(d: Mapping) -> ThermalErrorModel:
     """The model of :func:`to_dict`'s form; a :class:`ThermalMapError` naming the field on anything else."""
-    if not isinstance(d, Mapping) or d.get("format") != MAP_FORMAT:
-        got = d.get("format") if isinstance(d, Mapping) else type(d).__name__
-        raise ThermalMapError(f"not a thermal error map: format {got!r}, expected {MAP_FORMAT!r}")
-    if d.get("version") != MAP_VERSION:
-        raise ThermalMapError(f"thermal error map version {d.get('version')!r}, this program reads {MAP_VERSION}")
+    check_versioned(d, MAP_FORMAT, MAP_VERSION, "thermal error map", ThermalMapError)
     try:
         noise = d.get("noise_um")
         return ThermalErrorModel(

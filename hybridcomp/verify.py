@@ -230,6 +230,20 @@ def workspace_grid(travel_mm, levels) -> np.ndarray:
     return np.array(list(itertools.product(*axes)))
 
 
+def thermal_phase(path, start_s: float, end_s: float, rate_um_per_h: float = 1.0) -> str:
+    """The machine's thermal phase over ``[start_s, end_s]``, from its drift at the model's pose.
+
+    ``warming`` or ``cooling`` when the drift's length grows or shrinks faster than ``rate_um_per_h`` [µm/h],
+    else ``cold`` within 5 µm of the day's first drift, ``hot`` beyond.
+    """
+    a = np.array([np.interp(start_s, path.t, path.truth[:, j]) for j in range(3)])
+    b = np.array([np.interp(end_s, path.t, path.truth[:, j]) for j in range(3)])
+    rate = float(np.linalg.norm(b) - np.linalg.norm(a)) / max((end_s - start_s) / 3600.0, 1e-9)
+    if abs(rate) > rate_um_per_h:
+        return "warming" if rate > 0 else "cooling"
+    return "cold" if np.linalg.norm(b - path.truth[0]) < 5.0 else "hot"
+
+
 def _check_calibrations(options: VolumetricOptions, day_end_s: float) -> list[float]:
     """The calibrations' start times; refuses a day that holds fewer than 4 (2 to fit, 2 to judge)."""
     starts = options.starts_s(day_end_s)
@@ -279,7 +293,8 @@ def volumetric_study(path, table_at, sensors: dict, sensor_names, chain, options
         per_state.append({"state": c.label, "time_h": t_mid / 3600.0,
                           **{k: error_stats(e)["max_um"] for k, e in zip(errors, (e_vol, e_tab, e_own))}})
     return {
-        "calibrations": [{"state": c.label, "start_h": c.time_s / 3600.0, "role": "fit" if i % 2 == 0 else "held out"}
+        "calibrations": [{"state": c.label, "start_h": c.time_s / 3600.0, "role": "fit" if i % 2 == 0 else "held out",
+                          "phase": thermal_phase(path, c.time_s, c.time_s + plan.duration_s())}
                          for i, c in enumerate(cals)],
         "plan": {"levels": list(plan.levels), "points": int(np.prod(plan.levels)),
                  "seconds_per_point": plan.seconds_per_point, "noise_um": plan.noise_um,
@@ -627,8 +642,9 @@ def report_text(summary: dict, part: dict) -> str:
               f"{len(vol['calibrations'])} calibrations of {p['points']} poses ({' × '.join(map(str, p['levels']))}, "
               f"{p['seconds_per_point']:g} s a point, {p['duration_min']:.0f} min, σ = {p['noise_um']:g} µm): "
               "the thermal map is fitted on "
-              + ", ".join(c["state"] for c in vol["calibrations"] if c["role"] == "fit")
-              + "; judged on " + ", ".join(c["state"] for c in vol["calibrations"] if c["role"] == "held out")
+              + ", ".join(f"{c['state']} ({c['phase']})" for c in vol["calibrations"] if c["role"] == "fit")
+              + "; judged on " + ", ".join(f"{c['state']} ({c['phase']})" for c in vol["calibrations"]
+                                           if c["role"] == "held out")
               + f" (held out: no choice saw them), over a workspace grid of {vol['grid_points']} points.", ""]
     mo = vol["model"]
     lines += [f"Thermal map: {mo['components']} drift components over {mo['states']} states, inputs by "

@@ -59,3 +59,17 @@ def write_json(path: str | Path, obj: Any, **kwargs) -> Path:
 
 
 __all__ = ["dumps", "jsonable", "write_json"]
+
+
+def check_versioned(d: Any, fmt: str, version: int, what: str, error: type[Exception]) -> Mapping:
+    """``d`` as a mapping of the dict form ``fmt`` at ``version``; else ``error`` saying what it is instead.
+
+    ``what`` names the form in the message (``"volumetric table"``): ``not a volumetric table: format 'x',
+    expected '...'`` or ``volumetric table version 2, this program reads 1``.
+    """
+    if not isinstance(d, Mapping) or d.get("format") != fmt:
+        got = d.get("format") if isinstance(d, Mapping) else type(d).__name__
+        raise error(f"not a {what}: format {got!r}, expected {fmt!r}")
+    if d.get("version") != version:
+        raise error(f"{what} version {d.get('version')!r}, this program reads {version}")
+    return d

@@ -36,6 +36,7 @@ from typing import NamedTuple
 import numpy as np
 
 from hybridcomp.errors import HybridcompError
+from hybridcomp.models.jsonio import check_versioned
 
 #: the identifier of the dict (JSON) form of a table
 TABLE_FORMAT = "hybridcomp.volumetric_table"
@@ -558,11 +559,7 @@ def table_to_dict(table: VolumetricTable) -> dict:
 
 def table_from_dict(d: Mapping) -> VolumetricTable:
     """The table of :func:`table_to_dict`'s form; a clear error on a wrong format or a missing field."""
-    if not isinstance(d, Mapping) or d.get("format") != TABLE_FORMAT:
-        got = d.get("format") if isinstance(d, Mapping) else type(d).__name__
-        raise VolumetricError(f"not a volumetric table: format {got!r}, expected {TABLE_FORMAT!r}")
-    if d.get("version") != TABLE_VERSION:
-        raise VolumetricError(f"volumetric table version {d.get('version')!r}, this program reads {TABLE_VERSION}")
+    check_versioned(d, TABLE_FORMAT, TABLE_VERSION, "volumetric table", VolumetricError)
     try:
         fbs = tuple(FeedbackTable(f["axis"], f["positions_mm"], f["error_um"], f["direction"], f["sign"])
                     for f in d["feedback_um"])

@@ -199,6 +199,10 @@ class WarmingDay:
         field = np.array([1.0, -2.0, 3.0]) + (P - self.centre) @ np.diag([0.01, 0.004, -0.006]).T
         return (self.T1(t_s) - 20.0) * field
 
+    @property
+    def truth(self):  # at the model's pose (the centre) over the day
+        return (self.T1(self.t) - 20.0)[:, None] * np.array([1.0, -2.0, 3.0])
+
 
 def test_volumetric_study_fits_on_half_the_states_and_judges_on_the_rest(chain):
     from hybridcomp.verify import VolumetricOptions, volumetric_study
@@ -216,6 +220,9 @@ def test_volumetric_study_fits_on_half_the_states_and_judges_on_the_rest(chain):
     r = volumetric_study(day, late, sensors, ["T1", "T2"], chain, opts, np.random.default_rng(0))
     roles = [c["role"] for c in r["calibrations"]]
     assert len(roles) == 15 and roles[:4] == ["fit", "held out", "fit", "held out"]
+    # the drift's length (3.74 µm/K) grows at 6.2 µm/h at first (5 K / 3 h), 0.06 µm/h at 14 h: warming, then hot
+    phases = [c["phase"] for c in r["calibrations"]]
+    assert phases[0] == "warming" and phases[-1] == "hot" and "cooling" not in phases
     assert r["model"]["inputs"] == ["T1"]
     assert r["grid_points"] == workspace_grid(chain.travel_mm, (3, 3, 3)).shape[0] == 27
     held = r["held_out"]
