@@ -12,11 +12,13 @@ daemon's compensation over the day) and runs three studies:
   identified on every other calibration and judged on the ones between, which no choice saw, beside the
   daemon's support-point tables at the same times and poses (:func:`volumetric_study`);
 * **the ambient during verification** (:func:`ambient_study`): a calibration taken with the workshop air
-  ``ambient_K`` away from working conditions adds the machine's steady response to that air (its uniform
-  expansion, the drives' scales and screws against their carriers) and, on an artefact, the artefact's own
-  expansion.  Compensation functions identified from it miss the machine at working temperature by that much;
-  the correction takes the measured air temperature and the structure model's ambient response (and the
-  artefact's expansion coefficient) off the measurements before identifying;
+  ``ambient_K`` away from working conditions adds the machine's steady response to that air (its structure, the
+  drives' scales and screws against their carriers) and the instrument's reading offset: the table top growing
+  between the instrument's reference and the point under the tool, less the instrument's own growth (an
+  artefact's; a laser tracker's air-compensated lengths do not grow), :func:`reading_offset_um`.  Compensation
+  functions identified from it miss the machine at working temperature by that much; the correction takes the
+  measured air rise times the structure model's ambient response and the reading offset off the measurements
+  before identifying;
 * **a machined part** (:func:`machining_study`, in the spirit of ISO 10791-10): bores cut one at a time at
   intervals over the day at several workspace positions; each bore's position deviation and the deviations of
   the distances between neighbouring bores, without compensation, with the daemon's offsets at its one pose
@@ -24,7 +26,9 @@ daemon's compensation over the day) and runs three studies:
 
 Conventions.  Drift is TCP minus the table point under it [µm], the project's convention; a calibration measures
 it.  A static geometric error of the machine adds to every measurement alike and is identified alike (the
-identification is linear), so the studies leave it out: what they judge is the thermal part.  The part's own
+identification is linear), so the studies leave it out: what they judge is the thermal part.  At working
+temperature an instrument on the table reads the drift itself (the workpiece follows the table point under the
+tool, the project's convention); only the soak's uniform growth of the table is added to what it reads.  The part's own
 expansion at cutting time is taken out of its measurement (the CMM's job at 20 °C): a bore's deviation is the
 machine's drift less the compensation at the bore's time and place.
 """
@@ -99,6 +103,7 @@ class CalibrationPlan:
         return np.array(rows)
 
     def duration_s(self) -> float:
+        """How long the plan takes [s]."""
         return float(np.prod(self.levels)) * self.seconds_per_point
 
 
@@ -111,19 +116,16 @@ class Measured:
     error_um: np.ndarray
 
 
-def calibrate(drift_at, plan: CalibrationPlan, travel_mm, start_s: float, rng: np.random.Generator,
-              extra_um=None) -> Measured:
+def calibrate(drift_at, plan: CalibrationPlan, travel_mm, start_s: float, rng: np.random.Generator) -> Measured:
     """The calibration ``plan`` executed from ``start_s`` on a machine whose drift is ``drift_at(t_s, poses)``.
 
     ``drift_at`` (a time [s], poses m × axes [mm]) → drift (m × 3) [µm]: e.g. :meth:`PathTruth.at`.  Each pose is
-    measured at its own time (the machine keeps warming or cooling through a calibration); ``extra_um`` (poses →
-    m × 3) adds what the measuring conditions add (the ambient study's air).  Noise: ``plan.noise_um`` per direction.
+    measured at its own time (the machine keeps warming or cooling through a calibration).  Noise: ``plan.noise_um``
+    per direction.
     """
     P = plan.poses_mm(travel_mm)
     t = start_s + plan.seconds_per_point * np.arange(P.shape[0])
     E = np.vstack([drift_at(float(ti), P[i:i + 1]) for i, ti in enumerate(t)])
-    if extra_um is not None:
-        E = E + extra_um(P)
     if plan.noise_um > 0:
         E = E + rng.normal(0.0, plan.noise_um, E.shape)
     return Measured(P, t, E)
