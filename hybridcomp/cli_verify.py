@@ -50,7 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="time from one measured pose to the next [s] (default %(default)s)")
     g.add_argument("--noise-um", type=float, default=c.noise_um,
                    help="measurement noise per direction [µm] (default %(default)s)")
-    g.add_argument("--calibrate-every-h", type=float, default=v.every_h,
+    g.add_argument("--calibrate-every-hours", type=float, default=v.every_h,
                    help="a calibration every this many hours of the day (default %(default)s)")
     g.add_argument("--degree", type=int, default=v.degree, help="degree of the error functions (default %(default)s)")
     g.add_argument("--criterion", choices=("bicc", "bic"), default=v.criterion,
@@ -60,14 +60,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="air during the calibration minus working temperature [K] (default %(default)s)")
     g.add_argument("--sigmas-um", type=float, nargs="+", default=list(a.sigmas_um), metavar="SIGMA",
                    help="measurement noises to study [µm] (default %(default)s)")
-    g.add_argument("--state-h", type=float, default=a.state_h,
+    g.add_argument("--state-hours", type=float, default=a.state_h,
                    help="the working state calibrated: hour of the day (default %(default)s)")
     g = p.add_argument_group("machined part")
     g.add_argument("--bores", type=int, nargs=2, default=[m.columns, m.rows], metavar=("COLUMNS", "ROWS"),
                    help="bores on the plate (default %(default)s)")
-    g.add_argument("--bore-every-h", type=float, default=m.every_h,
+    g.add_argument("--bore-every-hours", type=float, default=m.every_h,
                    help="one bore every this many hours (default %(default)s)")
-    g.add_argument("--first-bore-h", type=float, default=m.first_h, help="the first bore's hour (default %(default)s)")
+    g.add_argument("--first-bore-hours", type=float, default=m.first_h, help="the first bore's hour (default %(default)s)")
 
 
 def options_of(args: argparse.Namespace):
@@ -78,12 +78,12 @@ def options_of(args: argparse.Namespace):
     return VerifyOptions(
         machine_name=args.machine, disturbance=args.disturbance, element_size_mm=args.element_size_mm,
         day_hours=args.day_hours, seed=args.seed,
-        volumetric=VolumetricOptions(plan=plan, every_h=args.calibrate_every_h, degree=args.degree,
+        volumetric=VolumetricOptions(plan=plan, every_h=args.calibrate_every_hours, degree=args.degree,
                                      criterion=args.criterion),
-        ambient=AmbientOptions(plan=plan, state_h=args.state_h, ambient_K=args.ambient_K,
+        ambient=AmbientOptions(plan=plan, state_h=args.state_hours, ambient_K=args.ambient_K,
                                sigmas_um=tuple(args.sigmas_um), degree=args.degree),
-        machining=MachiningOptions(columns=args.bores[0], rows=args.bores[1], first_h=args.first_bore_h,
-                                   every_h=args.bore_every_h))
+        machining=MachiningOptions(columns=args.bores[0], rows=args.bores[1], first_h=args.first_bore_hours,
+                                   every_h=args.bore_every_hours))
 
 
 def run(args: argparse.Namespace) -> int:

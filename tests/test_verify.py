@@ -272,7 +272,7 @@ def test_verify_end_to_end_on_a_short_day(tmp_path, caplog):
 
     out = tmp_path / "v"
     assert main(["verify", "--out", str(out), "--element-size-mm", "150", "--day-hours", "5", "--seconds-per-point",
-                 "5", "--bores", "3", "2", "--bore-every-h", "0.75", "--sigmas-um", "0", "1"]) == 0
+                 "5", "--bores", "3", "2", "--bore-every-hours", "0.75", "--sigmas-um", "0", "1"]) == 0
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR], "verify logged errors"
     s = json.loads((out / "summary.json").read_text())
     assert [c["role"] for c in s["volumetric"]["calibrations"]] == ["fit", "held out"] * 2 + ["fit"]
