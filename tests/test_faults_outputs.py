@@ -75,6 +75,7 @@ OUTPUTS = {
     ("monitor example-config", "--out"): (["monitor", "example-config", "--out", "{out}"], "file"),
     ("monitor example-trace", "--out"): (["monitor", "example-trace", "--rom", "{rom}", "--out", "{out}"], "file"),
     ("monitor scenario", "--out"): (["monitor", "scenario", "--out", "{out}", "--basic-hours", "1"], "summary.json"),
+    ("verify", "--out"): (["verify", "--out", "{out}"], "report.md"),
 }
 
 PATH_OPTIONS = sorted({(" ".join(p), _name(a)) for p, a in walk(build_parser()) if a.type is Path})
