@@ -547,10 +547,19 @@ def compensations_of(run: dict) -> dict:
 
 def check_options(o: VerifyOptions) -> None:
     """Refuse, before any work, a verification whose studies do not fit in its day (VerifyError naming why)."""
+    from hybridcomp.models import load_machine
     from hybridcomp.scenario import DISTURBANCES
 
     if o.disturbance not in DISTURBANCES:
         raise VerifyError(f"unknown disturbance {o.disturbance!r} (known: {', '.join(DISTURBANCES)})")
+    axes = [a.name for a in load_machine(o.machine_name).axes]
+    for what, plan in (("calibration plan", o.volumetric.plan), ("ambient study's plan", o.ambient.plan)):
+        if len(plan.levels) != len(axes):
+            raise VerifyError(f"{what}: {len(plan.levels)} levels {list(plan.levels)} for the axes {', '.join(axes)} "
+                              f"of {o.machine_name}: give one per axis")
+    for what, levels in (("volumetric grid", o.volumetric.grid_levels), ("ambient grid", o.ambient.grid_levels)):
+        if len(levels) != len(axes):
+            raise VerifyError(f"{what}: {len(levels)} levels for the axes {', '.join(axes)}: give one per axis")
     day_end_s = o.day_hours * 3600.0
     _check_calibrations(o.volumetric, day_end_s)
     m = o.machining

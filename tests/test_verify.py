@@ -243,6 +243,8 @@ def test_volumetric_study_fits_on_half_the_states_and_judges_on_the_rest(chain):
     (["--day-hours", "17"], "--day-hours must be in (0, 16]"),
     (["--noise-um", "-1"], "noise_um must be a finite number ≥ 0"),
     (["--plan-levels", "5", "1", "4"], "at least 2 levels"),
+    (["--plan-levels", "5", "5"], "2 levels [5, 5] for the axes X, Y, Z of vmc800: give one per axis"),
+    (["--machine", "no_such_machine"], "no_such_machine"),
     (["--criterion", "aic"], "invalid choice"),
 ])
 def test_verify_refuses_a_study_that_cannot_run_before_any_file(tmp_path, capsys, argv, words):
