@@ -629,6 +629,10 @@ def _part_summary(part: dict) -> dict:
                    "part_mm": [float(v) for v in part["part_mm"][i]],
                    **{k: [float(v) for v in res[k]["deviation_um"][i]] for k in res}}
                   for i, (c, r) in enumerate(b.place)],
+        "distances": [{"bores": [i + 1, j + 1],
+                       "nominal_mm": float(np.linalg.norm(part["part_mm"][j] - part["part_mm"][i])),
+                       **{k: float(res[k]["distance_um"][n]) for k in res}}
+                      for n, (i, j) in enumerate(part["pairs"])],
         "largest": {k: {m: v[m] for m in ("largest_position_um", "largest_xy_um", "largest_depth_um",
                                           "largest_distance_um")} for k, v in res.items()},
         "ratio_volumetric_to_one_pose": (res["hybrid volumetric"]["largest_position_um"]
@@ -697,6 +701,13 @@ def report_text(summary: dict, part: dict) -> str:
         cells = [", ".join(f"{v:.1f}" for v in b[k]) for k in part["results"]]
         lines.append(f"| {b['bore']} | {b['cut_h']:.1f} | {b['part_mm'][0]:.0f}, {b['part_mm'][1]:.0f} | "
                      + " | ".join(cells) + " |")
+    lines += ["", "### Distances between neighbouring bores", "",
+              "Length deviation of each distance (the two bores' deviations along the line between them) [µm].", "",
+              "| bores | nominal [mm] | " + " | ".join(part["results"]) + " |",
+              "|---|---|" + "---|" * len(part["results"])]
+    for d in mach["distances"]:
+        lines.append(f"| {d['bores'][0]}–{d['bores'][1]} | {d['nominal_mm']:.0f} | "
+                     + " | ".join(f"{d[k]:+.2f}" for k in part["results"]) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -291,4 +291,5 @@ def test_verify_end_to_end_on_a_short_day(tmp_path, caplog):
     assert part["largest"]["hybrid at one pose"]["largest_position_um"] > 2.0
     report = (out / "report.md").read_text()
     assert "| hybrid volumetric |" in report and "![the part](part.png)" in report
+    assert len(part["distances"]) == 7 and "### Distances between neighbouring bores" in report  # 3 × 2 bores
     assert (out / "part.png").stat().st_size > 10_000 and (out / "volumetric.png").stat().st_size > 5_000
