@@ -256,14 +256,23 @@ def _check_calibrations(options: VolumetricOptions, day_end_s: float) -> list[fl
     return starts
 
 
+@dataclass(frozen=True)
+class VolumetricResult:
+    """The volumetric study: its ``summary`` (JSON-able), the fitted thermal ``model`` and the ``calibrations``."""
+
+    summary: dict
+    model: object
+    calibrations: list
+
+
 def volumetric_study(path, table_at, sensors: dict, sensor_names, chain, options: VolumetricOptions,
-                     rng: np.random.Generator) -> dict:
+                     rng: np.random.Generator) -> VolumetricResult:
     """Calibrations over the day, the thermal volumetric model fitted on half, both compensations on the rest.
 
     ``path`` gives the real machine's drift (``path.at(t_s, poses)``, ``path.t`` the day's times), ``table_at`` (times
     (n,), poses n × axes) → the drift the support-point tables give there [µm], ``sensors`` the controller's
-    readings (``time_s``, ``degC``).  Returns the states (time, label, training or held out), the fitted model's
-    selected inputs and, per compensation
+    readings (``time_s``, ``degC``).  The summary holds the states (time, label, training or held out, thermal
+    phase), the fitted model's selected inputs and, per compensation
     (``volumetric model``, ``support-point tables``, and ``identified at the state``: the held-out calibration's
     own error model, what a calibration at that very moment would give), the TCP error's max, RMS and 95th
     percentile over the workspace grid and the held-out states.
@@ -294,7 +303,7 @@ def volumetric_study(path, table_at, sensors: dict, sensor_names, chain, options
             errors[k].append(e)
         per_state.append({"state": c.label, "time_h": t_mid / 3600.0,
                           **{k: error_stats(e)["max_um"] for k, e in zip(errors, (e_vol, e_tab, e_own))}})
-    return {
+    return VolumetricResult({
         "calibrations": [{"state": c.label, "start_h": c.time_s / 3600.0, "role": "fit" if i % 2 == 0 else "held out",
                           "phase": thermal_phase(path, c.time_s, c.time_s + plan.duration_s())}
                          for i, c in enumerate(cals)],
@@ -307,7 +316,7 @@ def volumetric_study(path, table_at, sensors: dict, sensor_names, chain, options
                   "held_out_outside_training_range": sorted({n for c in held for n in model.outside(c.sensors_degC)})},
         "held_out": {k: error_stats(np.vstack(v)) for k, v in errors.items()},
         "per_state": per_state,
-    }
+    }, model, cals)
 
 
 # -- study 2: the ambient during verification ---------------------------------------------------------------------
@@ -605,6 +614,10 @@ def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress
                         o.ambient, o.seed)
     part = machining_study(day.path, compensations_of(run), chain, dict(models.pose_mm), o.machining)
     timings["studies_s"] = time.perf_counter() - t1
+    study, vol = vol, vol.summary
+    write_text_atomic(out / "thermal_map.json", jsonio.dumps(thermal_map_dict(study.model), indent=1))
+    write_text_atomic(out / "calibrations.csv", calibrations_csv(study.calibrations, vol["calibrations"], chain,
+                                                                  sensor_names, o.volumetric.plan.seconds_per_point))
     plots = {"part": _part_plot(out / "part.png", part, chain),
              "volumetric": _volumetric_plot(out / "volumetric.png", vol)}
     summary = {
@@ -619,6 +632,33 @@ def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress
     write_text_atomic(out / "summary.json", jsonio.dumps(summary, indent=1, default=str))
     write_text_atomic(out / "report.md", report_text(summary, part))
     return summary
+
+
+def thermal_map_dict(model) -> dict:
+    """The fitted thermal volumetric model in its stored form (:func:`hybridcomp.chardiag.thermal_map.to_dict`)."""
+    from hybridcomp.chardiag.thermal_map import to_dict
+
+    return to_dict(model)
+
+
+def calibrations_csv(cals: list, rows: list[dict], chain, sensor_names, seconds_per_point: float) -> str:
+    """Every simulated calibration point as a measuring campaign records it (CSV text).
+
+    Columns: ``calibration`` (its start, ``1.0 h``), ``role`` (``fit`` or ``held out``), ``time_s`` of the point
+    (the calibration's start plus ``seconds_per_point`` per point before it),
+    the axis positions ``<axis>_mm``, the measured ``dx_um``, ``dy_um``, ``dz_um`` and the sensors averaged over the
+    calibration ``<sensor>_degC``.
+    """
+    head = (["calibration", "role", "time_s"] + [f"{a}_mm" for a in chain.axes] + ["dx_um", "dy_um", "dz_um"]
+            + [f"{n}_degC" for n in sensor_names])
+    lines = [",".join(head)]
+    for c, info in zip(cals, rows):
+        sec = float(c.time_s) + seconds_per_point * np.arange(c.poses_mm.shape[0])
+        for i in range(c.poses_mm.shape[0]):
+            vals = ([info["state"], info["role"], f"{sec[i]:.1f}"] + [f"{v:.4f}" for v in c.poses_mm[i]]
+                    + [f"{v:.4f}" for v in c.error_um[i]] + [f"{v:.4f}" for v in c.sensors_degC])
+            lines.append(",".join(vals))
+    return "\n".join(lines) + "\n"
 
 
 def _part_summary(part: dict) -> dict:

@@ -217,7 +217,9 @@ def test_volumetric_study_fits_on_half_the_states_and_judges_on_the_rest(chain):
     opts = VolumetricOptions(plan=CalibrationPlan((5, 5, 4), seconds_per_point=5.0, noise_um=0.2), every_h=1.0,
                              grid_levels=(3, 3, 3))
     late = lambda tt, P: np.vstack([day.at(ti - 1800.0, P[i:i + 1]) for i, ti in enumerate(tt)])  # noqa: E731
-    r = volumetric_study(day, late, sensors, ["T1", "T2"], chain, opts, np.random.default_rng(0))
+    study = volumetric_study(day, late, sensors, ["T1", "T2"], chain, opts, np.random.default_rng(0))
+    r = study.summary
+    assert study.model.inputs == ("T1",) and len(study.calibrations) == 15
     roles = [c["role"] for c in r["calibrations"]]
     assert len(roles) == 15 and roles[:4] == ["fit", "held out", "fit", "held out"]
     # the drift's length (3.74 µm/K) grows at 6.2 µm/h at first (5 K / 3 h), 0.06 µm/h at 14 h: warming, then hot
@@ -292,4 +294,11 @@ def test_verify_end_to_end_on_a_short_day(tmp_path, caplog):
     report = (out / "report.md").read_text()
     assert "| hybrid volumetric |" in report and "![the part](part.png)" in report
     assert len(part["distances"]) == 7 and "### Distances between neighbouring bores" in report  # 3 × 2 bores
+    # nothing lost: the fitted model in its stored form and every calibration point as a campaign records it
+    from hybridcomp.chardiag.thermal_map import from_dict
+
+    assert from_dict(json.loads((out / "thermal_map.json").read_text())).n_states == 3
+    rows = (out / "calibrations.csv").read_text().splitlines()
+    assert rows[0].startswith("calibration,role,time_s,X_mm,Y_mm,Z_mm,dx_um,dy_um,dz_um,T1_degC")
+    assert len(rows) == 1 + 5 * 100
     assert (out / "part.png").stat().st_size > 10_000 and (out / "volumetric.png").stat().st_size > 5_000
