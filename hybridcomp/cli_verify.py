@@ -6,7 +6,7 @@ calibrations at thermal states of the day, a thermal volumetric model fitted on 
 tables on the rest; a calibration with the workshop air off working temperature, with and without its correction,
 for several measurement noises; and a plate with bores cut over the day, measured without compensation, with the
 daemon's offsets at one pose and with its tables.  Writes ``report.md``, ``summary.json``, ``part.png``,
-``volumetric.png``, ``thermal_map.json`` and ``calibrations.csv`` into ``--out``.
+``volumetric.png``, ``ambient.png``, ``thermal_map.json`` and ``calibrations.csv`` into ``--out``.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ DESCRIPTION = ("The thermal compensation verified the way a machine-tool builder
                "volumetric model fitted on half, judged with the daemon's support-point tables on the rest); a "
                "calibration with the workshop air off working temperature, with and without its correction; a "
                "plate with bores cut over the day, without compensation, with the offsets at one pose and with "
-               "the tables. Writes report.md, summary.json, part.png, volumetric.png, the fitted thermal map "
+               "the tables. Writes report.md, summary.json, part.png, volumetric.png, ambient.png, the fitted thermal map "
                "(thermal_map.json) and every calibration point (calibrations.csv) into --out.")
 
 

@@ -619,7 +619,8 @@ def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress
     write_text_atomic(out / "calibrations.csv", calibrations_csv(study.calibrations, vol["calibrations"], chain,
                                                                   sensor_names, o.volumetric.plan.seconds_per_point))
     plots = {"part": _part_plot(out / "part.png", part, chain),
-             "volumetric": _volumetric_plot(out / "volumetric.png", vol)}
+             "volumetric": _volumetric_plot(out / "volumetric.png", vol),
+             "ambient": _ambient_plot(out / "ambient.png", amb)}
     summary = {
         "machine": models.machine.name, "disturbance": o.disturbance, "element_size_mm": o.element_size_mm,
         "day_hours": o.day_hours, "seed": o.seed,
@@ -723,6 +724,7 @@ def report_text(summary: dict, part: dict) -> str:
         lines.append(f"| {r['artefact']} | {r['sigma_um']:g} | {_fmt(u['max_um'])} / {_fmt(u['rms_um'])} | "
                      f"{_fmt(c['max_um'])} / {_fmt(c['rms_um'])} | {_fmt(w['max_um'])} / {_fmt(w['rms_um'])} | "
                      f"{_fmt(r['corrected_vs_reference_max_um'])} |")
+    lines += ["", "![the ambient during verification](ambient.png)"]
     lines += ["", "## The machined part", "",
               f"{len(mach['bores'])} bores, one every {part['bores'].time_s[1] / 3600 - part['bores'].time_s[0] / 3600:g}"
               " h; deviations of the bores' positions (3D, in the plate xy and depth) and of the distances between "
@@ -791,6 +793,35 @@ def _part_plot(path: Path, part: dict, chain) -> Path | None:
     fig.legend(*np.atleast_1d(axes)[0].get_legend_handles_labels(), loc="outside lower center", ncol=2, fontsize=8)
     fig.suptitle(f"The machined plate from above: bores cut over the day (hour of each cut), deviations magnified "
                  f"×{scale:.0f} in every panel ({0.12 * span:.0f} mm of arrow = {largest:.1f} µm)", fontsize=11)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _ambient_plot(path: Path, amb: dict) -> Path | None:
+    """The ambient study: largest compensation error at working temperature per instrument and noise."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        log.warning("no ambient plot: matplotlib is not installed")
+        return None
+    rows = amb["rows"]
+    kinds = (("uncorrected", "uncorrected", "tab:red"), ("corrected", "corrected", "tab:green"),
+             ("at working temperature", "identified at working temperature", "0.5"))
+    fig, ax = plt.subplots(figsize=(7.5, 3.8), constrained_layout=True)
+    x = np.arange(len(rows))
+    w = 0.8 / len(kinds)
+    for i, (key, label, colour) in enumerate(kinds):
+        ax.bar(x + (i - 1) * w, [r[key]["max_um"] for r in rows], w, label=label, color=colour)
+    ax.set_xticks(x, [f"{r['artefact']}\nσ = {r['sigma_um']:g} µm" for r in rows], fontsize=8)
+    ax.set_ylabel("largest compensation error [µm]")
+    ax.set_title(f"functions identified with the air {amb['ambient_K']:+g} K, used at working temperature",
+                 fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

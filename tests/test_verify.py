@@ -302,3 +302,4 @@ def test_verify_end_to_end_on_a_short_day(tmp_path, caplog):
     assert rows[0].startswith("calibration,role,time_s,X_mm,Y_mm,Z_mm,dx_um,dy_um,dz_um,T1_degC")
     assert len(rows) == 1 + 5 * 100
     assert (out / "part.png").stat().st_size > 10_000 and (out / "volumetric.png").stat().st_size > 5_000
+    assert (out / "ambient.png").stat().st_size > 5_000 and "![the ambient during verification](ambient.png)" in report
