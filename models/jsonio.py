@@ -58,7 +58,6 @@ def write_json(path: str | Path, obj: Any, **kwargs) -> Path:
     return path
 
 
-__all__ = ["dumps", "jsonable", "write_json"]
 
 
 def check_versioned(d: Any, fmt: str, version: int, what: str, error: type[Exception]) -> Mapping:
@@ -73,3 +72,6 @@ def check_versioned(d: Any, fmt: str, version: int, what: str, error: type[Excep
     if d.get("version") != version:
         raise error(f"{what} version {d.get('version')!r}, this program reads {version}")
     return d
+
+
+__all__ = ["check_versioned", "dumps", "jsonable", "write_json"]
