@@ -753,15 +753,23 @@ def report_text(summary: dict, part: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _part_plot(path: Path, part: dict, chain) -> Path | None:
-    """The plate from above: each bore where it should be and its deviation, magnified, per compensation."""
+def _pyplot(what: str):
+    """The pyplot module on the file backend, or None with a warning naming the plot (pictures are optional)."""
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-    except ImportError:  # pictures are optional
-        log.warning("no part plot: matplotlib is not installed")
+    except ImportError:
+        log.warning("no %s plot: matplotlib is not installed", what)
+        return None
+    return plt
+
+
+def _part_plot(path: Path, part: dict, chain) -> Path | None:
+    """The plate from above: each bore where it should be and its deviation, magnified, per compensation."""
+    plt = _pyplot("part")
+    if plt is None:
         return None
     res = part["results"]
     where = part["part_mm"]
@@ -800,13 +808,8 @@ def _part_plot(path: Path, part: dict, chain) -> Path | None:
 
 def _ambient_plot(path: Path, amb: dict) -> Path | None:
     """The ambient study: largest compensation error at working temperature per instrument and noise."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        log.warning("no ambient plot: matplotlib is not installed")
+    plt = _pyplot("ambient")
+    if plt is None:
         return None
     rows = amb["rows"]
     kinds = (("uncorrected", "uncorrected", "tab:red"), ("corrected", "corrected", "tab:green"),
@@ -829,13 +832,8 @@ def _ambient_plot(path: Path, amb: dict) -> Path | None:
 
 def _volumetric_plot(path: Path, vol: dict) -> Path | None:
     """Largest TCP error over the workspace grid at each held-out state, per compensation."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        log.warning("no volumetric plot: matplotlib is not installed")
+    plt = _pyplot("volumetric")
+    if plt is None:
         return None
     rows = vol["per_state"]
     names = [k for k in rows[0] if k not in ("state", "time_h")]
