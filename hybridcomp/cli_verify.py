@@ -56,6 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--degree", type=int, default=v.degree, help="degree of the error functions (default %(default)s)")
     g.add_argument("--criterion", choices=("bicc", "bic"), default=v.criterion,
                    help="information criterion of the thermal map's inputs (default %(default)s)")
+    g.add_argument("--lag-hours", type=float, nargs="+", default=list(v.lags_h), metavar="H",
+                   help="also offer the thermal map each sensor's first-order lag of these time constants [h] (an "
+                   "ARX map's inputs; default: the sensors alone)")
     g = p.add_argument_group("ambient during verification")
     g.add_argument("--ambient-K", type=float, default=a.ambient_K,
                    help="air during the calibration minus working temperature [K] (default %(default)s)")
@@ -80,7 +83,7 @@ def options_of(args: argparse.Namespace):
         machine_name=args.machine, disturbance=args.disturbance, element_size_mm=args.element_size_mm,
         day_hours=args.day_hours, seed=args.seed,
         volumetric=VolumetricOptions(plan=plan, every_h=args.calibrate_every_hours, degree=args.degree,
-                                     criterion=args.criterion),
+                                     criterion=args.criterion, lags_h=tuple(args.lag_hours)),
         ambient=AmbientOptions(plan=plan, state_h=args.state_hours, ambient_K=args.ambient_K,
                                sigmas_um=tuple(args.sigmas_um), degree=args.degree),
         machining=MachiningOptions(columns=args.bores[0], rows=args.bores[1], first_h=args.first_bore_hours,

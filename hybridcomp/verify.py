@@ -193,7 +193,9 @@ class VolumetricOptions:
 
     A calibration every ``every_h`` from ``first_h`` while the day lasts; the thermal map fitted on the
     even-numbered ones (0, 2, …), judged on the odd ones; error functions of ``degree``; inputs by ``criterion``
-    (``"bicc"`` or ``"bic"``), at most ``max_inputs`` sensors; judged over a grid of ``grid_levels`` per axis.
+    (``"bicc"`` or ``"bic"``), at most ``max_inputs`` of the sensors and, with ``lags_h``, of their first-order
+    lags of those time constants [h] (an ARX map's inputs: ``T1_lag1h``); judged over a grid of
+    ``grid_levels`` per axis.
     """
 
     plan: CalibrationPlan = CalibrationPlan()
@@ -203,10 +205,14 @@ class VolumetricOptions:
     criterion: str = "bicc"
     max_inputs: int = 3
     grid_levels: tuple[int, ...] = (5, 5, 5)
+    lags_h: tuple[float, ...] = ()
 
     def __post_init__(self):
         _positive("first_h", self.first_h, allow_zero=True)
         _positive("every_h", self.every_h)
+        object.__setattr__(self, "lags_h", tuple(float(v) for v in self.lags_h))
+        for v in self.lags_h:
+            _positive("lags_h", v)
         if self.criterion not in ("bic", "bicc"):
             raise VerifyError(f"criterion must be 'bic' or 'bicc', got {self.criterion!r}")
         if self.every_h * 3600.0 < self.plan.duration_s():
@@ -230,6 +236,23 @@ def workspace_grid(travel_mm, levels) -> np.ndarray:
 
     axes = [np.linspace(float(lo), float(hi), int(n)) for (lo, hi), n in zip(travel_mm, levels)]
     return np.array(list(itertools.product(*axes)))
+
+
+def with_lags(sensors: dict, sensor_names, lags_h) -> tuple[dict, list[str]]:
+    """The readings with each sensor's first-order lags of ``lags_h`` [h] as extra columns, and their names.
+
+    ``T1_lag1h`` is T1 through a first-order low-pass of 1 h (the daemon's filter form), computed over the
+    controller's whole record up to each time: what an ARX map of the sensors would take as inputs.
+    """
+    from hybridcomp.scenario import low_pass
+
+    names = list(sensor_names)
+    if not lags_h:
+        return sensors, names
+    t, T = np.asarray(sensors["time_s"], float), np.asarray(sensors["degC"], float)
+    cols = [T] + [low_pass(t, T, h * 3600.0) for h in lags_h]
+    names += [f"{n}_lag{h:g}h" for h in lags_h for n in sensor_names]
+    return {**sensors, "degC": np.hstack(cols)}, names
 
 
 def thermal_phase(path, start_s: float, end_s: float, rate_um_per_h: float = 1.0) -> str:
@@ -282,6 +305,7 @@ def volumetric_study(path, table_at, sensors: dict, sensor_names, chain, options
 
     plan = options.plan
     starts = _check_calibrations(options, float(path.t[-1]))
+    sensors, sensor_names = with_lags(sensors, sensor_names, options.lags_h)
     cals = []
     for s in starts:
         m = calibrate(path.at, plan, chain.travel_mm, s, rng)
@@ -617,7 +641,8 @@ def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress
     study, vol = vol, vol.summary
     write_text_atomic(out / "thermal_map.json", jsonio.dumps(thermal_map_dict(study.model), indent=1))
     write_text_atomic(out / "calibrations.csv", calibrations_csv(study.calibrations, vol["calibrations"], chain,
-                                                                  sensor_names, o.volumetric.plan.seconds_per_point))
+                                                                  study.model.sensor_names,
+                                                                  o.volumetric.plan.seconds_per_point))
     plots = {"part": _part_plot(out / "part.png", part, chain),
              "volumetric": _volumetric_plot(out / "volumetric.png", vol),
              "ambient": _ambient_plot(out / "ambient.png", amb)}

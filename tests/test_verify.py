@@ -303,3 +303,39 @@ def test_verify_end_to_end_on_a_short_day(tmp_path, caplog):
     assert len(rows) == 1 + 5 * 100
     assert (out / "part.png").stat().st_size > 10_000 and (out / "volumetric.png").stat().st_size > 5_000
     assert (out / "ambient.png").stat().st_size > 5_000 and "![the ambient during verification](ambient.png)" in report
+
+
+def test_lagged_sensors_are_offered_as_inputs(chain):
+    """A drift that follows T1 an hour late: the map picks T1's 1 h lag when it is offered, and does far better."""
+    from hybridcomp.verify import VolumetricOptions, volumetric_study, with_lags
+
+    t = np.arange(0.0, 15 * 3600.0 + 1, 30.0)
+    T1 = 20.0 + 4.0 * (np.sin(2 * np.pi * t / (6 * 3600.0)) > 0)  # the spindle on and off every 3 h
+    s, names = with_lags({"time_s": t, "degC": T1[:, None]}, ["T1"], (1.0,))
+    assert names == ["T1", "T1_lag1h"]
+    lagged = s["degC"][:, 1]
+    # the hand formula of a first-order lag: 1 − e^(−1) of a step after one time constant
+    k = np.searchsorted(t, 3600.0)
+    assert lagged[k] == pytest.approx(20.0 + 4.0 * (1 - np.exp(-1.0)), abs=0.01)
+
+    @dataclass(frozen=True)
+    class LagDay:
+        t: np.ndarray
+
+        @property
+        def truth(self):
+            return (np.interp(self.t, t, lagged) - 20.0)[:, None] * np.array([1.0, 0.0, 2.0])
+
+        def at(self, t_s, P):
+            return (np.interp(t_s, t, lagged) - 20.0) * np.tile([1.0, 0.0, 2.0], (np.atleast_2d(P).shape[0], 1))
+
+    day = LagDay(t)
+    opts = dict(plan=CalibrationPlan((5, 5, 4), seconds_per_point=3.0, noise_um=0.1), every_h=0.5,
+                grid_levels=(2, 2, 2), max_inputs=1)
+    sensors = {"time_s": t, "degC": T1[:, None]}
+    table = lambda tt, P: np.zeros((len(tt), 3))  # noqa: E731
+    static = volumetric_study(day, table, sensors, ["T1"], chain, VolumetricOptions(**opts), np.random.default_rng(0))
+    arx = volumetric_study(day, table, sensors, ["T1"], chain, VolumetricOptions(lags_h=(1.0,), **opts),
+                           np.random.default_rng(0))
+    assert arx.model.inputs == ("T1_lag1h",)
+    assert arx.summary["held_out"]["volumetric model"]["max_um"] < 0.3 * static.summary["held_out"]["volumetric model"]["max_um"]
