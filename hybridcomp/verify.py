@@ -397,18 +397,18 @@ def ambient_study(path, real_response, model_response, chain, table_alpha_per_K:
     t_s = o.state_h * 3600.0
     G = workspace_grid(chain.travel_mm, o.grid_levels)
     truth_G = path.at(t_s, G)
+    P = o.plan.poses_mm(chain.travel_mm)  # every instrument and noise measures the plan's poses
+    state = path.at(t_s, P)  # the machine at rest in its working state through the calibration
+    real_per_K, model_per_K = real_response(P), model_response(P)
     rows = []
     for name, alpha in o.artefacts:
         for sigma in o.sigmas_um:
             rng = np.random.default_rng([seed, int(round(sigma * 1000)), int(alpha * 1e9)])
-            plan = CalibrationPlan(o.plan.levels, o.plan.seconds_per_point, sigma, o.plan.margin)
-            P = plan.poses_mm(chain.travel_mm)
             noise = rng.normal(0.0, sigma, (P.shape[0], 3)) if sigma > 0 else np.zeros((P.shape[0], 3))
-            state = path.at(t_s, P)  # the machine at rest in its working state through the calibration
             measured_air_K = o.ambient_K + (rng.normal(0.0, o.air_noise_K) if o.air_noise_K > 0 else 0.0)
-            added = (o.ambient_K * real_response(P)
+            added = (o.ambient_K * real_per_K
                      + reading_offset_um(P, chain, table_alpha_per_K, alpha, o.ambient_K))
-            correction = (measured_air_K * model_response(P)
+            correction = (measured_air_K * model_per_K
                           + reading_offset_um(P, chain, table_alpha_per_K, alpha, measured_air_K))
             ref = identify(chain, P, state + noise, o.degree)
             raw = identify(chain, P, state + added + noise, o.degree)
@@ -605,7 +605,7 @@ def check_options(o: VerifyOptions) -> None:
                           f"{o.day_hours:g} h")
 
 
-def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress: bool = True) -> dict:
+def run_verification(out_dir, options: VerifyOptions = VerifyOptions()) -> dict:
     """Simulate the day, run the three studies, write ``report.md``, ``summary.json`` and the plots into ``out_dir``.
 
     Returns the summary.
@@ -613,6 +613,7 @@ def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress
     import time
 
     from hybridcomp.chardiag.kinematic import chain_of
+    from hybridcomp.chardiag.thermal_map import to_dict
     from hybridcomp.models import jsonio
     from hybridcomp.safeio import write_text_atomic
     from hybridcomp.scenario import DISTURBANCES, Scenario, build_models, run_scenario, tables_along
@@ -631,15 +632,15 @@ def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress
     run = day.runs["hybrid"]
     sensor_names = [s.name for s in models.machine.sensors]
     t1 = time.perf_counter()
-    vol = volumetric_study(day.path, lambda t, P: tables_along(run["tables"], t, P), day.sensors, sensor_names,
-                           chain, o.volumetric, np.random.default_rng([o.seed, 1]))
+    study = volumetric_study(day.path, lambda t, P: tables_along(run["tables"], t, P), day.sensors, sensor_names,
+                             chain, o.volumetric, np.random.default_rng([o.seed, 1]))
     amb = ambient_study(day.path, lambda P: ambient_response_um(day.path.rom, P),
                         lambda P: ambient_response_um(models.pose_rom, P), chain, table_alpha(models.machine),
                         o.ambient, o.seed)
     part = machining_study(day.path, compensations_of(run), chain, dict(models.pose_mm), o.machining)
     timings["studies_s"] = time.perf_counter() - t1
-    study, vol = vol, vol.summary
-    write_text_atomic(out / "thermal_map.json", jsonio.dumps(thermal_map_dict(study.model), indent=1))
+    vol = study.summary
+    write_text_atomic(out / "thermal_map.json", jsonio.dumps(to_dict(study.model), indent=1))
     write_text_atomic(out / "calibrations.csv", calibrations_csv(study.calibrations, vol["calibrations"], chain,
                                                                   study.model.sensor_names,
                                                                   o.volumetric.plan.seconds_per_point))
@@ -658,13 +659,6 @@ def run_verification(out_dir, options: VerifyOptions = VerifyOptions(), progress
     write_text_atomic(out / "summary.json", jsonio.dumps(summary, indent=1, default=str))
     write_text_atomic(out / "report.md", report_text(summary, part))
     return summary
-
-
-def thermal_map_dict(model) -> dict:
-    """The fitted thermal volumetric model in its stored form (:func:`hybridcomp.chardiag.thermal_map.to_dict`)."""
-    from hybridcomp.chardiag.thermal_map import to_dict
-
-    return to_dict(model)
 
 
 def calibrations_csv(cals: list, rows: list[dict], chain, sensor_names, seconds_per_point: float) -> str:
@@ -840,19 +834,25 @@ def _ambient_plot(path: Path, amb: dict) -> Path | None:
     kinds = (("uncorrected", "uncorrected", "tab:red"), ("corrected", "corrected", "tab:green"),
              ("at working temperature", "identified at working temperature", "0.5"))
     fig, ax = plt.subplots(figsize=(7.5, 3.8), constrained_layout=True)
-    x = np.arange(len(rows))
-    w = 0.8 / len(kinds)
-    for i, (key, label, colour) in enumerate(kinds):
-        ax.bar(x + (i - 1) * w, [r[key]["max_um"] for r in rows], w, label=label, color=colour)
-    ax.set_xticks(x, [f"{r['artefact']}\nσ = {r['sigma_um']:g} µm" for r in rows], fontsize=8)
+    _grouped_bars(ax, [f"{r['artefact']}\nσ = {r['sigma_um']:g} µm" for r in rows],
+                  [(label, [r[key]["max_um"] for r in rows], colour) for key, label, colour in kinds], fontsize=8)
     ax.set_ylabel("largest compensation error [µm]")
     ax.set_title(f"functions identified with the air {amb['ambient_K']:+g} K, used at working temperature",
                  fontsize=10)
-    ax.legend(fontsize=8)
-    ax.grid(axis="y", alpha=0.3)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _grouped_bars(ax, groups: list[str], series: list[tuple], fontsize=None) -> None:
+    """Bars side by side per group: ``series`` of (label, one value per group, colour or None); legend and grid."""
+    x = np.arange(len(groups))
+    w = 0.8 / len(series)
+    for i, (label, values, colour) in enumerate(series):
+        ax.bar(x + (i - (len(series) - 1) / 2) * w, values, w, label=label, color=colour)
+    ax.set_xticks(x, groups, fontsize=fontsize)
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
 
 
 def _volumetric_plot(path: Path, vol: dict) -> Path | None:
@@ -863,15 +863,9 @@ def _volumetric_plot(path: Path, vol: dict) -> Path | None:
     rows = vol["per_state"]
     names = [k for k in rows[0] if k not in ("state", "time_h")]
     fig, ax = plt.subplots(figsize=(7.5, 3.8), constrained_layout=True)
-    x = np.arange(len(rows))
-    w = 0.8 / len(names)
-    for i, k in enumerate(names):
-        ax.bar(x + (i - (len(names) - 1) / 2) * w, [r[k] for r in rows], w, label=k)
-    ax.set_xticks(x, [r["state"] for r in rows])
+    _grouped_bars(ax, [r["state"] for r in rows], [(k, [r[k] for r in rows], None) for k in names])
     ax.set_xlabel("held-out calibration (start of the day's hour)")
     ax.set_ylabel("largest TCP error over the grid [µm]")
-    ax.legend(fontsize=8)
-    ax.grid(axis="y", alpha=0.3)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
