@@ -126,7 +126,9 @@ def context(cfg: MonitorConfig, machine, rom, pose_key: str,
         sensor_names=tuple(s.name for s in machine.sensors), axis_names=tuple(a.name for a in machine.axes),
         pose_mm=dict(rom.meta.get("pose_mm") or machine.default_pose_mm()), layout=layout,
         sig_layout=SignatureLayout.of(machine), t_ref=layout.reference_temperature_degC,
-        gain_settings=volumetric.GainSettings(probe_sigma_um=cfg.observer.probe_sigma_um),
+        gain_settings=volumetric.GainSettings(
+            probe_sigma_um=cfg.observer.probe_sigma_um,
+            bounded_axes=tuple(d.axis for d in machine.drives if d.feedback == "rotary_encoder")),
         feedback_axes=tuple(rom.meta.get("feedback", {})), dataonly=dataonly)
 
 

@@ -295,6 +295,8 @@ class GainSettings:
     whole_error : the gains scale each drive's whole error, its share at the model's pose included
         (:class:`DriveGains`); False: only its change from the model's pose
     nut_sigma : prior spread of the nuts' gains [-] (1: the nuts' part of the error twice the machine file's)
+    bounded_axes : the drives read at the screw (rotary encoder), whose multipliers ``1 + g`` and ``1 + g + h``
+        cannot turn negative (:func:`update_gains`); the daemon takes them from the machine file
     """
 
     gain_sigma: float = 0.3
@@ -305,6 +307,7 @@ class GainSettings:
     model_sigma_um: float = 0.7
     whole_error: bool = True
     nut_sigma: float = 1.0
+    bounded_axes: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -414,7 +417,36 @@ def update_gains(gains: DriveGains, raw_table, position_mm, probe_um, time_s: fl
     x = x + K @ (y - H @ x)
     IKH = np.eye(P.shape[0]) - K @ H
     P = IKH @ P @ IKH.T + r2 * K @ K.T  # Joseph form: stays symmetric and positive
-    return gains._with(x, 0.5 * (P + P.T), time_s)
+    P = 0.5 * (P + P.T)
+    return gains._with(_within_bounds(x, P, gains, settings.bounded_axes), P, time_s)
+
+
+def _within_bounds(x: np.ndarray, P: np.ndarray, gains: DriveGains, bounded_axes) -> np.ndarray:
+    """The estimate projected (in the metric of ``P``) onto the physical bounds of the screw drives' multipliers.
+
+    A drive whose position is read at the screw (rotary encoder): ``1 + g`` scales its error (heat from motor,
+    bearings and nuts: none of it is negative; a seized floating bearing blocks the screw's expansion, it does not
+    reverse it) and, with the nuts' gain, ``1 + g + h`` its nuts' part; neither can turn negative.  A linear scale's
+    error is the scale's expansion less the carrier's, whose difference may change sign with the material: it is
+    not bounded.  Active-set projection: the smallest ``Δxᵀ P⁻¹ Δx`` that puts every violated bound on its edge.
+    """
+    n = len(gains.axes)
+    rows = []
+    for a, axis in enumerate(gains.axes):
+        if axis in bounded_axes:
+            rows.append(np.eye(len(x))[a])  # 1 + g >= 0
+            if gains.h is not None:
+                rows.append(np.eye(len(x))[a] + np.eye(len(x))[n + a])  # 1 + g + h >= 0
+    active: list[int] = []
+    for _ in rows:
+        viol = [i for i, row in enumerate(rows) if i not in active and 1.0 + row @ x < -1e-12]
+        if not viol:
+            break
+        active.append(viol[0])
+        A = np.array([rows[i] for i in active])
+        # onto the edges of every active bound (projections onto nested affine sets compose)
+        x = x - P @ A.T @ np.linalg.solve(A @ P @ A.T, 1.0 + A @ x)
+    return x
 
 
 def with_gains(table, gains: DriveGains | None, nut_table=None):

@@ -436,3 +436,9 @@ def test_a_histogram_warning_of_a_step_has_one_key_whatever_its_counts():
     assert T.histogram_warning_key(960.0, a) == T.histogram_warning_key(960.0, b)
     assert T.histogram_warning_key(960.0, a) != T.histogram_warning_key(960.0, other)
     assert T.histogram_warning_key(960.0, a) != T.histogram_warning_key(980.0, a)
+
+
+def test_the_context_bounds_the_gains_of_the_drives_read_at_the_screw(ctx, machine):
+    """The machine file's drives with a rotary encoder (X, Y on the demonstrator; Z reads a linear scale)."""
+    want = tuple(d.axis for d in machine.drives if d.feedback == "rotary_encoder")
+    assert want == ("X", "Y") and ctx.gain_settings.bounded_axes == want
