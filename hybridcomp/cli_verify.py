@@ -15,7 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hybridcomp.safeio import FORCE_HELP, OutputPathError, start_folder
+from hybridcomp.safeio import FORCE_HELP, start_folder
 
 DESCRIPTION = ("The thermal compensation verified the way a machine-tool builder signs it off, on one simulated "
                "job-shop day of the real machine: volumetric calibrations at thermal states of the day (a thermal "
@@ -91,29 +91,18 @@ def options_of(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``hybridcomp verify``; returns the exit code (2: bad option, named on stderr)."""
+    """Run ``hybridcomp verify``; returns the exit code (bad input raises: the dispatcher names it and returns 2)."""
     from hybridcomp.histogram.scenarios import JOBSHOP_HOURS
-    from hybridcomp.verify import VerifyError, check_options, run_verification
+    from hybridcomp.verify import check_options, run_verification
 
     if not 0 < args.day_hours <= JOBSHOP_HOURS:
         print(f"error: --day-hours must be in (0, {JOBSHOP_HOURS:g}], got {args.day_hours}", file=sys.stderr)
         return 2
-    try:
-        opts = options_of(args)
-        check_options(opts)  # before any file: a study that does not fit in the day
-    except VerifyError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    try:
-        start_folder(args.out, force=args.force, finals=("summary.json", "report.md"))
-    except OutputPathError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    try:
-        s = run_verification(args.out, opts)
-    except VerifyError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    # a VerifyError or OutputPathError is bad input: the dispatcher prints it as one 'error:' line and returns 2
+    opts = options_of(args)
+    check_options(opts)  # before any file: a study that does not fit in the day
+    start_folder(args.out, force=args.force, finals=("summary.json", "report.md"))
+    s = run_verification(args.out, opts)
     h, m = s["volumetric"]["held_out"], s["machining"]["largest"]
     print(f"wrote {args.out / 'report.md'}: held-out max TCP error volumetric model "
           f"{h['volumetric model']['max_um']:.2f} µm, tables {h['support-point tables']['max_um']:.2f} µm; part: "

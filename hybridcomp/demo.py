@@ -28,7 +28,7 @@ from pathlib import Path
 
 from hybridcomp.metrics import cell_um
 from hybridcomp.models import jsonio
-from hybridcomp.safeio import FORCE_HELP, OutputPathError, start_folder, write_text_atomic
+from hybridcomp.safeio import FORCE_HELP, start_folder, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -436,11 +436,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.plant_factor > 0:
         print(f"error: --plant-factor must be positive, got {args.plant_factor}", file=sys.stderr)
         return 2
-    try:
-        start_folder(args.out, force=args.force, finals=("summary.json", "report.md"))
-    except OutputPathError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    start_folder(args.out, force=args.force, finals=("summary.json", "report.md"))  # refused: the dispatcher's error
     opts = DemoOptions(element_size_mm=args.element_size_mm, source=args.plant_source, factor=args.plant_factor,
                        day_hours=args.day_hours, basic_hours=args.basic_hours, rom_order=args.rom_order,
                        pictures=not args.no_pictures)

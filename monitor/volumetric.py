@@ -430,13 +430,13 @@ def _within_bounds(x: np.ndarray, P: np.ndarray, gains: DriveGains, bounded_axes
     error is the scale's expansion less the carrier's, whose difference may change sign with the material: it is
     not bounded.  Active-set projection: the smallest ``Δxᵀ P⁻¹ Δx`` that puts every violated bound on its edge.
     """
-    n = len(gains.axes)
+    n, E = len(gains.axes), np.eye(len(x))
     rows = []
     for a, axis in enumerate(gains.axes):
         if axis in bounded_axes:
-            rows.append(np.eye(len(x))[a])  # 1 + g >= 0
+            rows.append(E[a])  # 1 + g >= 0
             if gains.h is not None:
-                rows.append(np.eye(len(x))[a] + np.eye(len(x))[n + a])  # 1 + g + h >= 0
+                rows.append(E[a] + E[n + a])  # 1 + g + h >= 0
     active: list[int] = []
     for _ in rows:
         viol = [i for i, row in enumerate(rows) if i not in active and 1.0 + row @ x < -1e-12]
