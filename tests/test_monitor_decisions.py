@@ -25,6 +25,7 @@ from hybridcomp.monitor.decisions import (
     limit_offsets,
     model_drift,
     model_moved,
+    model_moved_since,
     step_end_values,
     substitute,
     temperature_deviation,
@@ -161,6 +162,20 @@ def test_sensor_unchanged_while_the_model_moves_it_is_frozen_and_stays_so_until_
         v = check_sensor(st, 10.0 * k, 20.0, rules)
         assert v.event is None
         st = model_moved(v.state, 10.0 * k, 0.009)
+
+
+def test_the_open_loop_move_is_set_not_summed_and_counts_only_while_the_reading_stands():
+    """``model_moved_since`` takes the open-loop model's whole move since the reading stood still (the caller runs
+    the model from the rewind log): set, not added; 0 when the reading changed within the step or is NaN."""
+    rules = SensorRules(hold_s=2.0, frozen_s=1000.0, frozen_model_K=0.5, spike_K=1.0, spike_rate_K_s=0.0)
+    v = check_sensor(SensorState(), 0.0, 20.0, rules)
+    st = model_moved_since(v.state, 10.0, 0.3)
+    assert st.model_moved_K == pytest.approx(0.3)
+    assert model_moved_since(st, 20.0, 0.45).model_moved_K == pytest.approx(0.45)  # the whole move, not 0.75
+    assert check_sensor(model_moved_since(st, 20.0, 0.5), 20.0, 20.0, rules).event == "holding"
+    v = check_sensor(st, 30.0, 20.1, rules)  # the reading moved at 30 s
+    assert model_moved_since(v.state, 20.0, 0.6).model_moved_K == 0.0  # changed within the step: starts again
+    assert model_moved_since(v.state, 30.0, float("nan")).model_moved_K == 0.0
 
 
 def test_sensor_stuck_at_implausible_value_does_not_recover_against_the_reference():
