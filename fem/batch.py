@@ -465,10 +465,14 @@ def _run_dask(client, spec, options, cases, done, warm: bool) -> None:
                for name, loads in cases.items()}
     seen: set[str] = set()
     try:
-        for f in distributed.as_completed(list(futures)):
+        pending = distributed.as_completed(list(futures))
+        for f in pending:
             name = futures[f]
             if f.status == "cancelled":
                 raise BatchError(f"load case {name!r} was cancelled on the Dask cluster (scheduler lost or restarted?)")
+            if f.status in ("lost", "pending"):  # computed, then its worker died before the result was fetched:
+                pending.add(f)  # the scheduler computes it again (was "failed: NoneType: None", all workers killed)
+                continue
             if f.status != "finished":
                 exc = f.exception()
                 raise BatchError(f"load case {name!r} failed on the Dask cluster: {type(exc).__name__}: {exc}")
