@@ -211,23 +211,17 @@ def _unmeasured_swing(machine, rom):
 def test_an_air_swing_in_every_zone_is_estimated_alike_with_a_common_walk(machine, rom):
     """The workshop's air swings ±1.5 K (6 h) in every zone and no sensor measures it: with the common part each
     zone's estimate follows the swing (the evidence of every body's sensors for all), better than a walk per zone."""
-    U, T, _, swing = _unmeasured_swing(machine, rom)
+    U, T, time_s, swing = _unmeasured_swing(machine, rom)
     err = {}
     for c in (0.0, 0.8):
-        obs = build_observer(rom, machine, ObserverSettings(air_common=c))
-        s = obs.initial(U[0])
-        s, _ = obs.update_sensors(s, T[0])
-        e = []
-        for k in range(1, len(U)):
-            s = obs.predict(s, U[k], 60.0)
-            s, _ = obs.update_sensors(s, T[k])
-            e.append(np.array(list(obs.disturbances(s)["air_K"].values())) - swing[k])
+        e = (_air_estimates(build_observer(rom, machine, ObserverSettings(air_common=c)), U, T, time_s)
+             - swing[:, None])[1:]
         err[c] = float(np.sqrt(np.mean(np.square(e[len(e) // 3:]))))  # after the first swing's third
     assert err[0.8] < 0.75 * err[0.0], err
 
 
-def _air_lag_min(obs, U, T, time_s, swing) -> tuple[float, list[int]]:
-    """RMS error [K] of each zone's air estimate after 4 h and its lag behind the swing [min] (0 to 119)."""
+def _air_estimates(obs, U, T, time_s) -> np.ndarray:
+    """Each zone's air estimate [K] (times × zones) of the observer run on the inputs and the sensors."""
     s = obs.initial(U[0])
     s, _ = obs.update_sensors(s, T[0])
     est = [np.array(list(obs.disturbances(s)["air_K"].values()))]
@@ -235,7 +229,12 @@ def _air_lag_min(obs, U, T, time_s, swing) -> tuple[float, list[int]]:
         s = obs.predict(s, U[k], time_s[k] - time_s[k - 1])
         s, _ = obs.update_sensors(s, T[k])
         est.append(np.array(list(obs.disturbances(s)["air_K"].values())))
-    est, m = np.array(est), time_s > 4 * 3600.0
+    return np.array(est)
+
+
+def _air_lag_min(obs, U, T, time_s, swing) -> tuple[float, list[int]]:
+    """RMS error [K] of each zone's air estimate after 4 h and its lag behind the swing [min] (0 to 119)."""
+    est, m = _air_estimates(obs, U, T, time_s), time_s > 4 * 3600.0
     lags = [min(range(120), key=lambda L: np.mean((np.interp(time_s[m] + 60.0 * L, time_s, e) - swing[m]) ** 2))
             for e in est.T]
     return float(np.sqrt(np.mean((est[m] - swing[m, None]) ** 2))), lags
