@@ -171,6 +171,9 @@ class StepRecord:
     y_degC : the sensors at its end, from a line through its readings [°C] (NaN: not measured)
     probe_um : a probed drift at its end [µm], or None
     before : the observer's estimate before the step (every ``SNAPSHOT_STEPS`` steps), or None
+    track_before : with ``before``, the pose-aware model's state then (None: it had not started)
+    weights : where the machine was over the step, as the pose-aware model was advanced with it
+        (:func:`_step_weights`), or None
     """
 
     end_s: float
@@ -179,6 +182,8 @@ class StepRecord:
     y_degC: np.ndarray
     probe_um: tuple | None
     before: object | None
+    track_before: object | None = None
+    weights: object | None = None
 
 
 @dataclass(frozen=True)
@@ -775,7 +780,8 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
     y = (decisions.step_end_values([t for t, _ in st.step_readings], [m for _, m in st.step_readings])
          if st.step_readings else np.full(len(ctx.sensor_names), math.nan))
     probe = _probe_at_pose(st, s.probe_um)
-    st = _log_step(ctx, replace(st, step_readings=()), end_s, dt, u, y, probe, before)
+    weights = _step_weights(ctx, st, end_s) if ctx.pose is not None else None
+    st = _log_step(ctx, replace(st, step_readings=()), end_s, dt, u, y, probe, before, weights)
     state, inn = obs.update_sensors(state, y)
     rejected = dict(s.rejected)
     for name in inn.rejected:
@@ -796,7 +802,7 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
                 payload["message"] += "; nuts' part added: " + ", ".join(
                     f"{a} {v:+.2f} x" for a, v in zip(g.axes, g.h))
         out.event("probe", end_s, payload, _t(end_s))
-    st = _after_update(ctx, st, end_s, u)
+    st = _after_update(ctx, st, end_s, u, weights)
     s = st.saved
     if sig is not None:
         d = ctx.cfg.increment_s
@@ -852,11 +858,15 @@ def _open_loop_moved(ctx: Context, st: State, sensors: Mapping[str, decisions.Se
     return out
 
 
-def _log_step(ctx: Context, st: State, end_s: float, dt: float, u, y, probe, before) -> State:
-    """Keep the step for a rewind: as far back as a faulty sensor can go unnoticed (frozen, then held)."""
+def _log_step(ctx: Context, st: State, end_s: float, dt: float, u, y, probe, before, weights=None) -> State:
+    """Keep the step for a rewind: as far back as a faulty sensor can go unnoticed (frozen, then held).
+
+    ``weights``: where the machine was over the step (the pose-aware model's, :func:`_step_weights`).
+    """
     snap = before if len(st.rewind) % SNAPSHOT_STEPS == 0 else None
     rw = (*st.rewind, StepRecord(end_s, dt, np.array(u, float), np.array(y, float),
-                                 None if probe is None else tuple(probe), snap))
+                                 None if probe is None else tuple(probe), snap,
+                                 st.track if snap is not None else None, weights))
     rules = ctx.cfg.sensors
     keep = rules.frozen_s + rules.hold_s + (SNAPSHOT_STEPS + 2) * ctx.cfg.increment_s
     while len(rw) > SNAPSHOT_STEPS and rw[SNAPSHOT_STEPS].end_s < end_s - keep:
@@ -870,7 +880,9 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
     A frozen sensor is recognised only ``frozen_s`` after it froze; meanwhile the observer took its stuck value for
     the machine's and moved its disturbance estimates (a heat source's scale, the air) to explain it, and those
     would stay wrong. The observer goes back to its estimate before the onset and runs the logged steps again with
-    the sensor masked.
+    the sensor masked. The pose-aware model, run on the inputs as the observer corrected them (its air above all),
+    goes back with it and runs the same steps again on the inputs as the rewound observer corrects them: its screws
+    follow their air within half an hour, and would otherwise keep the stuck value's air that long.
     """
     obs = ctx.observer
     s = st.saved
@@ -884,6 +896,7 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
         return st
     k0 = starts[-1]
     state = recs[k0].before
+    track = recs[k0].track_before if ctx.pose is not None else None
     masked = 0
     for rec in recs[k0:]:
         if rec.dt_s > 0:
@@ -895,6 +908,8 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
         state, _ = obs.update_sensors(state, y)
         if rec.probe_um is not None:
             state = obs.update_probe(state, rec.probe_um)
+        if ctx.pose is not None:  # as _after_update advanced it, on the inputs as now corrected
+            track = _advanced(ctx, track, obs.corrected_inputs(state, rec.u), rec.end_s, rec.weights)
     was = obs.drift_um(s.observer)
 
     def without(m: np.ndarray) -> np.ndarray:
@@ -903,6 +918,8 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
         return m
 
     st = replace(_set(st, observer=state), step_readings=tuple((tm, without(m)) for tm, m in st.step_readings))
+    if ctx.pose is not None and track is not None:
+        st = replace(st, track=track)
     if s.step_inputs is not None:
         st = _after_update(ctx, st, s.step_time_s, np.asarray(s.step_inputs, float))
     out.event("observer", t, {
@@ -930,17 +947,28 @@ def _step_weights(ctx: Context, st: State, end_s: float):
     return volumetric.step_weights(ctx.pose, np.array([x.position_mm for x in b], float), dt)
 
 
-def _after_update(ctx: Context, st: State, t: float, u: np.ndarray) -> State:
-    """Estimates after an observer update: drift now and one step ahead, stand-in biases."""
+def _advanced(ctx: Context, track: volumetric.PoseTrack | None, uc: np.ndarray, t: float, weights
+              ) -> volumetric.PoseTrack:
+    """The pose-aware model advanced to ``t`` on the corrected inputs ``uc`` (started there if it had not)."""
+    if track is None:
+        return volumetric.start(ctx.pose, uc, t, ctx.cfg.increment_s)
+    if t > track.time_s:
+        return volumetric.advance(ctx.pose, track, uc, t, ctx.cfg.increment_s, weights)
+    return track
+
+
+def _after_update(ctx: Context, st: State, t: float, u: np.ndarray, weights=None) -> State:
+    """Estimates after an observer update: drift now and one step ahead, stand-in biases.
+
+    ``weights``: where the machine was over the step ending at ``t`` (:func:`_step_weights`; None: from the buffer).
+    """
     obs = ctx.observer
     state = st.saved.observer
     track = st.track
-    if ctx.pose is not None:  # the pose-aware model on the inputs as corrected (a rewind's earlier steps leave it)
-        uc = obs.corrected_inputs(state, u)
-        if track is None:
-            track = volumetric.start(ctx.pose, uc, t, ctx.cfg.increment_s)
-        elif t > track.time_s:
-            track = volumetric.advance(ctx.pose, track, uc, t, ctx.cfg.increment_s, _step_weights(ctx, st, t))
+    if ctx.pose is not None:  # the pose-aware model on the inputs as corrected (a rewind re-runs it: _refilter)
+        if track is not None and t > track.time_s and weights is None:
+            weights = _step_weights(ctx, st, t)
+        track = _advanced(ctx, track, obs.corrected_inputs(state, u), t, weights)
     st = replace(_set(st, step_time_s=t, step_inputs=[float(v) for v in u],
                       drift_um=[float(v) for v in obs.drift_um(state)],
                       drift_next_um=[float(v) for v in obs.forecast(state, u[None, :], ctx.cfg.increment_s)[1][0]]),

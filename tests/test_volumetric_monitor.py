@@ -5,6 +5,7 @@ position, rate limit per table entry, a restart that continues the pose-aware st
 from __future__ import annotations
 
 import asyncio
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -339,3 +340,83 @@ def test_a_scale_drives_multiplier_is_not_bounded():
             gains = volumetric.update_gains(gains, raw, p, np.asarray(interpolate_one(truth, p)), 3600.0 * cycle + 1.0,
                                             settings, nut_table=_nut_table(1.0))
     assert gains.g[1] == pytest.approx(-1.3, abs=0.05)
+
+
+def _frozen_replay(machine, prom, trace, tmp_path, name):
+    """The observer strategy with the pose-aware model on ``trace``: the sink's rows with tables."""
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.config import parse_config
+    from hybridcomp.monitor.daemon import Monitor, run_monitor
+    from hybridcomp.monitor.sinks import MemorySink
+    from hybridcomp.monitor.sources import ReplaySource
+    from hybridcomp.rom import save_rom
+
+    path = tmp_path / "poses.rom.npz"
+    if not path.exists():
+        save_rom(path, prom)
+    data = {"monitor": {"machine": "vmc800", "database": f"{name}.db", "rom": str(path), "increment_s": 60.0},
+            "compensation": {"strategy": "observer", "max_step_um": 100.0},
+            "sensors": {"hold_s": 60.0, "frozen_s": 1800.0},
+            "source": {"kind": "replay", "path": str(trace), "speed": 0},
+            "sink": {"kind": "none"}, "regeneration": {"enabled": False}}
+    cfg = parse_config(data, "test.toml", tmp_path)
+    db = CDDatabase(tmp_path / f"{name}.db")
+    try:
+        mon = Monitor(cfg, machine, prom, db, "X=0,Y=0,Z=0")
+        sink = MemorySink()
+        asyncio.run(run_monitor(cfg, mon, ReplaySource(trace, machine, speed=0), sink))
+        from hybridcomp.monitor.store import MonitorStore
+
+        rewound = [(e.machine_time_s, e.payload) for e in MonitorStore(db).events("observer")
+                   if e.payload.get("status") == "rewound"]
+    finally:
+        db.close()
+    return {r.time_s: r for r in sink.rows if r.table is not None}, rewound
+
+
+@pytest.mark.slow
+def test_a_frozen_sensors_rewind_takes_the_pose_aware_model_back_too(machine, pose_roms_200mm, tmp_path,
+                                                                     monkeypatch):
+    """T1 freezes at 1 h of the job-shop day. Until the frozen check finds it the observer
+    explains the stuck value by the air, and the pose-aware model, run on the inputs as the observer corrects them,
+    takes that air too (its screws follow their air within half an hour). The rewind filters the steps since the
+    onset again without T1 and runs the pose-aware model again on the inputs as now corrected: from then on the table
+    away from the model's pose is that of a run that read T1 as missing from the onset. Planted: the pose-aware
+    model left as it was (the rewind before this test), whose table keeps the stuck value's air."""
+    from hybridcomp.monitor import transitions
+    from hybridcomp.monitor.example import write_example_trace
+    from hybridcomp.rom.volumetric import interpolate
+
+    rom, prom = pose_roms_200mm
+    healthy = write_example_trace(tmp_path / "healthy.csv", machine, rom, hours=2.5, rate_hz=0.1)
+    lines = healthy.read_text().splitlines()
+    head = lines[0].split(",")
+    j, k = head.index("T1_degC"), head.index("time_s")
+    rows = [line.split(",") for line in lines[1:]]
+    t0 = next(r[j] for r in rows if float(r[k]) >= 3600.0)
+
+    def with_t1(value, path):
+        path.write_text("\n".join([lines[0], *(",".join(r[:j] + [value] + r[j + 1:]) if float(r[k]) >= 3600.0
+                                                else ",".join(r) for r in rows)]) + "\n")
+        return path
+
+    frozen, missing = with_t1(t0, tmp_path / "frozen.csv"), with_t1("", tmp_path / "missing.csv")
+    corners = np.array([[x, y, z] for x in (-400.0, 400.0) for y in (-325.0, 325.0) for z in (-275.0, 275.0)])
+
+    def far(rows_by_t, t):  # the table's corners less its value at the model's pose [µm]
+        tab = rows_by_t[t].table
+        return interpolate(tab, corners) - interpolate(tab, np.zeros((1, 3)))
+
+    ref, _ = _frozen_replay(machine, prom, missing, tmp_path, "missing")  # T1 read as missing from its onset on
+    got, rewound = _frozen_replay(machine, prom, frozen, tmp_path, "frozen")
+    ((t_found, ev),) = rewound
+    assert ev["sensor"] == "T1" and ev["onset_s"] == pytest.approx(3600.0, abs=10.0) and t_found > 3600.0 + 600.0
+    orig = transitions._refilter
+    monkeypatch.setattr(transitions, "_refilter", lambda ctx, st, *a: replace(orig(ctx, st, *a), track=st.track))
+    kept, _ = _frozen_replay(machine, prom, frozen, tmp_path, "kept")
+    times = [t for t in got if t >= t_found]
+    assert len(times) > 100
+    err = max(np.abs(far(got, t) - far(ref, t)).max() for t in times)
+    planted = max(np.abs(far(kept, t) - far(ref, t)).max() for t in times)
+    assert err < 0.01, err  # 4e-4 µm measured: the rewound run is the run without T1 from the onset
+    assert planted > 0.5, planted  # 1.4 µm after the rewind, decaying over the next hour
