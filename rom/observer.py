@@ -102,7 +102,8 @@ class ObserverSettings:
         for warm air at first, and the screws follow it before the bearing's scale catches up (0.60 / 0.28 →
         0.67 / 0.28; on the 6 h demo of the tests 0.47 → 0.66 µm along the path, 1.4 µm in y from 25 to 70
         min); a stuck sensor is taken for cold or warm air until it is excluded (the sensor fault 0.68 →
-        0.83 along the path; ``frozen_model_K`` asks the model run open-loop, ``monitor.transitions``).
+        0.83 along the path, 0.75 since a rewind takes the pose-aware model back too; ``frozen_model_K`` asks
+        the model run open-loop, ``monitor.transitions``).
     scale_sigma, scale_rate : prior and rate of a heat source's relative power error [-, 1/√h]
     heat_sigma_W, heat_rate_W : prior and rate of unknown heat per disturbance shape [W, W/√h]
     bias_sigma_um, bias_rate_um : prior and rate of the drift offset only probes see [µm, µm/√h]
