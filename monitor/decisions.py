@@ -404,7 +404,7 @@ def model_moved(state: SensorState, step_start_s: float, predicted_step_K: float
     Adds one step's predicted change (the prediction minus the corrected state before it) while the raw reading
     has not changed since before the step began; otherwise starts again from 0.
     """
-    if _stood_still(state, step_start_s) and math.isfinite(predicted_step_K):
+    if stood_still(state, step_start_s) and math.isfinite(predicted_step_K):
         return replace(state, model_moved_K=state.model_moved_K + predicted_step_K)
     return replace(state, model_moved_K=0.0)
 
@@ -415,12 +415,12 @@ def model_moved_since(state: SensorState, step_start_s: float, moved_K: float) -
     ``moved_K``: the move from the start of the first step that began after the reading last changed to the end
     of this one; it counts while the raw reading has not changed since before this step began, otherwise 0.
     """
-    if _stood_still(state, step_start_s) and math.isfinite(moved_K):
+    if stood_still(state, step_start_s) and math.isfinite(moved_K):
         return replace(state, model_moved_K=float(moved_K))
     return replace(state, model_moved_K=0.0)
 
 
-def _stood_still(state: SensorState, step_start_s: float) -> bool:
+def stood_still(state: SensorState, step_start_s: float) -> bool:
     """The sensor's raw reading has not changed since before the step that begins at ``step_start_s``."""
     return math.isfinite(state.raw_since_s) and state.raw_since_s <= step_start_s
 

@@ -832,8 +832,7 @@ def _open_loop_moved(ctx: Context, st: State, sensors: Mapping[str, decisions.Se
     this step's end. Sensors standing still since before the log's start are left out (the caller sums the
     corrected model's moves for them).
     """
-    standing = {n: s.raw_since_s for n, s in sensors.items()
-                if math.isfinite(s.raw_since_s) and s.raw_since_s <= step_start_s}
+    standing = {n: s.raw_since_s for n, s in sensors.items() if decisions.stood_still(s, step_start_s)}
     recs = st.rewind
     if not standing or not recs or recs[0].before is None:
         return {}
