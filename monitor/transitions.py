@@ -831,6 +831,11 @@ def _open_loop_moved(ctx: Context, st: State, sensors: Mapping[str, decisions.Se
     held as they stood then, is: the move from the start of the first step after the reading last changed to
     this step's end. Sensors standing still since before the log's start are left out (the caller sums the
     corrected model's moves for them).
+
+    Cost: one open-loop step per logged step, run again at every model step while any reading stands still
+    (quantised readings often do). With the defaults (20 s steps, ``frozen_s`` 1800 s) the log holds about 107
+    steps: 8 ms on the 80 mm demonstrator's observer (order 122, one BLAS thread, the 2-core machine with another
+    job beside it), 0.04 % of the 20 s step; keeping the open-loop state between steps would save it.
     """
     standing = {n: s.raw_since_s for n, s in sensors.items() if decisions.stood_still(s, step_start_s)}
     recs = st.rewind

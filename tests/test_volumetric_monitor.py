@@ -128,37 +128,57 @@ def test_the_model_pose_block_of_a_pose_aware_model_is_the_model_it_was_built_fr
     assert "poses" not in block.meta and "feedback" not in block.meta
 
 
-@pytest.mark.slow
-def test_a_replay_with_a_pose_aware_model_writes_tables_and_offsets_at_the_commanded_position(
-        machine, pose_roms_200mm, tmp_path):
+def _replay(machine, prom, trace, tmp_path, name, **sections):
+    """The observer strategy with the pose-aware model ``prom`` on ``trace``, from a fresh database ``name``.db.
+
+    ``sections``: keys set over the configuration's sections. Returns the configuration, the daemon's key and the
+    sink's rows; the database is closed and stays in ``tmp_path``.
+    """
     from hybridcomp.chardiag.db import CDDatabase
     from hybridcomp.monitor.config import parse_config
     from hybridcomp.monitor.daemon import Monitor, run_monitor
-    from hybridcomp.monitor.example import write_example_trace
     from hybridcomp.monitor.sinks import MemorySink
     from hybridcomp.monitor.sources import ReplaySource
     from hybridcomp.rom import save_rom
-    from hybridcomp.rom.volumetric import interpolate
 
-    rom, prom = pose_roms_200mm
-    path = save_rom(tmp_path / "poses.rom.npz", prom)
-    trace = write_example_trace(tmp_path / "trace.csv", machine, rom, hours=1.0, rate_hz=0.2)
-    data = {"monitor": {"machine": "vmc800", "database": "cd.db", "rom": str(path), "increment_s": 60.0},
+    path = tmp_path / "poses.rom.npz"
+    if not path.exists():
+        save_rom(path, prom)
+    data = {"monitor": {"machine": "vmc800", "database": f"{name}.db", "rom": str(path), "increment_s": 60.0},
             "compensation": {"strategy": "observer", "max_step_um": 0.2},
             "source": {"kind": "replay", "path": str(trace), "speed": 0},
             "sink": {"kind": "none"}, "regeneration": {"enabled": False}}
+    for section, keys in sections.items():
+        data[section] = {**data.get(section, {}), **keys}
     cfg = parse_config(data, "test.toml", tmp_path)
-    db = CDDatabase(tmp_path / "cd.db")
+    db = CDDatabase(tmp_path / f"{name}.db")
     try:
         mon = Monitor(cfg, machine, prom, db, "X=0,Y=0,Z=0")
         sink = MemorySink()
         asyncio.run(run_monitor(cfg, mon, ReplaySource(trace, machine, speed=0), sink))
+    finally:
+        db.close()
+    return cfg, mon.key, sink.rows
+
+
+@pytest.mark.slow
+def test_a_replay_with_a_pose_aware_model_writes_tables_and_offsets_at_the_commanded_position(
+        machine, pose_roms_200mm, tmp_path):
+    import json
+
+    from hybridcomp.chardiag.db import CDDatabase
+    from hybridcomp.monitor.daemon import Monitor
+    from hybridcomp.monitor.example import write_example_trace
+    from hybridcomp.monitor.store import MonitorStore
+    from hybridcomp.rom.volumetric import interpolate
+
+    rom, prom = pose_roms_200mm
+    trace = write_example_trace(tmp_path / "trace.csv", machine, rom, hours=1.0, rate_hz=0.2)
+    cfg, key, sink_rows = _replay(machine, prom, trace, tmp_path, "cd")
+    db = CDDatabase(tmp_path / "cd.db")
+    try:
         # the last boundary's state holds the pose-aware model's state, the table and the gains; a restart reads them
-        import json
-
-        from hybridcomp.monitor.store import MonitorStore
-
-        saved = json.loads(MonitorStore(db).get_state(mon.key))
+        saved = json.loads(MonitorStore(db).get_state(key))
         assert len(saved["pose_track"]["x"]) == prom.order and saved["table"] is not None
         assert saved["gains"]["axes"] == ["X", "Y", "Z"]
         again = Monitor(cfg, machine, prom, db, "X=0,Y=0,Z=0")
@@ -171,8 +191,8 @@ def test_a_replay_with_a_pose_aware_model_writes_tables_and_offsets_at_the_comma
         assert again.table is not None and again.table.grid.shape == (3, 3, 3)
     finally:
         db.close()
-    rows = [r for r in sink.rows if r.table is not None]
-    assert len(rows) >= 0.9 * len(sink.rows) > 100
+    rows = [r for r in sink_rows if r.table is not None]
+    assert len(rows) >= 0.9 * len(sink_rows) > 100
     for r in rows[::25]:  # the offsets written are the table at the commanded position
         assert (r.dx_um, r.dy_um, r.dz_um) == pytest.approx(interpolate(r.table, np.array([r.position_mm]))[0],
                                                             abs=1e-9)
@@ -343,35 +363,19 @@ def test_a_scale_drives_multiplier_is_not_bounded():
 
 
 def _frozen_replay(machine, prom, trace, tmp_path, name):
-    """The observer strategy with the pose-aware model on ``trace``: the sink's rows with tables."""
+    """:func:`_replay` with the frozen check at 30 min and no rate limit: rows with tables by time, rewind events."""
     from hybridcomp.chardiag.db import CDDatabase
-    from hybridcomp.monitor.config import parse_config
-    from hybridcomp.monitor.daemon import Monitor, run_monitor
-    from hybridcomp.monitor.sinks import MemorySink
-    from hybridcomp.monitor.sources import ReplaySource
-    from hybridcomp.rom import save_rom
+    from hybridcomp.monitor.store import MonitorStore
 
-    path = tmp_path / "poses.rom.npz"
-    if not path.exists():
-        save_rom(path, prom)
-    data = {"monitor": {"machine": "vmc800", "database": f"{name}.db", "rom": str(path), "increment_s": 60.0},
-            "compensation": {"strategy": "observer", "max_step_um": 100.0},
-            "sensors": {"hold_s": 60.0, "frozen_s": 1800.0},
-            "source": {"kind": "replay", "path": str(trace), "speed": 0},
-            "sink": {"kind": "none"}, "regeneration": {"enabled": False}}
-    cfg = parse_config(data, "test.toml", tmp_path)
+    _, _, rows = _replay(machine, prom, trace, tmp_path, name, compensation={"max_step_um": 100.0},
+                         sensors={"hold_s": 60.0, "frozen_s": 1800.0})
     db = CDDatabase(tmp_path / f"{name}.db")
     try:
-        mon = Monitor(cfg, machine, prom, db, "X=0,Y=0,Z=0")
-        sink = MemorySink()
-        asyncio.run(run_monitor(cfg, mon, ReplaySource(trace, machine, speed=0), sink))
-        from hybridcomp.monitor.store import MonitorStore
-
         rewound = [(e.machine_time_s, e.payload) for e in MonitorStore(db).events("observer")
                    if e.payload.get("status") == "rewound"]
     finally:
         db.close()
-    return {r.time_s: r for r in sink.rows if r.table is not None}, rewound
+    return {r.time_s: r for r in rows if r.table is not None}, rewound
 
 
 @pytest.mark.slow
