@@ -286,7 +286,16 @@ class GainSettings:
     gain_sigma : prior spread of each drive's relative error [-] (a machine file's drives known to 30 %; a fault,
         a seized bearing or a scale of another material, is 3–5 spreads off and is learnt once the drives are warm)
     gain_rate : its random walk per √h [-]
-    offset_sigma_um, offset_rate_um : the uniform offset's prior spread [µm] and random walk per √h [µm]
+    offset_sigma_um, offset_rate_um : the uniform offset's prior spread [µm] and random walk per √h [µm]; None:
+        by the mode (:meth:`offset_prior`). With ``whole_error`` 0.5 µm and 0.1 µm/√h: the one-pose observer owns
+        a uniform offset (it takes the probe at the model's pose, which the gains leave alone), so the offset here
+        holds only what a cycle's probes away from the pose share beyond the drives. Wide (5 µm, 1 µm/√h), it
+        shares a drive's error whose mean over the probed positions is not zero, and takes it from the gain: a
+        seized floating bearing's error grows from its fixed end, and the first warm cycle put about 2 µm of it in
+        the offset and left the multiplier ``1 + g`` at 0.51 for about 0.05 (narrow: 0.01;
+        ``benchmarks/compensation.py``: 1.94 µm along the path, 1.16 with the narrow offset; the unmodelled source
+        2.20 against 1.55). Relative to the pose (``whole_error`` False) the
+        offset also holds the drives' share at the model's pose: 5 µm and 1 µm/√h
     probe_sigma_um : noise of a probed drift [µm]
     model_sigma_um : what the probe less the table holds besides the drives' gains and the offset, at each position:
         the pose-aware structure model's own error away from the model's pose [µm] (up to 0.7 µm against FE
@@ -301,13 +310,19 @@ class GainSettings:
 
     gain_sigma: float = 0.3
     gain_rate: float = 0.05
-    offset_sigma_um: float = 5.0
-    offset_rate_um: float = 1.0
+    offset_sigma_um: float | None = None
+    offset_rate_um: float | None = None
     probe_sigma_um: float = 0.5
     model_sigma_um: float = 0.7
     whole_error: bool = True
     nut_sigma: float = 1.0
     bounded_axes: tuple[str, ...] = ()
+
+    def offset_prior(self, whole_error: bool) -> tuple[float, float]:
+        """The uniform offset's prior spread [µm] and random walk per √h [µm] for gains of that mode."""
+        sigma, rate = (0.5, 0.1) if whole_error else (5.0, 1.0)
+        return (sigma if self.offset_sigma_um is None else self.offset_sigma_um,
+                rate if self.offset_rate_um is None else self.offset_rate_um)
 
 
 @dataclass(frozen=True)
@@ -362,7 +377,7 @@ def initial_gains(axes, settings: GainSettings = GainSettings(), nuts: bool = Fa
     """No error known yet: every gain 0 and the offset 0 at their prior spreads (``nuts``: with the nuts' gains)."""
     n = len(axes)
     sig = [settings.gain_sigma ** 2] * n + ([settings.nut_sigma ** 2] * n if nuts else [])
-    P = np.diag(np.r_[sig, np.full(3, settings.offset_sigma_um ** 2)])
+    P = np.diag(np.r_[sig, np.full(3, settings.offset_prior(settings.whole_error)[0] ** 2)])
     return DriveGains(tuple(axes), np.zeros(n), np.zeros(3), P, whole_error=settings.whole_error,
                       h=np.zeros(n) if nuts else None)
 
@@ -402,7 +417,8 @@ def update_gains(gains: DriveGains, raw_table, position_mm, probe_um, time_s: fl
     P = gains.P
     if gains.time_s is not None and time_s > gains.time_s:
         h = (time_s - gains.time_s) / 3600.0
-        P = P + np.diag(np.r_[np.full(m, settings.gain_rate ** 2 * h), np.full(3, settings.offset_rate_um ** 2 * h)])
+        rate = settings.offset_prior(gains.whole_error)[1]
+        P = P + np.diag(np.r_[np.full(m, settings.gain_rate ** 2 * h), np.full(3, rate ** 2 * h)])
     y = np.asarray(probe_um, float) - np.asarray(interpolate_one(raw_table, position_mm), float)
     ok = np.isfinite(y)
     if not ok.any() or at_model_pose(raw_table, position_mm):
