@@ -362,8 +362,8 @@ def test_the_offset_does_not_take_a_seized_bearings_error_from_its_gain():
     """A seized floating bearing's error grows from the fixed end: over the star's probes its mean is not zero, and a
     uniform offset can take a share of it. With the whole error the one-pose observer owns the offset (it takes the
     probe at the model's pose), so its prior is narrow (0.5 µm) and the first cycle gives the gain the error: 1 + g
-    within 0.1 of its 0.05 (0.079 measured), the offset 0.28 µm in x. Planted: the offset's former wide prior
-    (5 µm), which takes 1.26 µm and leaves 1 + g at 0.22 (unbounded, with the nuts' gains)."""
+    within 0.1 of its 0.05 (0.13 measured), the offset 0.28 µm in x. Planted: the offset's former wide prior
+    (5 µm), which takes 1.26 µm and leaves 1 + g at 0.27 (unbounded, with the nuts' gains)."""
     def first_cycle(**settings):
         settings = volumetric.GainSettings(**settings)
         gains = volumetric.initial_gains(("X", "Y"), settings, nuts=True)
