@@ -160,6 +160,30 @@ class Counters:
 
 
 @dataclass(frozen=True)
+class GainProbe:
+    """A drift probed away from the model's pose as the drives' gains took it, for learning it again in a rewind.
+
+    Attributes
+    ----------
+    time_s : when it was probed [s]
+    position_mm : the axis positions it was probed at [mm]
+    probe_um : the probed drift (dx, dy, dz) [µm]
+    gains_before : the drives' gains before it
+    table_time_s : the time of the table it was taken against (the last compensation cycle's) [s]
+    offsets_um : the one-pose offsets that table carried to every pose [µm]
+    drift_um : the observer's drift estimate then (its last step's) [µm], or None
+    """
+
+    time_s: float
+    position_mm: tuple[float, ...]
+    probe_um: tuple[float, ...]
+    gains_before: object
+    table_time_s: float
+    offsets_um: tuple[float, float, float]
+    drift_um: tuple[float, float, float] | None
+
+
+@dataclass(frozen=True)
 class StepRecord:
     """What one model step fed the observer, for re-filtering it when a sensor turns out to have been faulty.
 
@@ -174,6 +198,7 @@ class StepRecord:
     track_before : with ``before``, the pose-aware model's state then (None: it had not started)
     weights : where the machine was over the step, as the pose-aware model was advanced with it
         (:func:`_step_weights`), or None
+    gain_probes : the probes over the step that taught the drives' gains (:class:`GainProbe`)
     """
 
     end_s: float
@@ -184,6 +209,7 @@ class StepRecord:
     before: object | None
     track_before: object | None = None
     weights: object | None = None
+    gain_probes: tuple[GainProbe, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -204,6 +230,8 @@ class State:
     written_table : the support-point table written last, or None
     raw_table : the last table before the drives' gains and the rate limit, or None
     raw_nut_table : the nuts' part of it (:func:`hybridcomp.monitor.volumetric.nut_table_now`), or None
+    raw_table_of : the time and the one-pose offsets ``raw_table`` was built at, or None
+    step_gain_probes : the probes of the current step that taught the drives' gains, for the rewind log
     drive_gains : the drives' gains (:class:`hybridcomp.monitor.volumetric.DriveGains`), or None
     grid : without a pose-aware model, the active CD grid (:class:`hybridcomp.chardiag.grid.CDGrid`, loaded by the
         daemon: :func:`with_active_grid`), whose sets give the support-point table; None: none
@@ -227,6 +255,8 @@ class State:
     written_table: object | None = None
     raw_table: object | None = None
     raw_nut_table: object | None = None
+    raw_table_of: tuple[float, tuple[float, float, float]] | None = None
+    step_gain_probes: tuple[GainProbe, ...] = ()
     drive_gains: volumetric.DriveGains | None = None
     grid: object | None = None
     pace: tuple[tuple[float, float], ...] = ()
@@ -675,7 +705,13 @@ def _probe(ctx: Context, st: State, r: Reading) -> State:
     if ctx.pose is not None and st.raw_table is not None:
         gains = volumetric.update_gains(st.drive_gains, st.raw_table, r.position_mm, probe, r.time_s,
                                         ctx.gain_settings, st.raw_nut_table)
-        st = replace(st, drive_gains=gains)
+        learnt = st.step_gain_probes
+        if st.raw_table_of is not None and not volumetric.at_model_pose(st.raw_table, r.position_mm):
+            learnt = (*learnt, GainProbe(r.time_s, tuple(float(v) for v in r.position_mm), tuple(probe),
+                                         st.drive_gains, st.raw_table_of[0], st.raw_table_of[1],
+                                         None if st.saved.drift_um is None
+                                         else tuple(float(v) for v in st.saved.drift_um)))
+        st = replace(st, drive_gains=gains, step_gain_probes=learnt)
         # the observer owns the model's pose: a probe elsewhere teaches the drives' gains only (taken to the pose
         # through the table, the table's errors there would reach the one-pose estimate); one at the pose less the
         # drives' errors there, which the one-pose model does not hold
@@ -870,12 +906,12 @@ def _log_step(ctx: Context, st: State, end_s: float, dt: float, u, y, probe, bef
     snap = before if len(st.rewind) % SNAPSHOT_STEPS == 0 else None
     rw = (*st.rewind, StepRecord(end_s, dt, np.array(u, float), np.array(y, float),
                                  None if probe is None else tuple(probe), snap,
-                                 st.track if snap is not None else None, weights))
+                                 st.track if snap is not None else None, weights, st.step_gain_probes))
     rules = ctx.cfg.sensors
     keep = rules.frozen_s + rules.hold_s + (SNAPSHOT_STEPS + 2) * ctx.cfg.increment_s
     while len(rw) > SNAPSHOT_STEPS and rw[SNAPSHOT_STEPS].end_s < end_s - keep:
         rw = rw[SNAPSHOT_STEPS:]  # drop whole snapshot groups: the first record keeps its snapshot
-    return replace(st, rewind=rw)
+    return replace(st, rewind=rw, step_gain_probes=())
 
 
 def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, out: _Out) -> State:
@@ -902,7 +938,11 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
     state = recs[k0].before
     track = recs[k0].track_before if ctx.pose is not None else None
     masked = 0
+    learnt = [gp for rec in recs[k0:] for gp in rec.gain_probes] + list(st.step_gain_probes)
+    gains = learnt[0].gains_before if learnt else None
     for rec in recs[k0:]:
+        for gp in rec.gain_probes:  # taken while the pose-aware model stood where the rewound one now stands
+            gains = _relearnt(ctx, gains, gp, state, track)
         if rec.dt_s > 0:
             state = obs.predict(state, rec.u, rec.dt_s)
         y = rec.y_degC.copy()
@@ -924,15 +964,38 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
     st = replace(_set(st, observer=state), step_readings=tuple((tm, without(m)) for tm, m in st.step_readings))
     if ctx.pose is not None and track is not None:
         st = replace(st, track=track)
+    for gp in st.step_gain_probes:  # this step's, against the model as it stands at the step's start
+        gains = _relearnt(ctx, gains, gp, state, track)
+    payload = {"status": "rewound", "sensor": sensor, "onset_s": onset_s, "steps_masked": masked,
+               "drift_change_um": dict(zip(DRIFT_COLUMNS, map(float, obs.drift_um(state) - was)))}
+    if gains is not None:
+        payload["gain_probes_relearnt"] = len(learnt)
+        payload["drive_gains"] = {a: float(v) for a, v in zip(gains.axes, gains.g)}
+        st = replace(st, drive_gains=gains)
     if s.step_inputs is not None:
         st = _after_update(ctx, st, s.step_time_s, np.asarray(s.step_inputs, float))
-    out.event("observer", t, {
-        "status": "rewound", "sensor": sensor, "onset_s": onset_s, "steps_masked": masked,
-        "drift_change_um": dict(zip(DRIFT_COLUMNS, map(float, obs.drift_um(state) - was))),
-    }, f"rewind@{sensor}@{_t(t)}")
+    out.event("observer", t, payload, f"rewind@{sensor}@{_t(t)}")
     out.log("warning", f"observer rewound to {recs[k0].end_s - recs[k0].dt_s:.0f} s and {masked} steps filtered "
                        f"again without {sensor}")
     return st
+
+
+def _relearnt(ctx: Context, gains, gp: GainProbe, state, track):
+    """The drives' gains after probe ``gp`` taken again against the rewound models (:func:`_refilter`).
+
+    The table it is taken against is the pose-aware model's as rewound (``track``, at the compensation cycle the
+    probe was taken against), carrying the one-pose offsets of then moved by as much as the rewound observer's drift
+    estimate (``state``) moved: the offsets a run without the faulty sensor would have carried, as near as the
+    observer tells them.  Without a track (the model had not started) the gains stay as they are.
+    """
+    if gains is None or track is None:
+        return gains
+    offsets = np.asarray(gp.offsets_um, float)
+    if gp.drift_um is not None:
+        offsets = offsets + ctx.observer.drift_um(state) - np.asarray(gp.drift_um, float)
+    raw = volumetric.table_now(ctx.pose, track, gp.table_time_s, ctx.cfg.increment_s, offsets)
+    nut = volumetric.nut_table_now(ctx.pose, track, gp.table_time_s, ctx.cfg.increment_s)
+    return volumetric.update_gains(gains, raw, gp.position_mm, gp.probe_um, gp.time_s, ctx.gain_settings, nut)
 
 
 def _step_weights(ctx: Context, st: State, end_s: float):
@@ -1113,7 +1176,8 @@ def _compensate_at_position(ctx: Context, st: State, r: Reading, at_pose: tuple,
     try:
         raw = volumetric.table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s, at_pose)
         nut = volumetric.nut_table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s)
-        st = replace(st, raw_table=raw, raw_nut_table=nut)
+        st = replace(st, raw_table=raw, raw_nut_table=nut,
+                     raw_table_of=(float(r.time_s), tuple(float(v) for v in at_pose)))
         table = volumetric.with_gains(raw, st.drive_gains, nut)
         table, moved = volumetric.table_step(table, st.written_table, ctx.cfg.max_step_um)
     except VolumetricError as exc:  # a model gone non-finite: the one-pose offsets, the last table held

@@ -410,6 +410,41 @@ def _frozen_replay(machine, prom, trace, tmp_path, name):
     return {r.time_s: r for r in rows if r.table is not None}, rewound
 
 
+def _t1_traces(machine, rom, tmp_path, probes=None, suffix=""):
+    """The job-shop trace (2.5 h at 0.1 Hz) with T1 frozen at 1 h, and with T1 missing from 1 h on.
+
+    ``probes``: {time [s]: (position (x, y, z) [mm], probed drift (dx, dy, dz) [µm])} written into both at those
+    samples (the axes moved there, the probe columns empty elsewhere). Returns (frozen, missing) trace paths.
+    """
+    from hybridcomp.monitor.example import write_example_trace
+
+    healthy = tmp_path / "healthy.csv"
+    if not healthy.exists():
+        write_example_trace(healthy, machine, rom, hours=2.5, rate_hz=0.1)
+    lines = healthy.read_text().splitlines()
+    head = lines[0].split(",")
+    j, k = head.index("T1_degC"), head.index("time_s")
+    rows = [line.split(",") for line in lines[1:]]
+    t0 = next(r[j] for r in rows if float(r[k]) >= 3600.0)
+    if probes is not None:
+        head = [*head, "probe_dx_um", "probe_dy_um", "probe_dz_um"]
+        pos = [head.index(c) for c in ("x_mm", "y_mm", "z_mm")]
+        rows = [list(r) for r in rows]
+        for r in rows:
+            at = probes.get(float(r[k]))
+            if at is not None:
+                for i, v in zip(pos, at[0]):
+                    r[i] = f"{v:g}"
+            r.extend(["", "", ""] if at is None else [f"{v:.4f}" for v in at[1]])
+
+    def with_t1(value, path):
+        path.write_text("\n".join([",".join(head), *(",".join(r[:j] + [value] + r[j + 1:]) if float(r[k]) >= 3600.0
+                                                     else ",".join(r) for r in rows)]) + "\n")
+        return path
+
+    return (with_t1(t0, tmp_path / f"frozen{suffix}.csv"), with_t1("", tmp_path / f"missing{suffix}.csv"))
+
+
 @pytest.mark.slow
 def test_a_frozen_sensors_rewind_takes_the_pose_aware_model_back_too(machine, pose_roms_200mm, tmp_path,
                                                                      monkeypatch):
@@ -420,23 +455,10 @@ def test_a_frozen_sensors_rewind_takes_the_pose_aware_model_back_too(machine, po
     away from the model's pose is that of a run that read T1 as missing from the onset. Planted: the pose-aware
     model left as it was (the rewind before this test), whose table keeps the stuck value's air."""
     from hybridcomp.monitor import transitions
-    from hybridcomp.monitor.example import write_example_trace
     from hybridcomp.rom.volumetric import interpolate
 
     rom, prom = pose_roms_200mm
-    healthy = write_example_trace(tmp_path / "healthy.csv", machine, rom, hours=2.5, rate_hz=0.1)
-    lines = healthy.read_text().splitlines()
-    head = lines[0].split(",")
-    j, k = head.index("T1_degC"), head.index("time_s")
-    rows = [line.split(",") for line in lines[1:]]
-    t0 = next(r[j] for r in rows if float(r[k]) >= 3600.0)
-
-    def with_t1(value, path):
-        path.write_text("\n".join([lines[0], *(",".join(r[:j] + [value] + r[j + 1:]) if float(r[k]) >= 3600.0
-                                                else ",".join(r) for r in rows)]) + "\n")
-        return path
-
-    frozen, missing = with_t1(t0, tmp_path / "frozen.csv"), with_t1("", tmp_path / "missing.csv")
+    frozen, missing = _t1_traces(machine, rom, tmp_path)
     corners = np.array([[x, y, z] for x in (-400.0, 400.0) for y in (-325.0, 325.0) for z in (-275.0, 275.0)])
 
     def far(rows_by_t, t):  # the table's corners less its value at the model's pose [µm]
@@ -456,3 +478,58 @@ def test_a_frozen_sensors_rewind_takes_the_pose_aware_model_back_too(machine, po
     planted = max(np.abs(far(kept, t) - far(ref, t)).max() for t in times)
     assert err < 0.01, err  # 4e-4 µm measured: the rewound run is the run without T1 from the onset
     assert planted > 0.5, planted  # 1.4 µm after the rewind, decaying over the next hour
+
+
+@pytest.mark.slow
+def test_a_frozen_sensors_rewind_learns_the_drives_gains_again(machine, pose_roms_200mm, tmp_path, monkeypatch):
+    """A probing cycle at 1 h 05, while T1 stands frozen and unnoticed: the gains learn from probes taken against a
+    table that holds the stuck value's air. The probes are the drift of the run that reads T1 as missing (its own
+    table there, so that run's gains stay near nominal). The rewind takes every probe since the onset again against
+    the rewound pose-aware model: the gains after it are those of the run without T1 to within a tenth of what the
+    stuck air put in them (measured: 0.006 against 0.31, the nuts' part of Y taking the stuck air's screws). Planted:
+    the gains left as the stuck window taught them (the rewind before this test)."""
+    from hybridcomp.monitor import transitions
+
+    rom, prom = pose_roms_200mm
+    star = [(-400.0, 0.0, 0.0), (400.0, 0.0, 0.0), (0.0, -325.0, 0.0), (0.0, 325.0, 0.0), (0.0, 0.0, -275.0),
+            (0.0, 0.0, 275.0)]
+    times = [3900.0 + 10.0 * i for i in range(len(star))]
+    # the run without T1, the axes at the probes' positions: its tables give the probed drift
+    _, plain = _t1_traces(machine, rom, tmp_path, {t: (p, (np.nan,) * 3) for t, p in zip(times, star)}, "_plain")
+    _, _, rows = _replay(machine, prom, plain, tmp_path, "plain", compensation={"max_step_um": 100.0},
+                         sensors={"hold_s": 60.0, "frozen_s": 1800.0})
+    by_t = {r.time_s: r for r in rows if r.table is not None}
+    probes = {t: (p, interpolate_one(by_t[t - 10.0].table, p)) for t, p in zip(times, star)}
+    frozen, missing = _t1_traces(machine, rom, tmp_path, probes, "_probed")
+
+    def gains(trace, name):
+        import json
+
+        from hybridcomp.chardiag.db import CDDatabase
+        from hybridcomp.monitor.state import MonitorState
+        from hybridcomp.monitor.store import MonitorStore
+
+        cfg, key, _ = _replay(machine, prom, trace, tmp_path, name, compensation={"max_step_um": 100.0},
+                              sensors={"hold_s": 60.0, "frozen_s": 1800.0})
+        db = CDDatabase(tmp_path / f"{name}.db")
+        try:
+            store = MonitorStore(db)
+            d = json.loads(store.get_state(key))
+            d.pop("updated_unix", None)
+            saved = MonitorState.from_dict(d)
+            relearnt = [e.payload for e in store.events("observer") if e.payload.get("status") == "rewound"]
+        finally:
+            db.close()
+        return volumetric.DriveGains.from_dict(saved.gains), relearnt
+
+    ref, _ = gains(missing, "missing")
+    got, (ev,) = gains(frozen, "frozen")
+    assert ev["gain_probes_relearnt"] == len(star)
+    orig = transitions._refilter
+    monkeypatch.setattr(transitions, "_refilter",
+                        lambda ctx, st, *a: replace(orig(ctx, st, *a), drive_gains=st.drive_gains))
+    kept, _ = gains(frozen, "kept")
+    stuck = np.abs(np.r_[kept.g, kept.h] - np.r_[ref.g, ref.h]).max()
+    err = np.abs(np.r_[got.g, got.h] - np.r_[ref.g, ref.h]).max()
+    assert stuck > 0.02, stuck  # what the stuck air put in the gains
+    assert err < 0.1 * stuck, (err, stuck)
