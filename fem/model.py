@@ -339,6 +339,30 @@ def drift_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.ndar
     return np.asarray(Fth.T @ lam).T, backend
 
 
+def displacement_rows(model: ThermoElasticModel, points) -> np.ndarray:
+    """Rows of the thermal displacement of points (points × 3 × n) [m/K]: ``u(point) = R[i] (T - T_ref)``.
+
+    Each point (:class:`~hybridcomp.models.machine.Point`, at the reference pose on its body) is carried to the
+    model's pose; three adjoint solves per point.  The drift rows ``G`` are the TCP's rows less the table point's
+    (weighted as :func:`~hybridcomp.models.geometry.table_point_weights` weights them); this gives any point's,
+    for diagnostics (which point's displacement an interpolation between poses misses).
+    """
+    machine, mm = model.machine, model.mesh
+    basis = assembly.cell_basis(mm.mesh)
+    mats = _material_arrays(machine, mm)
+    Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
+    Fth = assembly.thermal_load_matrix(basis, mats["E"], mats["nu"], mats["alpha"])
+    P = _point_rows(machine, mm, basis, list(points))
+    n = basis.N
+    E = np.zeros((3 * n, 3 * P.shape[0]))
+    for i in range(P.shape[0]):
+        r = P[i].toarray().ravel()
+        for d in range(3):
+            E[d::3, 3 * i + d] = r
+    lam, _ = solve_supported(Ku, E, _support_dofs(machine, mm), mm.mesh.p)
+    return np.asarray(Fth.T @ lam).T.reshape(P.shape[0], 3, n)
+
+
 def build_model(
     machine: Machine,
     pose_mm: dict[str, float] | None = None,

@@ -161,3 +161,28 @@ def test_uniform_rise_reference_drift_moves_with_x_but_not_under_the_tool(vmc):
 
     np.testing.assert_allclose(drift(old, b)[0] - drift(old, a)[0], -alpha * dT * 600.0 * MM, rtol=1e-9)
     np.testing.assert_allclose(drift(new, b), drift(new, a), rtol=0, atol=1e-12)
+
+
+def test_displacement_rows_give_the_drift_rows_and_a_uniform_rise_by_hand(vmc):
+    """``displacement_rows`` of the TCP less those of the table points, weighted as the drift takes them, are the drift
+    rows ``G`` (to round-off), at a pose whose tool is behind the table (two table points). Under a uniform rise with
+    one α, two table points' displacements differ by α ΔT times their distance (free expansion, exact on any mesh)."""
+    from hybridcomp.fem.model import build_model, displacement_rows
+    from hybridcomp.models.geometry import table_point_weights
+    from hybridcomp.models.machine import Point
+
+    pose = {"X": 280.0, "Y": -220.0, "Z": 120.0}
+    model = build_model(vmc, pose, H_MM)
+    pts = table_point_weights(vmc, pose)
+    assert len(pts) == 2  # the tool 120 mm behind the table: the edge and the mirrored point
+    R = displacement_rows(model, [vmc.tcp] + [p for p, _ in pts])
+    G = R[0] - sum(w * R[1 + i] for i, (_, w) in enumerate(pts))
+    np.testing.assert_allclose(G, model.G, rtol=0, atol=1e-9 * np.abs(model.G).max())
+
+    one = _one_alpha(vmc)
+    m1 = build_model(one, pose, H_MM)
+    a, b = (Point("a", "table", (-300.0, -100.0, 350.0)), Point("b", "table", (250.0, 80.0, 350.0)))
+    u = displacement_rows(m1, [a, b]) @ np.full(m1.n, 2.0)
+    alpha = one.materials["cast_iron"].expansion_1_K
+    want = alpha * 2.0 * (np.asarray(b.position_mm) - np.asarray(a.position_mm)) * MM
+    np.testing.assert_allclose(u[1] - u[0], want, rtol=1e-6, atol=1e-12)
