@@ -1,6 +1,6 @@
 """Diagnostic: which point's displacement the interpolation between support poses misses at off-grid poses.
 
-    python benchmarks/pose_reference.py [--element-size-mm 80] [--scheme star]
+    python benchmarks/pose_reference.py [--element-size-mm 80] [--scheme star] [--sweep AXIS]
 
 FE only, no reduction and no pose history: every support pose and every target pose (the four off-grid poses of
 ``benchmarks/pose_path.py``) gets its own FE model, run to the steady state of the mean loads of the example day's
@@ -15,6 +15,11 @@ interpolated (each point's displacement from :func:`hybridcomp.fem.model.displac
 * ``table reference``: TCP less the table reference (judged against the target's TCP less its table reference);
 * ``TCP alone``: the TCP's displacement.
 
+``--sweep Y``: besides, the drift (as the model takes it) along that axis with the others at the model's pose, FE
+at every position, against the star's quadratic through the travel's ends and the model's pose, and against
+piecewise quadratics with a node where the tool crosses the table's edge (the pose where the table point under
+the tool leaves the table, found by bisection; a support pose there and one between it and the travel's end).
+
 No criterion: it shows where an interpolation error at a pose comes from (``benchmarks/pose_path.py`` judges
 the model).  Prints a table (error [µm] dx / dy / dz per target and way) and a final JSON line.
 """
@@ -26,6 +31,8 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 from hybridcomp.fem.loads import example_loads
@@ -47,6 +54,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--element-size-mm", type=float, default=80.0)
     p.add_argument("--scheme", choices=SCHEMES, default="star")
+    p.add_argument("--sweep", default="", help="an axis to sweep (its drift against its interpolations)")
     a = p.parse_args(argv)
     t0 = time.perf_counter()
     machine = load_machine("vmc800")
@@ -97,9 +105,73 @@ def main(argv=None) -> int:
     print(f"vmc800 at {a.element_size_mm:g} mm, {a.scheme} ({len(supports)} support poses), steady state of the "
           f"example day's second half's mean loads")
     print(table(rows, ["target", "interpolated", "error dx / dy / dz [µm]", "drift there dx / dy / dz [µm]"]))
+    sweep = _sweep(machine, a.element_size_mm, u, grid, a.sweep, mid) if a.sweep else None
     print(jsonio.dumps({"benchmark": "pose_reference", "element_size_mm": a.element_size_mm, "scheme": a.scheme,
-                        "wall_s": time.perf_counter() - t0, "errors_um": out}))
+                        "wall_s": time.perf_counter() - t0, "errors_um": out, "sweep": sweep}))
     return 0
+
+
+def _edge_crossing(machine, axis: str, lo: float, hi: float) -> float | None:
+    """The position of ``axis`` in (lo, hi) where the tool leaves the table (others at mid travel), or None."""
+    def off(x):
+        return len(table_point_weights(machine, {axis: x})) > 1
+
+    if off(lo) == off(hi):
+        return None
+    for _ in range(40):
+        m = 0.5 * (lo + hi)
+        lo, hi = (m, hi) if off(m) == off(lo) else (lo, m)
+    return 0.5 * (lo + hi)
+
+
+def _lagrange(x: float, nodes) -> list[float]:
+    return [float(np.prod([(x - b) / (a - b) for j, b in enumerate(nodes) if j != i])) for i, a in enumerate(nodes)]
+
+
+def _sweep(machine, size_mm: float, u, grid, axis: str, mid) -> dict:
+    """The drift along ``axis`` (FE at every position) against the star's quadratic and piecewise quadratics."""
+    if axis not in grid.axes:
+        raise SystemExit(f"--sweep {axis!r}: the machine's axes are {', '.join(grid.axes)}")
+    lo, m0, hi = grid.levels_mm[grid.axes.index(axis)]
+    edge = _edge_crossing(machine, axis, lo, m0)
+    if edge is None:
+        edge = _edge_crossing(machine, axis, m0, hi)
+    edge = None if edge is None else round(edge, 1)
+    xs = sorted(set(np.round(np.linspace(lo, hi, 27), 1).tolist()) | ({edge} if edge else set()))
+    if edge is not None:
+        end = lo if edge < m0 else hi
+        xs = sorted(set(xs) | {0.5 * (end + edge)})
+
+    def drift(x):
+        model = mid if abs(x - m0) < 1e-9 else build_model(machine, {axis: x}, size_mm)
+        return model.G @ steady_state(model, u) * 1e6
+
+    D = {x: drift(x) for x in xs}
+    D[m0] = drift(m0)
+
+    def through(x, nodes):
+        return sum(w * D[n] for w, n in zip(_lagrange(x, nodes), nodes))
+
+    rows, worst = [], {"star quadratic": np.zeros(3), "piecewise, a node at the edge": np.zeros(3)}
+    for x in xs:
+        star = through(x, (lo, m0, hi))
+        if edge is None:
+            piece = star
+        else:
+            end = lo if edge < m0 else hi
+            outer = (end, 0.5 * (end + edge), edge)
+            inner = (edge, m0, hi if edge < m0 else lo)
+            piece = through(x, outer if (x - edge) * (end - edge) >= 0 else inner)
+        e_star, e_piece = star - D[x], piece - D[x]
+        worst["star quadratic"] = np.maximum(worst["star quadratic"], np.abs(e_star))
+        worst["piecewise, a node at the edge"] = np.maximum(worst["piecewise, a node at the edge"], np.abs(e_piece))
+        rows.append({axis: f"{x:g}", "FE drift dx / dy / dz [µm]": " / ".join(f"{v:.3f}" for v in D[x]),
+                     "star quadratic error": " / ".join(f"{v:+.2f}" for v in e_star),
+                     "piecewise error": " / ".join(f"{v:+.2f}" for v in e_piece)})
+    print(f"\nthe drift along {axis} (the other axes at the model's pose); the tool leaves the table at "
+          + (f"{axis} = {edge:.1f} mm" if edge is not None else "no position of the travel"))
+    print(table(rows, [axis, "FE drift dx / dy / dz [µm]", "star quadratic error", "piecewise error"]))
+    return {"axis": axis, "edge_mm": edge, "largest_error_um": {k: [float(v) for v in w] for k, w in worst.items()}}
 
 
 if __name__ == "__main__":
