@@ -99,6 +99,11 @@ def probe_matrix(basis: skfem.CellBasis, points_m: np.ndarray, cells: np.ndarray
     cells = np.asarray(cells, dtype=np.int64)
     if (cells < 0).any():
         raise ValueError(f"points outside the mesh: {pts[:, cells < 0].T.tolist()}")
+    # a point on its cell's face may lie outside it by round-off (1e-13 m where a body's offset at a pose was added
+    # in another order): the inverse mapping's Newton steps then push it out and are clipped back for ever. Each
+    # point is taken into its cell's bounding box, which holds the cell, so a point inside stays where it is.
+    nodes = basis.mesh.p[:, basis.mesh.t[:, cells]]
+    pts = np.clip(pts, nodes.min(axis=1), nodes.max(axis=1))
     X = basis.mapping.invF(pts[:, :, None], tind=cells)
     phis = np.array([basis.elem.gbasis(basis.mapping, X, k, tind=cells)[0] for k in range(basis.Nbfun)])
     rows = np.tile(np.arange(pts.shape[1]), basis.Nbfun)
