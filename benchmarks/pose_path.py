@@ -49,7 +49,7 @@ from pose_drift import random_poses
 
 from hybridcomp.fem.loads import example_loads
 from hybridcomp.fem.model import build_model
-from hybridcomp.fem.poses import SCHEMES, carry_field, support_poses
+from hybridcomp.fem.poses import SCHEMES, carry_field, parse_levels, support_poses_of
 from hybridcomp.models import jsonio, load_machine
 from hybridcomp.models.layout import Loads
 from hybridcomp.rom.machine import reduce_model
@@ -137,12 +137,19 @@ def main(argv=None) -> int:
                         "support poses after the model's (star 1..2 n: the i-th axis' lower end 2 i - 1, upper "
                         "2 i; grid 1..3^n - 1 in product order, the model's pose left out; vmc800: Z low is star 5, "
                         "grid 13)")
+    p.add_argument("--levels", default="", metavar="AXIS=N[,AXIS=N]",
+                   help="N levels along an axis instead of 3 (hybridcomp.fem.poses.pose_grid; e.g. Y=7)")
     p.add_argument("--at-table-reference", action="store_true",
                    help="the drift at the table reference, not at the table point under the tool (under_tool off)")
     a = p.parse_args(argv)
     h_mm, dt_s = (200.0, 300.0) if a.fast else (a.element_size_mm, a.dt_s)
     m = load_machine("vmc800")
-    n_support = len(support_poses(len(m.axes), a.scheme)) - 1  # the support poses after the model's
+    try:
+        levels = parse_levels(a.levels, [x.name for x in m.axes])
+    except ValueError as exc:
+        p.error(str(exc))
+    counts = tuple(levels.get(x.name, 3) for x in m.axes)
+    n_support = len(support_poses_of(counts, a.scheme)) - 1  # the support poses after the model's
     if a.plant is not None and not 1 <= a.plant <= n_support:
         p.error(f"--plant must name a {a.scheme} support pose 1..{n_support}, got {a.plant}")
     if a.at_table_reference:
@@ -154,7 +161,7 @@ def main(argv=None) -> int:
     model = build_model(m, None, h_mm)
     rom = reduce_model(model)
     scale = np.abs(m.layout().inputs(example_loads(m, 16.0, 60.0))).max(axis=0)
-    prom = reduce_at_poses(model, rom, a.scheme, input_scale=scale)
+    prom = reduce_at_poses(model, rom, a.scheme, input_scale=scale, levels=levels)
     cost["pose_rom_s"] = time.perf_counter() - t0
     cost["pose_rom_order"] = prom.order
     grid = grid_of(prom)
@@ -250,7 +257,7 @@ def main(argv=None) -> int:
     print(table(rows_out, list(rows_out[0])))
     print("cost: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in cost.items()))
     print(jsonio.dumps({"benchmark": "pose_path", "nodes": model.n, "element_size_mm": h_mm, "dt_s": dt_s,
-                        "scheme": a.scheme,
+                        "scheme": a.scheme, "levels": levels,
                         "table_point": "under the tool" if m.table_under_tool else "table reference", "plant": a.plant,
                         "within_limit": ok, "cost": cost, "cases": records}))
     return 0

@@ -132,7 +132,8 @@ def _sweep(machine, size_mm: float, u, grid, axis: str, mid) -> dict:
     """The drift along ``axis`` (FE at every position) against the star's quadratic and piecewise quadratics."""
     if axis not in grid.axes:
         raise SystemExit(f"--sweep {axis!r}: the machine's axes are {', '.join(grid.axes)}")
-    lo, m0, hi = grid.levels_mm[grid.axes.index(axis)]
+    i = grid.axes.index(axis)
+    (lo, hi), m0 = grid.travel_mm[i], grid.model_pose_mm[i]
     edge = _edge_crossing(machine, axis, lo, m0)
     if edge is None:
         edge = _edge_crossing(machine, axis, m0, hi)

@@ -83,7 +83,7 @@ def grid_training_data(prom, cases: Mapping[str, LoadCase], grid: SupportGrid | 
     grid = default_grid(prom, points) if grid is None else grid
     if tuple(grid.axes) != tuple(pg.axes):
         raise VolumetricError(f"support grid axes {list(grid.axes)} are not the model's {list(pg.axes)}")
-    for a, p, (lo, _, hi) in zip(grid.axes, grid.positions_mm, pg.levels_mm):
+    for a, p, (lo, hi) in zip(grid.axes, grid.positions_mm, pg.travel_mm):
         if p[0] < lo - 1e-9 or p[-1] > hi + 1e-9:
             raise VolumetricError(f"support grid: axis {a} spans [{p[0]:g}, {p[-1]:g}] mm, outside the travel "
                                   f"[{lo:g}, {hi:g}] mm")

@@ -6,7 +6,10 @@ machine is meshed again and its elastic drift rows ``G_P`` (TCP minus table, thr
 the field of the thermal model is carried onto that mesh body by body (``Π_P``: each node of body b at ``P``
 takes the temperature of the same body point at the model's pose), so that ``R_P = G_P Π_P`` gives the drift at
 ``P`` for the model's state.  Between support poses the rows are interpolated per axis with quadratic Lagrange
-polynomials through the travel's ends and the model's pose:
+polynomials through the travel's ends and the model's pose (three levels per axis), or with more levels along an
+axis (an odd number: the model's pose and evenly spaced levels on either side of it, down to the travel's ends),
+piecewise quadratic over consecutive triples of them (a drift whose dependence on that axis a single quadratic does
+not follow, e.g. where the tool leaves the table: ``benchmarks/pose_reference.py --sweep``):
 
 * ``"star"`` (default, ``2 n + 1`` poses for ``n`` axes): each axis at its two ends with the others at the
   model's pose; the pose dependence is taken as a sum over axes (no products of two axes' positions);
@@ -38,6 +41,20 @@ def _lagrange3(x: float, nodes: tuple[float, float, float]) -> np.ndarray:
                      (x - a) * (x - b) / ((c - a) * (c - b))])
 
 
+def _piecewise3(x: float, levels: tuple[float, ...]) -> np.ndarray:
+    """Weights at ``x`` of the piecewise quadratic through sorted ``levels`` (odd count): one triple per segment.
+
+    Segments are the triples (0, 1, 2), (2, 3, 4), …; ``x`` in the first segment that holds it.  Three levels: the
+    quadratic through them (:func:`_lagrange3`).
+    """
+    w = np.zeros(len(levels))
+    for i in range(0, len(levels) - 2, 2):
+        if x <= levels[i + 2] + 1e-9 or i + 3 >= len(levels):
+            w[i:i + 3] = _lagrange3(x, levels[i:i + 3])
+            return w
+    raise AssertionError("unreachable")  # pragma: no cover - the last segment takes every x
+
+
 @dataclass(frozen=True)
 class PoseGrid:
     """Support poses over the workspace and the interpolation between them.
@@ -45,15 +62,26 @@ class PoseGrid:
     Attributes
     ----------
     axes : the axis names, in machine order
-    levels_mm : per axis (travel min, the model's pose, travel max) [mm]
+    levels_mm : per axis its levels, increasing from travel min to travel max and holding the model's pose (three:
+        travel min, the model's pose, travel max; or any odd number, :func:`axis_levels`) [mm]
     scheme : ``"star"`` or ``"grid"`` (module docstring)
-    poses : the support poses, as level indices per axis (0 min, 1 model's pose, 2 max); the model's pose first
+    poses : the support poses, as level indices per axis; the model's pose first
     """
 
     axes: tuple[str, ...]
-    levels_mm: tuple[tuple[float, float, float], ...]
+    levels_mm: tuple[tuple[float, ...], ...]
     scheme: str
     poses: tuple[tuple[int, ...], ...]
+
+    @property
+    def travel_mm(self) -> tuple[tuple[float, float], ...]:
+        """Per axis its travel (min, max) [mm]: the outer levels."""
+        return tuple((lv[0], lv[-1]) for lv in self.levels_mm)
+
+    @property
+    def model_pose_mm(self) -> tuple[float, ...]:
+        """Per axis the model's pose [mm] (support pose 0)."""
+        return tuple(lv[j] for lv, j in zip(self.levels_mm, self.poses[0]))
 
     def pose_mm(self, k: int) -> dict[str, float]:
         """Support pose ``k`` in mm."""
@@ -65,17 +93,18 @@ class PoseGrid:
         if unknown:
             raise ValueError(f"pose names axes {sorted(unknown)} the machine has not (axes: {list(self.axes)})")
         L = []
-        for a, lv in zip(self.axes, self.levels_mm):
-            x = float(pose_mm.get(a, lv[1]))
-            if not lv[0] - 1e-9 <= x <= lv[2] + 1e-9:
-                raise ValueError(f"pose {a} = {x:g} mm is outside the travel [{lv[0]:g}, {lv[2]:g}] mm")
-            L.append(_lagrange3(x, lv))
+        for a, lv, mid in zip(self.axes, self.levels_mm, self.model_pose_mm):
+            x = float(pose_mm.get(a, mid))
+            if not lv[0] - 1e-9 <= x <= lv[-1] + 1e-9:
+                raise ValueError(f"pose {a} = {x:g} mm is outside the travel [{lv[0]:g}, {lv[-1]:g}] mm")
+            L.append(_piecewise3(x, lv))
+        base = self.poses[0]
         w = np.zeros(len(self.poses))
         for k, levels in enumerate(self.poses):
             if self.scheme == "grid":
                 w[k] = np.prod([L[i][j] for i, j in enumerate(levels)])
             else:
-                moved = [i for i, j in enumerate(levels) if j != 1]
+                moved = [i for i, j in enumerate(levels) if j != base[i]]
                 w[k] = L[moved[0]][levels[moved[0]]] if moved else 0.0
         if self.scheme == "star":
             w[0] = 1.0 - w.sum()
@@ -98,28 +127,73 @@ class PoseGrid:
                         tuple(tuple(int(j) for j in p) for p in d["poses"]))
 
 
-def pose_grid(model, scheme: str = "star") -> PoseGrid:
+def axis_levels(lo: float, mid: float, hi: float, count: int = 3) -> tuple[float, ...]:
+    """An axis' ``count`` levels [mm] (odd, ≥ 3), increasing.
+
+    The model's pose ``mid`` and ``(count − 1) / 2`` evenly spaced levels on either side of it, the outer ones the
+    travel's ends ``lo``, ``hi``.
+    """
+    if not (isinstance(count, (int, np.integer)) and count >= 3 and count % 2 == 1):
+        raise ValueError(f"an axis needs an odd number of levels, at least 3, got {count!r}")
+    m = (count - 1) // 2
+    return (tuple(float(lo + (mid - lo) * i / m) for i in range(m)) + (float(mid),)
+            + tuple(float(mid + (hi - mid) * i / m) for i in range(1, m + 1)))
+
+
+def parse_levels(text: str | None, axes: tuple[str, ...] | list[str]) -> dict[str, int]:
+    """``"Y=7"`` or ``"X=5,Y=7"``: levels per axis (:func:`pose_grid`); None or empty: {}.
+
+    Raises
+    ------
+    ValueError
+        naming the option's text and what is wrong in it (not AXIS=N, an axis the machine has not, N not odd ≥ 3)
+    """
+    out: dict[str, int] = {}
+    for part in filter(None, (t.strip() for t in (text or "").split(","))):
+        name, eq, count = part.partition("=")
+        name = name.strip()
+        if not eq or not count.strip().isdigit():
+            raise ValueError(f"--pose-levels {text!r}: {part!r} is not AXIS=N (e.g. Y=7)")
+        if name not in axes:
+            raise ValueError(f"--pose-levels {text!r}: the machine has no axis {name!r} (axes: {', '.join(axes)})")
+        n = int(count)
+        if n < 3 or n % 2 == 0:
+            raise ValueError(f"--pose-levels {text!r}: {name} = {n}, a number of levels must be odd and at least 3")
+        out[name] = n
+    return out
+
+
+def pose_grid(model, scheme: str = "star", levels: dict[str, int] | None = None) -> PoseGrid:
     """The support poses of an FE model's machine around the model's pose.
+
+    ``levels``: per axis name its number of levels (odd, ≥ 3; :func:`axis_levels`), 3 for the axes left out.
 
     Raises
     ------
     MachineFileError
         an imported mesh (it is drawn at one pose), or a model whose pose puts an axis at a travel end
+    ValueError
+        ``levels`` names an axis the machine has not, or a count that is not odd and ≥ 3
     """
     machine: Machine = model.machine
     if machine.mesh.file is not None:
         raise MachineFileError(f"{machine.source}: the drift at other poses needs box bodies; an imported mesh is "
                                "drawn at one pose")
-    levels = []
+    counts = dict(levels or {})
+    names = [a.name for a in machine.axes]
+    unknown = sorted(set(counts) - set(names))
+    if unknown:
+        raise ValueError(f"levels name axes {unknown} the machine has not (axes: {names})")
+    out = []
     for a in machine.axes:
         lo, hi = a.travel_mm
         mid = float(model.mesh.pose_mm[a.name])
         if not lo < mid < hi:
             raise MachineFileError(f"{machine.source}: the model is built at {a.name} = {mid:g} mm, a travel end: the "
                                    f"support poses need it inside ({lo:g}, {hi:g}) mm")
-        levels.append((float(lo), mid, float(hi)))
-    return PoseGrid(tuple(a.name for a in machine.axes), tuple(levels), scheme,
-                    support_poses(len(machine.axes), scheme))
+        out.append(axis_levels(float(lo), mid, float(hi), counts.get(a.name, 3)))
+    return PoseGrid(tuple(names), tuple(out), scheme,
+                    support_poses_of(tuple(len(lv) for lv in out), scheme))
 
 
 @dataclass(frozen=True)
@@ -138,16 +212,26 @@ class PoseDrift:
 
 
 def support_poses(n_axes: int, scheme: str) -> tuple[tuple[int, ...], ...]:
-    """Level indices of the support poses: the model's pose first."""
+    """Level indices of the support poses with three levels per axis: the model's pose first."""
+    return support_poses_of((3,) * n_axes, scheme)
+
+
+def support_poses_of(counts: tuple[int, ...], scheme: str) -> tuple[tuple[int, ...], ...]:
+    """Level indices of the support poses, ``counts[i]`` levels on axis i with the model's pose in the middle.
+
+    The model's pose first; star: then each axis at each of its other levels, in order (three levels: its two
+    ends), the others at the model's pose; grid: then every other combination.
+    """
     if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
-    base = (1,) * n_axes
+    base = tuple((c - 1) // 2 for c in counts)
     if scheme == "grid":
-        return (base,) + tuple(p for p in itertools.product((0, 1, 2), repeat=n_axes) if p != base)
+        return (base,) + tuple(p for p in itertools.product(*(range(c) for c in counts)) if p != base)
     out = [base]
-    for i in range(n_axes):
-        for j in (0, 2):
-            out.append(tuple(j if k == i else 1 for k in range(n_axes)))
+    for i, c in enumerate(counts):
+        for j in range(c):
+            if j != base[i]:
+                out.append(tuple(j if k == i else base[k] for k in range(len(counts))))
     return tuple(out)
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridcomp.fem.cli_batch import WORKERS_RULE, add_scheduler_arguments, check_scheduler
+from hybridcomp.fem.poses import parse_levels
 from hybridcomp.models import jsonio
 from hybridcomp.models.cli import add_machine_argument, refuse_unused
 from hybridcomp.models.loader import load_machine
@@ -85,6 +86,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "its drift an output group beside the model pose's (simulate --rom writes it to poses.csv, the drives' "
                    "errors to feedback.csv); interpolated by hybridcomp.rom.poses.drift_along; as the daemon's "
                    "monitor.rom it compensates where the tool is. The written model keeps no basis")
+    p.add_argument("--pose-levels", metavar="AXIS=N[,AXIS=N]",
+                   help="with --poses: N levels along an axis instead of 3 (odd: the model's pose and evenly spaced "
+                   "levels on either side down to the travel's ends, piecewise quadratic between them), e.g. Y=7 "
+                   "where the drift along the table's axis kinks as the tool leaves the table; star: N-1 support "
+                   "poses on that axis instead of 2")
     p.add_argument("--pose-enrich", type=int, metavar="N",
                    help="with --poses: Krylov directions of each support pose's own system added to the carried basis "
                    "(default 20)")
@@ -127,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
          "has no effect with --matrices and --order or --h2-tol (those decide)"),
         ("poses", matrices, fe_only),
         ("pose_enrich", args.poses is None, "applies with --poses only"),
+        ("pose_levels", args.poses is None, "applies with --poses only"),
         ("workers", args.poses is None, "applies with --poses only (the support poses run as an FE batch)"),
         ("scheduler", args.poses is None, "applies with --poses only (the support poses run as an FE batch)"),
         ("workers", args.scheduler not in ("process", "local"), WORKERS_RULE),
@@ -168,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
             if ends:
                 raise ValueError(f"--poses needs the model's pose inside the travel: --pose puts {ends[0]} at a travel "
                                  "end, where the support poses would coincide")
+            levels = parse_levels(args.pose_levels, [a.name for a in machine.axes])
             check = read_loads(args.check_loads, machine) if args.check_loads else None
             if check is not None and len(check.time_s) < 2:
                 raise LoadsFileError(f"{args.check_loads}: needs at least two rows")
@@ -192,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
             rom = reduce_at_poses(model, rom, args.poses, DEFAULT_ENRICH if args.pose_enrich is None else args.pose_enrich,
                                   input_scale=scale, workers=_workers(args),
                                   scheduler="process" if args.scheduler == "serial" else args.scheduler,
-                                  progress=True)
+                                  progress=True, levels=levels)
     if args.matrices is not None:
         from hybridcomp.rom.external import save_external
 

@@ -57,7 +57,8 @@ FEEDBACK_POINTS = 17
 
 def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int = DEFAULT_ENRICH,
                     input_scale: np.ndarray | None = None, drives: bool = True, workers: int = 1,
-                    scheduler: str = "process", progress: bool = False) -> ReducedModel:
+                    scheduler: str = "process", progress: bool = False,
+                    levels: dict[str, int] | None = None) -> ReducedModel:
     """The pose-aware reduced model of an FE model and its reduced model (module docstring).
 
     Parameters
@@ -72,6 +73,7 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
         (:mod:`hybridcomp.fem.batch`): one worker and ``"process"``: here, one after another; more workers: a
         local process pool (one BLAS thread each); ``"local"`` or a Dask scheduler address: a Dask cluster
     progress : a progress bar over the support poses (stderr)
+    levels : per axis name its number of levels (odd, ≥ 3; :func:`hybridcomp.fem.poses.pose_grid`), 3 for the rest
     """
     if rom.V is None:
         raise RomInputError("the pose-aware model carries the reduced model's basis: reduce with the basis kept")
@@ -83,7 +85,7 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
         raise ValueError(f"workers must be at least 1, got {workers}")
     t0 = time.perf_counter()
     machine = model.machine
-    grid = pose_grid(model, scheme)
+    grid = pose_grid(model, scheme, levels)
     if input_scale is None:
         from hybridcomp.fem.loads import example_loads
 

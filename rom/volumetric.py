@@ -159,8 +159,8 @@ def default_grid(rom, points: int | Sequence[int] = 3) -> SupportGrid:
     n = [points] * k if isinstance(points, (int, np.integer)) and not isinstance(points, bool) else list(points)
     if len(n) != k:
         raise VolumetricError(f"support grid: {len(n)} point counts for axes {list(pg.axes)}")
-    levels = [_axis_levels(*lv, m, a) for a, lv, m in zip(pg.axes, pg.levels_mm, n)]
-    return SupportGrid(pg.axes, tuple(levels), tuple(lv[1] for lv in pg.levels_mm))
+    levels = [_axis_levels(lo, mid, hi, m, a) for a, (lo, hi), mid, m in zip(pg.axes, pg.travel_mm, pg.model_pose_mm, n)]
+    return SupportGrid(pg.axes, tuple(levels), pg.model_pose_mm)
 
 
 class FeedbackRows(NamedTuple):
@@ -242,7 +242,7 @@ def table_operator(rom, grid: SupportGrid | None = None) -> TableOperator:
     grid = default_grid(rom) if grid is None else grid
     if tuple(grid.axes) != tuple(pg.axes):
         raise VolumetricError(f"support grid axes {list(grid.axes)} are not the model's {list(pg.axes)}")
-    for a, p, (lo, _, hi) in zip(grid.axes, grid.positions_mm, pg.levels_mm):
+    for a, p, (lo, hi) in zip(grid.axes, grid.positions_mm, pg.travel_mm):
         for x in p:
             if not lo - 1e-9 <= x <= hi + 1e-9:
                 raise VolumetricError(f"support grid: axis {a} = {x:g} mm is outside the travel [{lo:g}, {hi:g}] mm")

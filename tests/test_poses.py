@@ -72,6 +72,57 @@ def test_star_misses_a_product_of_two_axes():
     assert grid.weights({"X": 200.0, "Y": 200.0}) @ values != pytest.approx(200.0 * 200.0, rel=0.5)
 
 
+@pytest.mark.parametrize("scheme", ["star", "grid"])
+def test_more_levels_along_an_axis_follow_a_kink_at_a_level(scheme):
+    """Seven levels along Y (``axis_levels``: the model's pose at 50 mm and three evenly spaced on either side):
+    piecewise quadratic over the triples (0, 1, 2), (2, 3, 4), (4, 5, 6). A drift that kinks at level 2 (as where
+    the tool leaves the table) and is quadratic on either side is reproduced exactly; three levels miss it."""
+    from hybridcomp.fem.poses import axis_levels, support_poses_of
+
+    y7 = axis_levels(-325.0, 50.0, 325.0, 7)
+    assert y7[0] == -325.0 and y7[3] == 50.0 and y7[-1] == 325.0 and np.allclose(np.diff(y7[:4]), 125.0)
+    levels = (LEVELS[0], y7, LEVELS[2])
+    grid = PoseGrid(("X", "Y", "Z"), levels, scheme, support_poses_of((3, 7, 3), scheme))
+    three = PoseGrid(("X", "Y", "Z"), LEVELS, scheme, support_poses(3, scheme))
+    assert len(grid.poses) == (11 if scheme == "star" else 63) and grid.poses[0] == (1, 3, 1)
+    assert grid.model_pose_mm == (0.0, 50.0, 0.0) and grid.travel_mm[1] == (-325.0, 325.0)
+    kink = y7[2]
+
+    def f(p):  # quadratic in X, a kink in Y at level 2, linear in Z
+        return 1e-4 * p[0] ** 2 + 2e-3 * p[0] + 3e-5 * (p[1] - kink) ** 2 * (p[1] < kink) + 1e-3 * p[1] + 4e-3 * p[2]
+
+    def interp(g, p):
+        values = np.array([f([g.pose_mm(k)[n] for n in "XYZ"]) for k in range(len(g.poses))])
+        return g.weights(dict(zip("XYZ", p))) @ values
+
+    rng = np.random.default_rng(5)
+    for _ in range(8):
+        p = [rng.uniform(lo, hi) for lo, hi in grid.travel_mm]
+        assert grid.weights(dict(zip("XYZ", p))).sum() == pytest.approx(1.0, abs=1e-12)
+        assert interp(grid, p) == pytest.approx(f(p), rel=1e-9, abs=1e-12)
+    p = [0.0, -250.0, 0.0]
+    assert abs(interp(three, p) - f(p)) > 0.1  # the planted miss: one quadratic through -325, 50, 325
+    for k in range(len(grid.poses)):
+        np.testing.assert_allclose(grid.weights(grid.pose_mm(k)), np.eye(len(grid.poses))[k], atol=1e-12)
+    assert PoseGrid.from_dict(grid.as_dict()) == grid
+
+
+def test_three_levels_are_the_former_grid_and_bad_counts_are_refused(vmc):
+    from hybridcomp.fem.poses import axis_levels, parse_levels, support_poses_of
+
+    assert axis_levels(-400.0, 0.0, 400.0) == (-400.0, 0.0, 400.0)
+    for scheme in ("star", "grid"):
+        assert support_poses_of((3, 3, 3), scheme) == support_poses(3, scheme)
+    assert parse_levels("Y=7", ("X", "Y", "Z")) == {"Y": 7} and parse_levels(None, ("X",)) == {}
+    assert parse_levels(" X=5 , Z=3 ", ("X", "Y", "Z")) == {"X": 5, "Z": 3}
+    for text, msg in (("Y=4", "must be odd"), ("Y=1", "must be odd"), ("Q=5", "no axis 'Q'"), ("Y", "not AXIS=N"),
+                      ("Y=x", "not AXIS=N")):
+        with pytest.raises(ValueError, match=msg):
+            parse_levels(text, ("X", "Y", "Z"))
+    with pytest.raises(ValueError, match="odd number of levels"):
+        axis_levels(-1.0, 0.0, 1.0, 4)
+
+
 # --------------------------------------------------------------------------- the field carried with the bodies
 
 def test_carried_field_moves_with_each_body(vmc, model):
@@ -227,6 +278,11 @@ def test_reduce_cli_refuses_pose_options_that_would_be_ignored(capsys, tmp_path)
     assert main(["reduce", "--workers", "2", "--out", str(tmp_path / "r.npz")]) == 2
     assert "--workers applies with --poses only" in capsys.readouterr().err
     assert main(["reduce", "--poses", "star", "--scheduler", "udp://x", "--out", str(tmp_path / "r.npz")]) == 2
+    capsys.readouterr()
+    assert main(["reduce", "--pose-levels", "Y=7", "--out", str(tmp_path / "r.npz")]) == 2
+    assert "--pose-levels applies with --poses only" in capsys.readouterr().err
+    assert main(["reduce", "--poses", "star", "--pose-levels", "Y=6", "--out", str(tmp_path / "r.npz")]) == 2
+    assert "--pose-levels 'Y=6': Y = 6, a number of levels must be odd" in capsys.readouterr().err
     assert not (tmp_path / "r.npz").exists()
 
 
