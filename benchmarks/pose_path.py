@@ -136,7 +136,7 @@ def main(argv=None) -> int:
                    help="plant an error: support pose K's drift replaced by the model pose's; K numbers the scheme's "
                         "support poses after the model's (star 1..2 n: the i-th axis' lower end 2 i - 1, upper "
                         "2 i; grid 1..3^n - 1 in product order, the model's pose left out; vmc800: Z low is star 5, "
-                        "grid 13)")
+                        "grid 13; with --levels a star numbers each axis' levels in order: Y=7 makes Z low 9)")
     p.add_argument("--levels", default="", metavar="AXIS=N[,AXIS=N]",
                    help="N levels along an axis instead of 3 (hybridcomp.fem.poses.pose_grid; e.g. Y=7)")
     p.add_argument("--at-table-reference", action="store_true",
