@@ -138,14 +138,15 @@ def main(argv=None) -> int:
                         "2 i; grid 1..3^n - 1 in product order, the model's pose left out; vmc800: Z low is star 5, "
                         "grid 13; with --levels a star numbers each axis' levels in order: Y=7 makes Z low 9)")
     p.add_argument("--levels", default="", metavar="AXIS=N[,AXIS=N]",
-                   help="N levels along an axis instead of 3 (hybridcomp.fem.poses.pose_grid; e.g. Y=7)")
+                   help="N levels along an axis instead of 3 (hybridcomp.fem.poses.pose_grid; e.g. Y=7; auto: "
+                        "hybridcomp.fem.poses.edge_levels)")
     p.add_argument("--at-table-reference", action="store_true",
                    help="the drift at the table reference, not at the table point under the tool (under_tool off)")
     a = p.parse_args(argv)
     h_mm, dt_s = (200.0, 300.0) if a.fast else (a.element_size_mm, a.dt_s)
     m = load_machine("vmc800")
     try:
-        levels = parse_levels(a.levels, [x.name for x in m.axes])
+        levels = parse_levels(a.levels, [x.name for x in m.axes], m)
     except ValueError as exc:
         p.error(str(exc))
     counts = tuple(levels.get(x.name, 3) for x in m.axes)

@@ -140,14 +140,40 @@ def axis_levels(lo: float, mid: float, hi: float, count: int = 3) -> tuple[float
             + tuple(float(mid + (hi - mid) * i / m) for i in range(1, m + 1)))
 
 
-def parse_levels(text: str | None, axes: tuple[str, ...] | list[str]) -> dict[str, int]:
-    """``"Y=7"`` or ``"X=5,Y=7"``: levels per axis (:func:`pose_grid`); None or empty: {}.
+#: levels along an axis on which the tool leaves the table (:func:`edge_levels`)
+EDGE_LEVELS = 7
+
+
+def edge_levels(machine: Machine) -> dict[str, int]:
+    """:data:`EDGE_LEVELS` levels along every axis on which the tool leaves the table within its travel.
+
+    With the drift taken at the table point under the tool (``[table_reference] under_tool``), the drift along such
+    an axis kinks where the tool crosses the table's edge, and one quadratic through the travel's ends and the
+    model's pose does not follow it (``benchmarks/pose_reference.py --sweep``; vmc800's Y: 0.32 µm in y, seven
+    levels 0.12).  Each axis is moved to its travel's ends with the others at mid travel.
+    """
+    from hybridcomp.models.geometry import table_point_weights
+
+    if not machine.table_under_tool:
+        return {}
+    return {a.name: EDGE_LEVELS for a in machine.axes
+            if any(len(table_point_weights(machine, {a.name: float(x)})) > 1 for x in a.travel_mm)}
+
+
+def parse_levels(text: str | None, axes: tuple[str, ...] | list[str], machine: Machine | None = None) -> dict[str, int]:
+    """Levels per axis (:func:`pose_grid`) from ``"Y=7"`` or ``"X=5,Y=7"``.
+
+    ``"auto"``: :func:`edge_levels` of ``machine``; None or empty: {}.
 
     Raises
     ------
     ValueError
         naming the option's text and what is wrong in it (not AXIS=N, an axis the machine has not, N not odd ≥ 3)
     """
+    if (text or "").strip() == "auto":
+        if machine is None:
+            raise ValueError("--pose-levels auto needs the machine")
+        return edge_levels(machine)
     out: dict[str, int] = {}
     for part in filter(None, (t.strip() for t in (text or "").split(","))):
         name, eq, count = part.partition("=")

@@ -90,7 +90,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --poses: N levels along an axis instead of 3 (odd: the model's pose and evenly spaced "
                    "levels on either side down to the travel's ends, piecewise quadratic between them), e.g. Y=7 "
                    "where the drift along the table's axis kinks as the tool leaves the table; star: N-1 support "
-                   "poses on that axis instead of 2")
+                   "poses on that axis instead of 2; auto: 7 along every axis on which the tool leaves the table "
+                   "(with [table_reference] under_tool)")
     p.add_argument("--pose-enrich", type=int, metavar="N",
                    help="with --poses: Krylov directions of each support pose's own system added to the carried basis "
                    "(default 20)")
@@ -175,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
             if ends:
                 raise ValueError(f"--poses needs the model's pose inside the travel: --pose puts {ends[0]} at a travel "
                                  "end, where the support poses would coincide")
-            levels = parse_levels(args.pose_levels, [a.name for a in machine.axes])
+            levels = parse_levels(args.pose_levels, [a.name for a in machine.axes], machine)
             check = read_loads(args.check_loads, machine) if args.check_loads else None
             if check is not None and len(check.time_s) < 2:
                 raise LoadsFileError(f"{args.check_loads}: needs at least two rows")

@@ -123,6 +123,20 @@ def test_three_levels_are_the_former_grid_and_bad_counts_are_refused(vmc):
         axis_levels(-1.0, 0.0, 1.0, 4)
 
 
+def test_auto_levels_are_seven_along_the_axes_on_which_the_tool_leaves_the_table(vmc):
+    """vmc800 takes the drift under the tool, and only its Y moves the table from under the tool (at Y -325 the tool
+    is 225 mm behind the table's rear edge); with the drift at the table reference no axis gets more levels."""
+    import dataclasses
+
+    from hybridcomp.fem.poses import EDGE_LEVELS, edge_levels, parse_levels
+
+    axes = [a.name for a in vmc.axes]
+    assert EDGE_LEVELS == 7 and edge_levels(vmc) == {"Y": 7} == parse_levels("auto", axes, vmc)
+    assert edge_levels(dataclasses.replace(vmc, table_under_tool=False)) == {}
+    with pytest.raises(ValueError, match="needs the machine"):
+        parse_levels("auto", axes)
+
+
 # --------------------------------------------------------------------------- the field carried with the bodies
 
 def test_carried_field_moves_with_each_body(vmc, model):
