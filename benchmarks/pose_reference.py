@@ -58,6 +58,8 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     t0 = time.perf_counter()
     machine = load_machine("vmc800")
+    if a.sweep and a.sweep not in [x.name for x in machine.axes]:
+        p.error(f"--sweep {a.sweep!r}: the machine's axes are {', '.join(x.name for x in machine.axes)}")
     machine = dataclasses.replace(machine, mesh=dataclasses.replace(machine.mesh, element_size_mm=a.element_size_mm))
     U = machine.layout().inputs(example_loads(machine, 16.0, 60.0))
     u = U[U.shape[0] // 2:].mean(axis=0)
@@ -81,10 +83,6 @@ def main(argv=None) -> int:
         d, w_own = run(target)
         W = grid.weights(target)
         offset = sum(len(x) for x in target_points[:ti])  # the target's table points among every pose's extras
-
-        def at(disp, first, weights):
-            return sum(w * disp[first + i] for i, w in enumerate(weights))
-
         truth = {"as the model": d[0] - at(d, 2, w_own), "target's table point": d[0] - at(d, 2, w_own),
                  "table reference": d[0] - d[1], "TCP alone": d[0]}
         interp = {
@@ -111,6 +109,11 @@ def main(argv=None) -> int:
     return 0
 
 
+def at(disp, first: int, weights) -> object:
+    """The weighted sum of the displacements ``disp[first]``, ``disp[first + 1]``, … (a drift's table point)."""
+    return sum(w * disp[first + i] for i, w in enumerate(weights))
+
+
 def _edge_crossing(machine, axis: str, lo: float, hi: float) -> float | None:
     """The position of ``axis`` in (lo, hi) where the tool leaves the table (others at mid travel), or None."""
     def off(x):
@@ -130,8 +133,6 @@ def _lagrange(x: float, nodes) -> list[float]:
 
 def _sweep(machine, size_mm: float, u, grid, axis: str, mid) -> dict:
     """The drift along ``axis`` (FE at every position) against the star's quadratic and piecewise quadratics."""
-    if axis not in grid.axes:
-        raise SystemExit(f"--sweep {axis!r}: the machine's axes are {', '.join(grid.axes)}")
     i = grid.axes.index(axis)
     (lo, hi), m0 = grid.travel_mm[i], grid.model_pose_mm[i]
     edge = _edge_crossing(machine, axis, lo, m0)
