@@ -319,6 +319,24 @@ def solve_supported(Ku: sp.spmatrix, rhs: np.ndarray, fixed: np.ndarray, points_
     return solve_spd_few(Kc, b, points_m.T, block=3, near_null=assembly.rigid_body_modes(points_m))
 
 
+def _adjoint_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.ndarray], rows
+                  ) -> tuple[np.ndarray, str]:
+    """Thermal displacement rows (k × 3 × n) [m/K] of ``k`` point-interpolation rows (k × n): three adjoint solves each.
+
+    Row ``i`` gives ``u_i = R[i] (T - T_ref)``, the displacement (x, y, z) where ``rows[i]`` interpolates.
+    """
+    Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
+    Fth = assembly.thermal_load_matrix(basis, mats["E"], mats["nu"], mats["alpha"])
+    n, k = basis.N, rows.shape[0]
+    E = np.zeros((3 * n, 3 * k))
+    for i in range(k):
+        r = rows[i].toarray().ravel()
+        for d in range(3):
+            E[d::3, 3 * i + d] = r
+    lam, backend = solve_supported(Ku, E, _support_dofs(machine, mm), mm.mesh.p)
+    return np.asarray(Fth.T @ lam).T.reshape(k, 3, n), backend
+
+
 def drift_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.ndarray]) -> tuple[np.ndarray, str]:
     """Rows g_x, g_y, g_z [m/K] with drift = G (T - T_ref), by three adjoint solves.
 
@@ -326,17 +344,11 @@ def drift_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.ndar
     the table reference, or the table point under the tool, continued past the table's edge by
     :func:`~hybridcomp.models.geometry.table_point_weights`).
     """
-    Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
-    Fth = assembly.thermal_load_matrix(basis, mats["E"], mats["nu"], mats["alpha"])
-    n = basis.N
     table = table_point_weights(machine, mm.pose_mm)
     P = _point_rows(machine, mm, basis, [machine.tcp] + [p for p, _ in table])  # (1 + points) × n
     row = P[0] - sum(w * P[1 + i] for i, (_, w) in enumerate(table))
-    E = np.zeros((3 * n, 3))
-    for d in range(3):
-        E[d::3, d] = row.toarray().ravel()
-    lam, backend = solve_supported(Ku, E, _support_dofs(machine, mm), mm.mesh.p)
-    return np.asarray(Fth.T @ lam).T, backend
+    G, backend = _adjoint_rows(machine, mm, basis, mats, row)
+    return G[0], backend
 
 
 def displacement_rows(model: ThermoElasticModel, points) -> np.ndarray:
@@ -349,18 +361,7 @@ def displacement_rows(model: ThermoElasticModel, points) -> np.ndarray:
     """
     machine, mm = model.machine, model.mesh
     basis = assembly.cell_basis(mm.mesh)
-    mats = _material_arrays(machine, mm)
-    Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
-    Fth = assembly.thermal_load_matrix(basis, mats["E"], mats["nu"], mats["alpha"])
-    P = _point_rows(machine, mm, basis, list(points))
-    n = basis.N
-    E = np.zeros((3 * n, 3 * P.shape[0]))
-    for i in range(P.shape[0]):
-        r = P[i].toarray().ravel()
-        for d in range(3):
-            E[d::3, 3 * i + d] = r
-    lam, _ = solve_supported(Ku, E, _support_dofs(machine, mm), mm.mesh.p)
-    return np.asarray(Fth.T @ lam).T.reshape(P.shape[0], 3, n)
+    return _adjoint_rows(machine, mm, basis, _material_arrays(machine, mm), _point_rows(machine, mm, basis, list(points)))[0]
 
 
 def build_model(
