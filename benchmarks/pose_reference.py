@@ -37,7 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from hybridcomp.fem.loads import example_loads
 from hybridcomp.fem.model import build_model, displacement_rows
-from hybridcomp.fem.poses import SCHEMES, pose_grid
+from hybridcomp.fem.poses import SCHEMES, piecewise_weights, pose_grid
 from hybridcomp.fem.stepping import steady_state
 from hybridcomp.models import jsonio, load_machine
 from hybridcomp.models.geometry import table_point_weights
@@ -127,10 +127,6 @@ def _edge_crossing(machine, axis: str, lo: float, hi: float) -> float | None:
     return 0.5 * (lo + hi)
 
 
-def _lagrange(x: float, nodes) -> list[float]:
-    return [float(np.prod([(x - b) / (a - b) for j, b in enumerate(nodes) if j != i])) for i, a in enumerate(nodes)]
-
-
 def _sweep(machine, size_mm: float, u, grid, axis: str, mid) -> dict:
     """The drift along ``axis`` (FE at every position) against the star's quadratic and piecewise quadratics."""
     i = grid.axes.index(axis)
@@ -151,19 +147,14 @@ def _sweep(machine, size_mm: float, u, grid, axis: str, mid) -> dict:
     D = {x: drift(x) for x in xs}
     D[m0] = drift(m0)
 
-    def through(x, nodes):
-        return sum(w * D[n] for w, n in zip(_lagrange(x, nodes), nodes))
+    def through(x, levels):  # the piecewise quadratic the pose-aware model interpolates with
+        return sum(w * D[n] for w, n in zip(piecewise_weights(x, levels), levels))
 
+    # with the edge: one segment from the travel's end to the edge (its midpoint between), one on to the other end
+    pieces = (lo, m0, hi) if edge is None else tuple(sorted({lo, hi, m0, edge, 0.5 * ((lo if edge < m0 else hi) + edge)}))
     rows, worst = [], {"star quadratic": np.zeros(3), "piecewise, a node at the edge": np.zeros(3)}
     for x in xs:
-        star = through(x, (lo, m0, hi))
-        if edge is None:
-            piece = star
-        else:
-            end = lo if edge < m0 else hi
-            outer = (end, 0.5 * (end + edge), edge)
-            inner = (edge, m0, hi if edge < m0 else lo)
-            piece = through(x, outer if (x - edge) * (end - edge) >= 0 else inner)
+        star, piece = through(x, (lo, m0, hi)), through(x, pieces)
         e_star, e_piece = star - D[x], piece - D[x]
         worst["star quadratic"] = np.maximum(worst["star quadratic"], np.abs(e_star))
         worst["piecewise, a node at the edge"] = np.maximum(worst["piecewise, a node at the edge"], np.abs(e_piece))

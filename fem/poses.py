@@ -41,8 +41,8 @@ def _lagrange3(x: float, nodes: tuple[float, float, float]) -> np.ndarray:
                      (x - a) * (x - b) / ((c - a) * (c - b))])
 
 
-def _piecewise3(x: float, levels: tuple[float, ...]) -> np.ndarray:
-    """Weights at ``x`` of the piecewise quadratic through sorted ``levels`` (odd count): one triple per segment.
+def piecewise_weights(x: float, levels: tuple[float, ...]) -> np.ndarray:
+    """Weights at ``x`` of the piecewise quadratic through increasing ``levels`` (odd count): one triple a segment.
 
     Segments are the triples (0, 1, 2), (2, 3, 4), …; ``x`` in the first segment that holds it.  Three levels: the
     quadratic through them (:func:`_lagrange3`).
@@ -97,7 +97,7 @@ class PoseGrid:
             x = float(pose_mm.get(a, mid))
             if not lv[0] - 1e-9 <= x <= lv[-1] + 1e-9:
                 raise ValueError(f"pose {a} = {x:g} mm is outside the travel [{lv[0]:g}, {lv[-1]:g}] mm")
-            L.append(_piecewise3(x, lv))
+            L.append(piecewise_weights(x, lv))
         base = self.poses[0]
         w = np.zeros(len(self.poses))
         for k, levels in enumerate(self.poses):
