@@ -394,13 +394,16 @@ def test_a_scale_drives_multiplier_is_not_bounded():
     assert gains.g[1] == pytest.approx(-1.3, abs=0.05)
 
 
+#: the frozen check at 30 min and no rate limit (the rewind tests' replays)
+FROZEN_CHECK = {"compensation": {"max_step_um": 100.0}, "sensors": {"hold_s": 60.0, "frozen_s": 1800.0}}
+
+
 def _frozen_replay(machine, prom, trace, tmp_path, name):
-    """:func:`_replay` with the frozen check at 30 min and no rate limit: rows with tables by time, rewind events."""
+    """:func:`_replay` with :data:`FROZEN_CHECK`: rows with tables by time, rewind events."""
     from hybridcomp.chardiag.db import CDDatabase
     from hybridcomp.monitor.store import MonitorStore
 
-    _, _, rows = _replay(machine, prom, trace, tmp_path, name, compensation={"max_step_um": 100.0},
-                         sensors={"hold_s": 60.0, "frozen_s": 1800.0})
+    _, _, rows = _replay(machine, prom, trace, tmp_path, name, **FROZEN_CHECK)
     db = CDDatabase(tmp_path / f"{name}.db")
     try:
         rewound = [(e.machine_time_s, e.payload) for e in MonitorStore(db).events("observer")
@@ -496,8 +499,7 @@ def test_a_frozen_sensors_rewind_learns_the_drives_gains_again(machine, pose_rom
     times = [3900.0 + 10.0 * i for i in range(len(star))]
     # the run without T1, the axes at the probes' positions: its tables give the probed drift
     _, plain = _t1_traces(machine, rom, tmp_path, {t: (p, (np.nan,) * 3) for t, p in zip(times, star)}, "_plain")
-    _, _, rows = _replay(machine, prom, plain, tmp_path, "plain", compensation={"max_step_um": 100.0},
-                         sensors={"hold_s": 60.0, "frozen_s": 1800.0})
+    _, _, rows = _replay(machine, prom, plain, tmp_path, "plain", **FROZEN_CHECK)
     by_t = {r.time_s: r for r in rows if r.table is not None}
     probes = {t: (p, interpolate_one(by_t[t - 10.0].table, p)) for t, p in zip(times, star)}
     frozen, missing = _t1_traces(machine, rom, tmp_path, probes, "_probed")
@@ -509,8 +511,7 @@ def test_a_frozen_sensors_rewind_learns_the_drives_gains_again(machine, pose_rom
         from hybridcomp.monitor.state import MonitorState
         from hybridcomp.monitor.store import MonitorStore
 
-        cfg, key, _ = _replay(machine, prom, trace, tmp_path, name, compensation={"max_step_um": 100.0},
-                              sensors={"hold_s": 60.0, "frozen_s": 1800.0})
+        _, key, _ = _replay(machine, prom, trace, tmp_path, name, **FROZEN_CHECK)
         db = CDDatabase(tmp_path / f"{name}.db")
         try:
             store = MonitorStore(db)
