@@ -13,7 +13,9 @@ visited in turn for 15 min each all day (64 moves, a job shop's pattern).  Besid
 day (``benchmarks/pose_drift.py``'s poses), each against an FE model built there.
 
 Prediction: the pose-aware reduced model (:func:`hybridcomp.rom.poses.reduce_at_poses`; ``--scheme``: ``star``,
-the model's pose and each axis at its two ends, 2 n + 1 support poses, or ``grid``, the full 3^n grid) along the path
+the model's pose and each axis' levels with the others at the model's pose, by default seven along the axes of
+:func:`hybridcomp.fem.poses.auto_levels` (vmc800: Y and Z, 15 support poses) and three along the rest
+(``--levels``), or ``grid``, the full 3^n grid) along the path
 with its pose history (:func:`hybridcomp.rom.poses.integrate_along`, ``history="moves"``: the support poses'
 blocks blended at every move with the weights of the pose left, :func:`~hybridcomp.rom.poses.blend_history`),
 ``drift_along(..., feedback=False)`` at the path's positions.  Beside it on the paths:
@@ -28,10 +30,11 @@ Criterion per case and direction: the largest error ≤ max(0.3 µm, 5 % of the 
 the local range being the range within the hold (the hold paths), over the rows at that pose (the 15 min path) or
 over the day (a pose held all day).  ``--plant K`` adds a planted error beside the prediction: support pose K's
 drift replaced by the model pose's (its block dropped), judged alike (``within_limit``: ``*_planted``); at support
-pose K itself (star: K = 5, the Z axis' lower end, the first hold of the second path; grid: K = 13 is that pose) it
-must fail where the prediction passes.  Support poses are numbered as :func:`hybridcomp.fem.poses.support_poses`
-lists them, the model's pose 0: star 1 .. 2 n, grid 1 .. 3^n − 1.  ``--at-table-reference`` takes the drift at the
-table reference instead of the table point under the tool.  Prints a table and a final JSON line.
+pose K itself (the Z axis' lower end, the first hold of the second path: star K = 9 with the default levels or
+Y=7, 5 with three levels along every axis; grid K = 13) it must fail where the prediction passes.  Support poses
+are numbered as :func:`hybridcomp.fem.poses.support_poses_of` lists them, the model's pose 0, then each axis'
+levels in order without the model's (star), or 1 .. 3^n − 1 in product order (grid).  ``--at-table-reference``
+takes the drift at the table reference instead of the table point under the tool.  Prints a table and a final JSON line.
 """
 
 from __future__ import annotations
@@ -131,22 +134,25 @@ def main(argv=None) -> int:
     p.add_argument("--poses", type=int, default=5, help="off-grid poses held all day")
     p.add_argument("--seed", type=int, default=16)
     p.add_argument("--scheme", choices=SCHEMES, default="star",
-                   help="support poses of the pose-aware model: star (2 n + 1) or grid (3^n) (default star)")
+                   help="support poses of the pose-aware model: star (each axis' levels, the others at the model's "
+                        "pose) or grid (3^n) (default star)")
     p.add_argument("--plant", type=int, default=None, metavar="K",
                    help="plant an error: support pose K's drift replaced by the model pose's; K numbers the scheme's "
-                        "support poses after the model's (star 1..2 n: the i-th axis' lower end 2 i - 1, upper "
-                        "2 i; grid 1..3^n - 1 in product order, the model's pose left out; vmc800: Z low is star 5, "
-                        "grid 13; with --levels a star numbers each axis' levels in order: Y=7 makes Z low 9)")
-    p.add_argument("--levels", default="", metavar="AXIS=N[,AXIS=N]",
-                   help="N levels along an axis instead of 3 (hybridcomp.fem.poses.pose_grid; e.g. Y=7; auto: "
-                        "hybridcomp.fem.poses.edge_levels)")
+                        "support poses after the model's (star: each axis' levels in order, the model's pose left "
+                        "out; grid 1..3^n - 1 in product order; vmc800: Z low is star 9 with the default levels, 5 "
+                        "with --levels 3, grid 13)")
+    p.add_argument("--levels", default=None, metavar="AXIS=N[,AXIS=N]",
+                   help="N levels along an axis instead of 3 (hybridcomp.fem.poses.pose_grid; e.g. Y=7; a bare N: "
+                        "along every axis; auto: hybridcomp.fem.poses.auto_levels; default: auto with the star, as "
+                        "reduce --poses star, 3 with the grid)")
     p.add_argument("--at-table-reference", action="store_true",
                    help="the drift at the table reference, not at the table point under the tool (under_tool off)")
     a = p.parse_args(argv)
     h_mm, dt_s = (200.0, 300.0) if a.fast else (a.element_size_mm, a.dt_s)
     m = load_machine("vmc800")
     try:
-        levels = parse_levels(a.levels, [x.name for x in m.axes], m)
+        text = a.levels if a.levels is not None else ("auto" if a.scheme == "star" else "3")
+        levels = parse_levels(text, [x.name for x in m.axes], m)
     except ValueError as exc:
         p.error(str(exc))
     counts = tuple(levels.get(x.name, 3) for x in m.axes)

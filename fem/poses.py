@@ -11,8 +11,9 @@ axis (an odd number: the model's pose and evenly spaced levels on either side of
 piecewise quadratic over consecutive triples of them (a drift whose dependence on that axis a single quadratic does
 not follow, e.g. where the tool leaves the table: ``benchmarks/pose_reference.py --sweep``):
 
-* ``"star"`` (default, ``2 n + 1`` poses for ``n`` axes): each axis at its two ends with the others at the
-  model's pose; the pose dependence is taken as a sum over axes (no products of two axes' positions);
+* ``"star"`` (default, ``2 n + 1`` poses for ``n`` axes with three levels each): each axis at its levels with the
+  others at the model's pose (:func:`auto_levels` says which axes get seven by default); the pose dependence is
+  taken as a sum over axes (no products of two axes' positions);
 * ``"grid"`` (``3^n`` poses): the full tensor grid, products included.
 
 What moves with the pose and what does not: the elastic problem (where each body sits, and so the lever arms of
@@ -140,7 +141,7 @@ def axis_levels(lo: float, mid: float, hi: float, count: int = 3) -> tuple[float
             + tuple(float(mid + (hi - mid) * i / m) for i in range(1, m + 1)))
 
 
-#: levels along an axis on which the tool leaves the table (:func:`edge_levels`)
+#: levels along an axis that :func:`auto_levels` refines (:func:`edge_levels`, :func:`tool_axes`)
 EDGE_LEVELS = 7
 
 
@@ -160,10 +161,31 @@ def edge_levels(machine: Machine) -> dict[str, int]:
             if any(len(table_point_weights(machine, {a.name: float(x)})) > 1 for x in a.travel_mm)}
 
 
+def tool_axes(machine: Machine) -> tuple[str, ...]:
+    """The axes that carry the tool: they move the TCP's body or a body it is mounted on (vmc800: Z)."""
+    return tuple(a.name for a in machine.axes
+                 if np.any(machine.body_offset_mm(machine.tcp.body, {a.name: 1.0}) != 0.0))
+
+
+def auto_levels(machine: Machine) -> dict[str, int]:
+    """The support levels a star of support poses gets by default (``reduce --poses star``).
+
+    :data:`EDGE_LEVELS` along every axis on which the tool leaves the table (:func:`edge_levels`) or that carries the
+    tool (:func:`tool_axes`), three along the rest.  An axis that carries the tool slides the tool's body along a
+    carrier (vmc800: the headstock on the column) whose heat pattern stays where the body stood: after a move the
+    tool's drift follows the carrier's deformation at the new position, which one quadratic along the axis does not
+    (``benchmarks/pose_path.py``, 80 mm: after a move across the workspace, three levels 0.74 µm in y, seven along Y
+    0.52, along Z 0.46, along both 0.23 against a limit of 0.40; seven along X alone: 0.75).  vmc800: Y and Z, 15
+    support poses against 7.
+    """
+    return {a.name: EDGE_LEVELS for a in machine.axes if a.name in edge_levels(machine) or a.name in tool_axes(machine)}
+
+
 def parse_levels(text: str | None, axes: tuple[str, ...] | list[str], machine: Machine | None = None) -> dict[str, int]:
     """Levels per axis (:func:`pose_grid`) from ``"Y=7"`` or ``"X=5,Y=7"``.
 
-    ``"auto"``: :func:`edge_levels` of ``machine``; None or empty: {}.
+    ``"auto"``: :func:`auto_levels` of ``machine``; ``"N"``: N along every axis (``"3"``: the plain star); None or
+    empty: {} (three along every axis).
 
     Raises
     ------
@@ -173,9 +195,11 @@ def parse_levels(text: str | None, axes: tuple[str, ...] | list[str], machine: M
     if (text or "").strip() == "auto":
         if machine is None:
             raise ValueError("--pose-levels auto needs the machine")
-        return edge_levels(machine)
+        return auto_levels(machine)
+    every = (text or "").strip()
+    parts = [f"{a}={every}" for a in axes] if every.isdigit() else (text or "").split(",")
     out: dict[str, int] = {}
-    for part in filter(None, (t.strip() for t in (text or "").split(","))):
+    for part in filter(None, (t.strip() for t in parts)):
         name, eq, count = part.partition("=")
         name = name.strip()
         if not eq or not count.strip().isdigit():

@@ -82,7 +82,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "iterations; the rail benchmark, 1,357 states, order 40: 38 s for 20,000)")
     p.add_argument("--poses", choices=("star", "grid"),
                    help="also give the drift at every pose: a reduced model per support pose (star: every axis at its "
-                   "travel ends with the others at --pose, 2n+1 poses; grid: all 3^n), each on its own FE model, "
+                   "levels (its travel ends, and more with --pose-levels) with the others at --pose; grid: all 3^n), "
+                   "each on its own FE model, "
                    "its drift an output group beside the model pose's (simulate --rom writes it to poses.csv, the drives' "
                    "errors to feedback.csv); interpolated by hybridcomp.rom.poses.drift_along; as the daemon's "
                    "monitor.rom it compensates where the tool is. The written model keeps no basis")
@@ -90,8 +91,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --poses: N levels along an axis instead of 3 (odd: the model's pose and evenly spaced "
                    "levels on either side down to the travel's ends, piecewise quadratic between them), e.g. Y=7 "
                    "where the drift along the table's axis kinks as the tool leaves the table; star: N-1 support "
-                   "poses on that axis instead of 2; auto: 7 along every axis on which the tool leaves the table "
-                   "(with [table_reference] under_tool)")
+                   "poses on that axis instead of 2; a bare N: N along every axis (3: the plain star); auto: 7 along "
+                   "every axis on which the tool leaves the table (with [table_reference] under_tool) or that "
+                   "carries the tool (vmc800: Y and Z, 15 support poses). Default: auto with star, 3 with grid")
     p.add_argument("--pose-enrich", type=int, metavar="N",
                    help="with --poses: Krylov directions of each support pose's own system added to the carried basis "
                    "(default 20)")
@@ -176,7 +178,9 @@ def run(args: argparse.Namespace) -> int:
             if ends:
                 raise ValueError(f"--poses needs the model's pose inside the travel: --pose puts {ends[0]} at a travel "
                                  "end, where the support poses would coincide")
-            levels = parse_levels(args.pose_levels, [a.name for a in machine.axes], machine)
+            default = "auto" if args.poses == "star" else "3"  # a grid's poses are the product of the levels
+            levels = parse_levels(default if args.pose_levels is None else args.pose_levels,
+                                  [a.name for a in machine.axes], machine)
             check = read_loads(args.check_loads, machine) if args.check_loads else None
             if check is not None and len(check.time_s) < 2:
                 raise LoadsFileError(f"{args.check_loads}: needs at least two rows")

@@ -19,12 +19,13 @@ def test_hold_rows_give_the_move_row_to_the_new_hold(benchmark_script):
 
 @pytest.mark.slow
 def test_planted_errors_fail_where_the_prediction_passes(capsys, benchmark_script):
-    """200 mm, 5 min steps, no off-grid poses held all day: the second path's first hold sits at support pose 5 (the
-    Z axis' lower end), where the pose-aware model is its own block; dropping that block must fail the criterion.
+    """200 mm, 5 min steps, no off-grid poses held all day: the second path's first hold sits at support pose 9 (the
+    Z axis' lower end with the default levels, seven along Y and Z), where the pose-aware model is its own block;
+    dropping that block must fail the criterion.
     After the move to the Z axis' upper end, the model that ignores the pose history must fail too."""
-    assert benchmark_script("pose_path").main(["--fast", "--poses", "0", "--plant", "5"]) == 0
+    assert benchmark_script("pose_path").main(["--fast", "--poses", "0", "--plant", "9"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert out["plant"] == 5 and out["element_size_mm"] == 200.0
+    assert out["plant"] == 9 and out["element_size_mm"] == 200.0 and out["levels"] == {"Y": 7, "Z": 7}
     hold = next(c for c in out["cases"] if c["case"] == "8 h Z low, 8 h Z high" and c["hold"].startswith("1:"))
     assert hold["pose-aware ROM"]["ok"], hold
     assert not hold["planted: a support pose dropped"]["ok"], hold

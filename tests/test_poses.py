@@ -123,18 +123,28 @@ def test_three_levels_are_the_former_grid_and_bad_counts_are_refused(vmc):
         axis_levels(-1.0, 0.0, 1.0, 4)
 
 
-def test_auto_levels_are_seven_along_the_axes_on_which_the_tool_leaves_the_table(vmc):
+def test_auto_levels_are_seven_along_the_axes_that_leave_the_table_or_carry_the_tool(vmc):
     """vmc800 takes the drift under the tool, and only its Y moves the table from under the tool (at Y -325 the tool
-    is 225 mm behind the table's rear edge); with the drift at the table reference no axis gets more levels."""
+    is 225 mm behind the table's rear edge); its Z carries the tool (the headstock, on which the spindle is mounted).
+    With the drift at the table reference only Z gets more levels; with the spindle mounted on the column, none."""
     import dataclasses
 
-    from hybridcomp.fem.poses import EDGE_LEVELS, edge_levels, parse_levels
+    from hybridcomp.fem.poses import EDGE_LEVELS, auto_levels, edge_levels, parse_levels, tool_axes
 
     axes = [a.name for a in vmc.axes]
-    assert EDGE_LEVELS == 7 and edge_levels(vmc) == {"Y": 7} == parse_levels("auto", axes, vmc)
-    assert edge_levels(dataclasses.replace(vmc, table_under_tool=False)) == {}
+    assert EDGE_LEVELS == 7 and edge_levels(vmc) == {"Y": 7} and tool_axes(vmc) == ("Z",)
+    assert auto_levels(vmc) == {"Y": 7, "Z": 7} == parse_levels("auto", axes, vmc)
+    at_reference = dataclasses.replace(vmc, table_under_tool=False)
+    assert edge_levels(at_reference) == {} and auto_levels(at_reference) == {"Z": 7}
+    spindle = vmc.body(vmc.tcp.body)
+    on_column = dataclasses.replace(vmc, bodies=tuple(dataclasses.replace(b, mounted_on="column") if b is spindle
+                                                      else b for b in vmc.bodies))
+    assert tool_axes(on_column) == () and auto_levels(dataclasses.replace(on_column, table_under_tool=False)) == {}
     with pytest.raises(ValueError, match="needs the machine"):
         parse_levels("auto", axes)
+    assert parse_levels("3", axes) == {"X": 3, "Y": 3, "Z": 3} and parse_levels("5", axes) == {"X": 5, "Y": 5, "Z": 5}
+    with pytest.raises(ValueError, match="--pose-levels '4': X = 4, a number of levels must be odd"):
+        parse_levels("4", axes)
 
 
 # --------------------------------------------------------------------------- the field carried with the bodies
@@ -170,7 +180,8 @@ def test_pose_aware_rom_keeps_the_model_pose_outputs(pose_rom, loads):
     np.testing.assert_allclose(b.drift_um, a.drift_um, atol=1e-9)
     np.testing.assert_allclose(b.sensors_degC, a.sensors_degC, atol=1e-12)
     assert pr.order == sum(pr.meta["poses"]["orders"])
-    assert len(pr.output_names) == rom.C.shape[0] + 18 + 3 * FEEDBACK_POINTS  # 6 poses' drift, 3 drives' errors
+    support = len(pr.meta["poses"]["poses"]) - 1  # after the model's pose: 6 with three levels, 14 by default
+    assert len(pr.output_names) == rom.C.shape[0] + 3 * support + 3 * FEEDBACK_POINTS  # their drift, 3 drives' errors
 
 
 @pytest.mark.slow
