@@ -52,7 +52,7 @@ from pose_drift import random_poses
 
 from hybridcomp.fem.loads import example_loads
 from hybridcomp.fem.model import build_model
-from hybridcomp.fem.poses import SCHEMES, carry_field, parse_levels, support_poses_of
+from hybridcomp.fem.poses import SCHEMES, carry_field, default_levels, parse_levels, support_poses_of
 from hybridcomp.models import jsonio, load_machine
 from hybridcomp.models.layout import Loads
 from hybridcomp.rom.machine import reduce_model
@@ -151,8 +151,7 @@ def main(argv=None) -> int:
     h_mm, dt_s = (200.0, 300.0) if a.fast else (a.element_size_mm, a.dt_s)
     m = load_machine("vmc800")
     try:
-        text = a.levels if a.levels is not None else ("auto" if a.scheme == "star" else "3")
-        levels = parse_levels(text, [x.name for x in m.axes], m)
+        levels = default_levels(m, a.scheme) if a.levels is None else parse_levels(a.levels, [x.name for x in m.axes], m)
     except ValueError as exc:
         p.error(str(exc))
     counts = tuple(levels.get(x.name, 3) for x in m.axes)

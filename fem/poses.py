@@ -181,6 +181,15 @@ def auto_levels(machine: Machine) -> dict[str, int]:
     return {a.name: EDGE_LEVELS for a in machine.axes if a.name in edge_levels(machine) or a.name in tool_axes(machine)}
 
 
+def default_levels(machine: Machine, scheme: str = "star") -> dict[str, int]:
+    """The levels a pose-aware model gets when none are asked for (``reduce_at_poses``, ``reduce --poses``).
+
+    :func:`auto_levels` for a star, three along every axis for a grid (its support poses are the product of the
+    levels).
+    """
+    return auto_levels(machine) if scheme == "star" else {}
+
+
 def parse_levels(text: str | None, axes: tuple[str, ...] | list[str], machine: Machine | None = None) -> dict[str, int]:
     """Levels per axis (:func:`pose_grid`) from ``"Y=7"`` or ``"X=5,Y=7"``.
 

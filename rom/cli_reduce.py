@@ -178,9 +178,8 @@ def run(args: argparse.Namespace) -> int:
             if ends:
                 raise ValueError(f"--poses needs the model's pose inside the travel: --pose puts {ends[0]} at a travel "
                                  "end, where the support poses would coincide")
-            default = "auto" if args.poses == "star" else "3"  # a grid's poses are the product of the levels
-            levels = parse_levels(default if args.pose_levels is None else args.pose_levels,
-                                  [a.name for a in machine.axes], machine)
+            levels = None if args.pose_levels is None else parse_levels(  # None: reduce_at_poses' default
+                args.pose_levels, [a.name for a in machine.axes], machine)
             check = read_loads(args.check_loads, machine) if args.check_loads else None
             if check is not None and len(check.time_s) < 2:
                 raise LoadsFileError(f"{args.check_loads}: needs at least two rows")

@@ -44,7 +44,7 @@ import scipy.linalg as la
 from hybridcomp.fem.drives import drive_error
 from hybridcomp.fem.iso230 import axis_sign
 from hybridcomp.fem.operators import ThermalOperators
-from hybridcomp.fem.poses import PoseGrid, auto_levels, carry_field, pose_grid
+from hybridcomp.fem.poses import PoseGrid, carry_field, default_levels, pose_grid
 from hybridcomp.models.layout import feedback_output_names, output_layout, pose_output_names
 from hybridcomp.rom.krylov import Reductor, orthonormal_extension, project
 from hybridcomp.rom.reduced import ReducedModel, RomInputError
@@ -75,8 +75,8 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
         local process pool (one BLAS thread each); ``"local"`` or a Dask scheduler address: a Dask cluster
     progress : a progress bar over the support poses (stderr)
     levels : per axis name its number of levels (odd, ≥ 3; :func:`hybridcomp.fem.poses.pose_grid`), 3 for the rest;
-        None: the star's default, :func:`hybridcomp.fem.poses.auto_levels` (vmc800: 7 along Y and Z), and three
-        along every axis of a grid (its poses are the product of the levels); ``{}``: three along every axis
+        None: :func:`hybridcomp.fem.poses.default_levels` (a star: vmc800 7 along Y and Z; a grid: three along
+        every axis); ``{}``: three along every axis
     """
     if rom.V is None:
         raise RomInputError("the pose-aware model carries the reduced model's basis: reduce with the basis kept")
@@ -88,9 +88,7 @@ def reduce_at_poses(model, rom: ReducedModel, scheme: str = "star", enrich: int 
         raise ValueError(f"workers must be at least 1, got {workers}")
     t0 = time.perf_counter()
     machine = model.machine
-    if levels is None:
-        levels = auto_levels(machine) if scheme == "star" else {}
-    grid = pose_grid(model, scheme, levels)
+    grid = pose_grid(model, scheme, default_levels(machine, scheme) if levels is None else levels)
     if input_scale is None:
         from hybridcomp.fem.loads import example_loads
 

@@ -129,11 +129,12 @@ def test_auto_levels_are_seven_along_the_axes_that_leave_the_table_or_carry_the_
     With the drift at the table reference only Z gets more levels; with the spindle mounted on the column, none."""
     import dataclasses
 
-    from hybridcomp.fem.poses import EDGE_LEVELS, auto_levels, edge_levels, parse_levels, tool_axes
+    from hybridcomp.fem.poses import EDGE_LEVELS, auto_levels, default_levels, edge_levels, parse_levels, tool_axes
 
     axes = [a.name for a in vmc.axes]
     assert EDGE_LEVELS == 7 and edge_levels(vmc) == {"Y": 7} and tool_axes(vmc) == ("Z",)
-    assert auto_levels(vmc) == {"Y": 7, "Z": 7} == parse_levels("auto", axes, vmc)
+    assert auto_levels(vmc) == {"Y": 7, "Z": 7} == parse_levels("auto", axes, vmc) == default_levels(vmc, "star")
+    assert default_levels(vmc, "grid") == {}  # a grid's support poses are the product of the levels
     at_reference = dataclasses.replace(vmc, table_under_tool=False)
     assert edge_levels(at_reference) == {} and auto_levels(at_reference) == {"Z": 7}
     spindle = vmc.body(vmc.tcp.body)
