@@ -52,14 +52,16 @@ def small_rom(machine, model_200mm):
 def pose_roms_200mm(machine, model_200mm):
     """``model_200mm`` reduced to the default tolerance (checked on a 4 h example day) and its pose-aware model over
     the star of support poses, with the drives: an FE model built and reduced at each of six poses (about 10 s), so
-    every test that takes it is marked slow. (reduced model, pose-aware model)"""
+    every test that takes it is marked slow; three levels along every axis, seven support poses (the mechanics its
+    tests check do not depend on the levels; the default levels, 15 support poses, cost the suite a minute:
+    ``tests/test_poses.py`` and ``tests/test_pose_path.py`` build them). (reduced model, pose-aware model)"""
     import numpy as np
 
     from hybridcomp.rom.poses import reduce_at_poses
 
     loads = hc.example_loads(machine, 4.0, 300.0)
     rom = hc.reduce_model(model_200mm, check_loads=loads)
-    return rom, reduce_at_poses(model_200mm, rom, "star",
+    return rom, reduce_at_poses(model_200mm, rom, "star", levels={},
                                 input_scale=np.abs(model_200mm.layout().inputs(loads)).max(axis=0))
 
 

@@ -34,8 +34,8 @@ def loads(vmc):
 
 @pytest.fixture(scope="module")
 def pose_rom(model, loads):
-    """The reduced model to the default tolerance and its pose-aware model over the star: an FE model built and
-    reduced at each of six support poses, so every test that takes it is marked slow."""
+    """The reduced model to the default tolerance and its pose-aware model over the star with the default levels:
+    an FE model built and reduced at each of 14 support poses, so every test that takes it is marked slow."""
     rom = reduce_model(model, check_loads=loads)
     return rom, reduce_at_poses(model, rom, "star", input_scale=np.abs(model.layout().inputs(loads)).max(axis=0))
 
