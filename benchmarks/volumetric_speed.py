@@ -55,9 +55,9 @@ def pose_rom(machine, element_size_mm: float, path: str | None):
     """The pose-aware reduced model from ``path``, or built and cached in the temporary folder."""
     if path:
         return load_rom(path, machine), 0.0
-    from hybridcomp.fem.poses import auto_levels
+    from hybridcomp.fem.poses import default_levels
 
-    levels = "".join(f"{a}{n}" for a, n in sorted(auto_levels(machine).items())) or "3"  # a model of other levels
+    levels = "".join(f"{a}{n}" for a, n in sorted(default_levels(machine).items())) or "3"  # not a model of others
     cache = Path(tempfile.gettempdir()) / f"hybridcomp-volumetric-{machine.name}-{element_size_mm:g}mm-{levels}.npz"
     if cache.exists():
         return load_rom(cache, machine), 0.0

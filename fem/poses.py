@@ -178,7 +178,8 @@ def auto_levels(machine: Machine) -> dict[str, int]:
     0.52, along Z 0.46, along both 0.23 against a limit of 0.40; seven along X alone: 0.75).  vmc800: Y and Z, 15
     support poses against 7.
     """
-    return {a.name: EDGE_LEVELS for a in machine.axes if a.name in edge_levels(machine) or a.name in tool_axes(machine)}
+    refined = set(edge_levels(machine)) | set(tool_axes(machine))
+    return {a.name: EDGE_LEVELS for a in machine.axes if a.name in refined}
 
 
 def default_levels(machine: Machine, scheme: str = "star") -> dict[str, int]:
@@ -201,12 +202,12 @@ def parse_levels(text: str | None, axes: tuple[str, ...] | list[str], machine: M
     ValueError
         naming the option's text and what is wrong in it (not AXIS=N, an axis the machine has not, N not odd ≥ 3)
     """
-    if (text or "").strip() == "auto":
+    whole = (text or "").strip()
+    if whole == "auto":
         if machine is None:
             raise ValueError("--pose-levels auto needs the machine")
         return auto_levels(machine)
-    every = (text or "").strip()
-    parts = [f"{a}={every}" for a in axes] if every.isdigit() else (text or "").split(",")
+    parts = [f"{a}={whole}" for a in axes] if whole.isdigit() else whole.split(",")
     out: dict[str, int] = {}
     for part in filter(None, (t.strip() for t in parts)):
         name, eq, count = part.partition("=")

@@ -136,9 +136,10 @@ def _axis_levels(lo: float, mid: float, hi: float, n: int, axis: str) -> tuple[f
         raise VolumetricError(f"support grid: axis {axis} needs an integer number of points ≥ 2, got {n!r}")
     if n == 2:
         return (lo, hi)
-    if n % 2:  # the model's pose a support point, evenly on either side
-        h = (n + 1) // 2
-        return tuple(np.linspace(lo, mid, h).tolist() + np.linspace(mid, hi, h)[1:].tolist())
+    if n % 2:  # the model's pose a support point, evenly on either side: as the support poses' levels
+        from hybridcomp.fem.poses import axis_levels
+
+        return axis_levels(lo, mid, hi, n)
     return tuple(np.linspace(lo, hi, n).tolist())
 
 
