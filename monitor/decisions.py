@@ -23,10 +23,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
+from hybridcomp.frozen import evolve
 from hybridcomp.models.toml import nonnegative_number
 
 # --------------------------------------------------------------------------- compensation offsets
@@ -359,7 +360,7 @@ def check_sensor(
         raw_since = state.raw_since_s
     else:
         raw_since = time_s
-    st = replace(state, raw_degC=raw_degC if math.isfinite(raw_degC) else math.nan, raw_since_s=raw_since,
+    st = evolve(state, raw_degC=raw_degC if math.isfinite(raw_degC) else math.nan, raw_since_s=raw_since,
                  model_moved_K=state.model_moved_K if raw_since == state.raw_since_s else 0.0)
 
     reason = ""
@@ -382,19 +383,19 @@ def check_sensor(
 
     if not reason:
         event = "recovered" if state.status == "degraded" else None
-        new = replace(st, status="ok", value_degC=float(raw_degC), good_time_s=time_s, bad_since_s=math.nan, reason="")
+        new = evolve(st, status="ok", value_degC=float(raw_degC), good_time_s=time_s, bad_since_s=math.nan, reason="")
         return SensorVerdict(new, float(raw_degC), event)
 
     if st.status == "degraded":
-        return SensorVerdict(replace(st, reason=reason), math.nan, None)
+        return SensorVerdict(evolve(st, reason=reason), math.nan, None)
     bad_since = st.bad_since_s if math.isfinite(st.bad_since_s) else time_s
     if reason == "frozen":  # the value has been stuck since raw_since: count the hold from there
         bad_since = min(bad_since, raw_since + rules.frozen_s)
     if not math.isfinite(st.value_degC) or time_s - bad_since > rules.hold_s:
-        new = replace(st, status="degraded", bad_since_s=bad_since, reason=reason)
+        new = evolve(st, status="degraded", bad_since_s=bad_since, reason=reason)
         return SensorVerdict(new, math.nan, "degraded")
     event = "holding" if st.status == "ok" else None
-    new = replace(st, status="holding", bad_since_s=bad_since, reason=reason)
+    new = evolve(st, status="holding", bad_since_s=bad_since, reason=reason)
     return SensorVerdict(new, st.value_degC, event)
 
 
@@ -405,8 +406,8 @@ def model_moved(state: SensorState, step_start_s: float, predicted_step_K: float
     has not changed since before the step began; otherwise starts again from 0.
     """
     if stood_still(state, step_start_s) and math.isfinite(predicted_step_K):
-        return replace(state, model_moved_K=state.model_moved_K + predicted_step_K)
-    return replace(state, model_moved_K=0.0)
+        return evolve(state, model_moved_K=state.model_moved_K + predicted_step_K)
+    return evolve(state, model_moved_K=0.0)
 
 
 def model_moved_since(state: SensorState, step_start_s: float, moved_K: float) -> SensorState:
@@ -416,8 +417,8 @@ def model_moved_since(state: SensorState, step_start_s: float, moved_K: float) -
     of this one; it counts while the raw reading has not changed since before this step began, otherwise 0.
     """
     if stood_still(state, step_start_s) and math.isfinite(moved_K):
-        return replace(state, model_moved_K=float(moved_K))
-    return replace(state, model_moved_K=0.0)
+        return evolve(state, model_moved_K=float(moved_K))
+    return evolve(state, model_moved_K=0.0)
 
 
 def stood_still(state: SensorState, step_start_s: float) -> bool:

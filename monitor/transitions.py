@@ -36,11 +36,12 @@ import math
 import re
 import warnings
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from hybridcomp.chardiag.cd import CDSet
+from hybridcomp.frozen import evolve
 from hybridcomp.histogram.bcs import boundary_conditions
 from hybridcomp.histogram.increments import increments_from_samples
 from hybridcomp.histogram.signature import SignatureLayout, signatures
@@ -391,14 +392,14 @@ def _set(st: State, **kw) -> State:
     """``st`` with fields replaced: those of :class:`MonitorState` in ``saved``, the others in the state."""
     saved = {k: kw.pop(k) for k in list(kw) if k in _SAVED}
     if saved:
-        kw["saved"] = replace(st.saved, **saved)
-    return replace(st, **kw) if kw else st
+        kw["saved"] = evolve(st.saved, **saved)
+    return evolve(st, **kw) if kw else st
 
 
 def counted(st: State, **inc) -> State:
     """``st`` with its counters increased by ``inc`` (name → increment)."""
     c = st.counters
-    return replace(st, counters=replace(c, **{k: getattr(c, k) + v for k, v in inc.items()}))
+    return evolve(st, counters=evolve(c, **{k: getattr(c, k) + v for k, v in inc.items()}))
 
 
 def _t(x: float) -> str:
@@ -424,28 +425,28 @@ def restored(ctx: Context, saved: MonitorState) -> State:
     """The state of a persisted boundary: the pose-aware model's state, the last table and the gains read back."""
     if saved.dataonly is not None and (ctx.dataonly is None
                                        or not dataonly_strategy.compatible(ctx.dataonly, saved.dataonly)):
-        saved = replace(saved, dataonly=None)  # another strategy's or model's: the data-only model starts afresh
-    st = replace(initial(ctx), saved=saved)
+        saved = evolve(saved, dataonly=None)  # another strategy's or model's: the data-only model starts afresh
+    st = evolve(initial(ctx), saved=saved)
     if ctx.pose is not None:
         from hybridcomp.rom.volumetric import table_from_dict
 
-        st = replace(st, track=volumetric.state_in(ctx.pose, saved.pose_track, saved.step_inputs, ctx.cfg.increment_s),
+        st = evolve(st, track=volumetric.state_in(ctx.pose, saved.pose_track, saved.step_inputs, ctx.cfg.increment_s),
                      written_table=table_from_dict(saved.table) if saved.table is not None else None)
         if saved.gains is not None:
-            st = replace(st, drive_gains=volumetric.DriveGains.from_dict(saved.gains))
+            st = evolve(st, drive_gains=volumetric.DriveGains.from_dict(saved.gains))
     elif saved.table is not None:  # a CD grid's table (a one-pose model): the rate limit continues from it
         from hybridcomp.rom.volumetric import table_from_dict
 
-        st = replace(st, written_table=table_from_dict(saved.table))
+        st = evolve(st, written_table=table_from_dict(saved.table))
     if saved.carry is not None:
-        st = replace(st, buffer=(saved.carry,))
+        st = evolve(st, buffer=(saved.carry,))
     return st
 
 
 def with_active(ctx: Context, st: State, active: CDSet | None) -> State:
     """The state with ``active`` the active set as the database has it (the database has the last word)."""
     ids = {k: int(v) for k, v in active.ids.items()} if active is not None else None
-    return replace(_set(st, active_ids=ids), active=active, eval_failed_logged=False)
+    return evolve(_set(st, active_ids=ids), active=active, eval_failed_logged=False)
 
 
 def with_active_grid(ctx: Context, st: State, grid) -> State:
@@ -456,7 +457,7 @@ def with_active_grid(ctx: Context, st: State, grid) -> State:
     The next compensation cycles build the support-point table from its sets (:func:`_compensate_from_grid`); the
     table written last stays the rate limit's start (carried onto the new grid's points when they differ).
     """
-    return replace(st, grid=grid if ctx.pose is None and ctx.dataonly is None else None)
+    return evolve(st, grid=grid if ctx.pose is None and ctx.dataonly is None else None)
 
 
 def boundary_saved(ctx: Context, boundary: State | None, st: State) -> MonitorState:
@@ -467,7 +468,7 @@ def boundary_saved(ctx: Context, boundary: State | None, st: State) -> MonitorSt
     """
     snap = boundary.saved if boundary is not None else initial(ctx).saved
     s = st.saved
-    return replace(snap, pending=s.pending, regen_blocked_until_s=s.regen_blocked_until_s,
+    return evolve(snap, pending=s.pending, regen_blocked_until_s=s.regen_blocked_until_s,
                    grid_pending=s.grid_pending, grid_blocked_until_s=s.grid_blocked_until_s,
                    activated_s=s.activated_s, active_ids=s.active_ids)
 
@@ -512,7 +513,7 @@ def on_reading(ctx: Context, st: State, r: Reading, stored_sets: StoredSets = no
             st = _close_step(ctx, st, gap_end, stored_sets, out, standstill=True)
         while r.time_s > st.saved.next_step_s:
             st = _close_step(ctx, st, st.saved.next_step_s, stored_sets, out)
-        st = replace(_set(st, **mine), buffer=(*st.buffer, r))
+        st = evolve(_set(st, **mine), buffer=(*st.buffer, r))
     st = _set(st, last_time_s=r.time_s)
     st = _check_sensors(ctx, st, r, out)
     st = _filter(ctx, st, r.time_s)
@@ -560,7 +561,7 @@ def _check_time(ctx: Context, st: State, r: Reading, now: float | None, time_sca
             }, f"jump@{_t(s.last_time_s)}")
             out.log("warning", f"implausible time stamp {r.time_s!r} s after {s.last_time_s:.3f} s: dropped")
         elif chk.verdict == "invalid" and st.invalid_after_s != s.last_time_s:
-            st = replace(st, invalid_after_s=s.last_time_s)  # one event per run of invalid stamps
+            st = evolve(st, invalid_after_s=s.last_time_s)  # one event per run of invalid stamps
             out.event("time", s.last_time_s, {
                 "status": "invalid time stamp", "source_time_s": _finite(r.time_s), "last_time_s": s.last_time_s,
                 "message": f"time stamp {r.time_s!r} s is not a time (not finite, or beyond ±1e10 s): dropped"},
@@ -577,9 +578,9 @@ def _check_time(ctx: Context, st: State, r: Reading, now: float | None, time_sca
         out.log("warning", msg)
         st = counted(st, resyncs=int(chk.verdict == "resync"), gaps=int(chk.verdict == "gap"))
     pace = st.pace if chk.verdict == "ok" else ()
-    st = replace(_set(st, time_offset_s=chk.offset_s, last_source_time_s=r.time_s, last_wall_unix=now),
+    st = evolve(_set(st, time_offset_s=chk.offset_s, last_source_time_s=r.time_s, last_wall_unix=now),
                  pace=(*pace, (chk.time_s, now))[-PACE_SAMPLES:])
-    return st, (r if chk.time_s == r.time_s else replace(r, time_s=chk.time_s))
+    return st, (r if chk.time_s == r.time_s else evolve(r, time_s=chk.time_s))
 
 
 def _time_scale(pace, setting) -> float | None:
@@ -596,7 +597,7 @@ def _start(ctx: Context, st: State, r: Reading) -> State:
     st = _set(st, origin_s=r.time_s, next_comp_s=r.time_s, next_step_s=r.time_s + ctx.cfg.increment_s,
               next_mon_s=r.time_s,  # the first decision at once
               carry=r)  # the first step's histogram starts here, after a restart from the first decision too
-    return replace(st, buffer=(r,))
+    return evolve(st, buffer=(r,))
 
 
 def _clean(ctx: Context, st: State, r: Reading) -> tuple[State, Reading]:
@@ -659,7 +660,7 @@ def _check_sensors(ctx: Context, st: State, r: Reading, out: _Out) -> State:
         measured[name] = v.value_degC if v.state.status != "degraded" else math.nan
         temps[name] = v.value_degC if math.isfinite(v.value_degC) else ref
     row = (r.time_s, np.array([measured[n] for n in ctx.sensor_names]))
-    return replace(_set(st, sensors=sensors), temps=temps, measured=measured,
+    return evolve(_set(st, sensors=sensors), temps=temps, measured=measured,
                    step_readings=(*st.step_readings, row))
 
 
@@ -689,13 +690,13 @@ def _dataonly_step(ctx: Context, st: State, r: Reading) -> State:
     sensors = {n: float(values.get(n, ctx.t_ref)) for n in model.sensors}
     spindle = {"spindle_rpm": float(r.spindle_rpm)}
     if not all(map(math.isfinite, [*sensors.values(), *spindle.values()])):
-        return replace(st, dataonly_um=None, dataonly_sd_um=None)
+        return evolve(st, dataonly_um=None, dataonly_sd_um=None)
     if s.dataonly is None:
         ds = dataonly_strategy.start(model, r.time_s, sensors, spindle)
         off, sd = dataonly_strategy.predict(model, ds)
     else:
         ds, off, sd = dataonly_strategy.step(model, s.dataonly, r.time_s, sensors, spindle, r.probe_um)
-    return replace(_set(st, dataonly=ds), dataonly_um=off, dataonly_sd_um=sd)
+    return evolve(_set(st, dataonly=ds), dataonly_um=off, dataonly_sd_um=sd)
 
 
 def _probe(ctx: Context, st: State, r: Reading) -> State:
@@ -711,7 +712,7 @@ def _probe(ctx: Context, st: State, r: Reading) -> State:
                                          st.drive_gains, st.raw_table_of[0], st.raw_table_of[1],
                                          None if st.saved.drift_um is None
                                          else tuple(float(v) for v in st.saved.drift_um)))
-        st = replace(st, drive_gains=gains, step_gain_probes=learnt)
+        st = evolve(st, drive_gains=gains, step_gain_probes=learnt)
         # the observer owns the model's pose: a probe elsewhere teaches the drives' gains only (taken to the pose
         # through the table, the table's errors there would reach the one-pose estimate); one at the pose less the
         # drives' errors there, which the one-pose model does not hold
@@ -744,7 +745,7 @@ def _first_estimate(ctx: Context, st: State, t: float, stored_sets: StoredSets, 
     u = _standstill_inputs(ctx, st.buffer[-1])
     obs = ctx.observer.initial(u, t)
     obs, _ = ctx.observer.update_sensors(obs, [st.measured[n] for n in ctx.sensor_names])
-    st = replace(_set(st, observer=obs), step_readings=())
+    st = evolve(_set(st, observer=obs), step_readings=())
     st = _after_update(ctx, st, t, u)
     st = _record(ctx, st, t)
     return _close_interval(ctx, st, t, stored_sets, out)
@@ -817,7 +818,7 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
          if st.step_readings else np.full(len(ctx.sensor_names), math.nan))
     probe = _probe_at_pose(st, s.probe_um)
     weights = _step_weights(ctx, st, end_s) if ctx.pose is not None else None
-    st = _log_step(ctx, replace(st, step_readings=()), end_s, dt, u, y, probe, before, weights)
+    st = _log_step(ctx, evolve(st, step_readings=()), end_s, dt, u, y, probe, before, weights)
     state, inn = obs.update_sensors(state, y)
     rejected = dict(s.rejected)
     for name in inn.rejected:
@@ -849,7 +850,7 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
     st = counted(_record(ctx, st, end_s), model_steps=1)
     # next step: the last sample carries over (continuity of the histogram)
     carry = st.buffer[-1] if st.buffer else st.saved.carry
-    st = replace(_set(st, carry=carry, next_step_s=end_s + ctx.cfg.increment_s),
+    st = evolve(_set(st, carry=carry, next_step_s=end_s + ctx.cfg.increment_s),
                  buffer=(carry,) if carry is not None else ())
     if end_s >= st.saved.next_mon_s:
         st = _close_interval(ctx, st, end_s, stored_sets, out)
@@ -911,7 +912,7 @@ def _log_step(ctx: Context, st: State, end_s: float, dt: float, u, y, probe, bef
     keep = rules.frozen_s + rules.hold_s + (SNAPSHOT_STEPS + 2) * ctx.cfg.increment_s
     while len(rw) > SNAPSHOT_STEPS and rw[SNAPSHOT_STEPS].end_s < end_s - keep:
         rw = rw[SNAPSHOT_STEPS:]  # drop whole snapshot groups: the first record keeps its snapshot
-    return replace(st, rewind=rw, step_gain_probes=())
+    return evolve(st, rewind=rw, step_gain_probes=())
 
 
 def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, out: _Out) -> State:
@@ -961,9 +962,9 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
         m[j] = math.nan
         return m
 
-    st = replace(_set(st, observer=state), step_readings=tuple((tm, without(m)) for tm, m in st.step_readings))
+    st = evolve(_set(st, observer=state), step_readings=tuple((tm, without(m)) for tm, m in st.step_readings))
     if ctx.pose is not None and track is not None:
-        st = replace(st, track=track)
+        st = evolve(st, track=track)
     for gp in st.step_gain_probes:  # this step's, against the model as it stands at the step's start
         gains = _relearnt(ctx, gains, gp, state, track)
     payload = {"status": "rewound", "sensor": sensor, "onset_s": onset_s, "steps_masked": masked,
@@ -971,7 +972,7 @@ def _refilter(ctx: Context, st: State, sensor: str, onset_s: float, t: float, ou
     if gains is not None:
         payload["gain_probes_relearnt"] = len(learnt)
         payload["drive_gains"] = {a: float(v) for a, v in zip(gains.axes, gains.g)}
-        st = replace(st, drive_gains=gains)
+        st = evolve(st, drive_gains=gains)
     if s.step_inputs is not None:
         st = _after_update(ctx, st, s.step_time_s, np.asarray(s.step_inputs, float))
     out.event("observer", t, payload, f"rewind@{sensor}@{_t(t)}")
@@ -1036,7 +1037,7 @@ def _after_update(ctx: Context, st: State, t: float, u: np.ndarray, weights=None
         if track is not None and t > track.time_s and weights is None:
             weights = _step_weights(ctx, st, t)
         track = _advanced(ctx, track, obs.corrected_inputs(state, u), t, weights)
-    st = replace(_set(st, step_time_s=t, step_inputs=[float(v) for v in u],
+    st = evolve(_set(st, step_time_s=t, step_inputs=[float(v) for v in u],
                       drift_um=[float(v) for v in obs.drift_um(state)],
                       drift_next_um=[float(v) for v in obs.forecast(state, u[None, :], ctx.cfg.increment_s)[1][0]]),
                  track=track)
@@ -1152,7 +1153,7 @@ def _compensate(ctx: Context, st: State, r: Reading, out: _Out) -> tuple[State, 
     # the first offsets of a fresh state have nothing to continue: only clamped (a restart continues its own)
     step = cfg.max_step_um if s.written else math.inf
     applied, clamped, limited = decisions.limit_offsets(target, s.offsets_um, cfg.max_offset_um, step)
-    st = replace(_set(st, offsets_um=applied, written=True, **upd), eval_failed_logged=eval_failed,
+    st = evolve(_set(st, offsets_um=applied, written=True, **upd), eval_failed_logged=eval_failed,
                  nonfinite_logged=nonfinite)
     ids = s.active_ids or {}
     active = ",".join(f"{k}={ids[k]}" for k in sorted(ids))
@@ -1176,18 +1177,18 @@ def _compensate_at_position(ctx: Context, st: State, r: Reading, at_pose: tuple,
     try:
         raw = volumetric.table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s, at_pose)
         nut = volumetric.nut_table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s)
-        st = replace(st, raw_table=raw, raw_nut_table=nut,
+        st = evolve(st, raw_table=raw, raw_nut_table=nut,
                      raw_table_of=(float(r.time_s), tuple(float(v) for v in at_pose)))
         table = volumetric.with_gains(raw, st.drive_gains, nut)
         table, moved = volumetric.table_step(table, st.written_table, ctx.cfg.max_step_um)
     except VolumetricError as exc:  # a model gone non-finite: the one-pose offsets, the last table held
         if not st.nonfinite_logged:
-            st = replace(st, nonfinite_logged=True)
+            st = evolve(st, nonfinite_logged=True)
             out.event("warning", r.time_s, {"message": f"the support-point table cannot be built ({exc}); the "
                                             "offsets at the model's pose are written"}, f"table@{_t(r.time_s)}")
         return st, Offset(r.time_s, *at_pose, active, clamped, limited, outside, degraded, by)
     dx, dy, dz = interpolate_one(table, r.position_mm)
-    return replace(st, written_table=table), Offset(
+    return evolve(st, written_table=table), Offset(
         r.time_s, dx, dy, dz, active, clamped, limited or moved, outside, degraded, by,
         position_mm=tuple(float(v) for v in r.position_mm), pose_um=at_pose, table=table)
 
@@ -1210,13 +1211,13 @@ def _compensate_from_grid(ctx: Context, st: State, r: Reading, at_pose: tuple, a
         table, moved = volumetric.table_step(table, old, ctx.cfg.max_step_um)
     except (KeyError, ValueError) as exc:  # VolumetricError and CDError are ValueErrors
         if not st.nonfinite_logged:
-            st = replace(st, nonfinite_logged=True)
+            st = evolve(st, nonfinite_logged=True)
             out.event("warning", r.time_s, {"message": f"the CD grid {grid.grid_id} cannot give a support-point table "
                                             f"({type(exc).__name__}: {exc}); the offsets at the model's pose are "
                                             "written"}, f"grid@{_t(r.time_s)}")
         return st, Offset(r.time_s, *at_pose, active, clamped, limited, outside, degraded, by)
     dx, dy, dz = interpolate_one(table, r.position_mm)
-    return replace(st, written_table=table), Offset(
+    return evolve(st, written_table=table), Offset(
         r.time_s, dx, dy, dz, active, clamped, limited or moved, outside or grid_outside, degraded,
         "cd-grid", position_mm=tuple(float(v) for v in r.position_mm), pose_um=at_pose, table=table)
 
@@ -1487,7 +1488,7 @@ def _activate(ctx: Context, st: State, new: CDSet | None, reason: str, t: float 
         st = _leave_fail_safe(st, t, f"set {ids} activated ({reason}): the fail-safe ends", out)
     had_set = st.active is not None
     st = _set(st, active_ids=dict(ids), activated_s=t, blend_pending=had_set and ctx.cfg.blend_s > 0)
-    return counted(replace(st, active=new, eval_failed_logged=False), switches=1)
+    return counted(evolve(st, active=new, eval_failed_logged=False), switches=1)
 
 
 def on_regeneration_finished(ctx: Context, st: State, request: Mapping, result: Mapping | None, error: str | None,
@@ -1599,7 +1600,7 @@ def on_grid_decision(ctx: Context, st: State, t: float, temperatures_degC: Mappi
                                          "delta_T_K": _finite(dT), "new_delta_T_K": _finite(d),
                                          "load_case": g.load_case, "reason": why_active}, f"{_t(t)}@{g.grid_id}")
             out.command(ActivateGrid(int(g.grid_id), why_active, t))
-            return out.step(replace(st, grid=g))
+            return out.step(evolve(st, grid=g))
     s = st.saved
     cfg = ctx.cfg
     why = ("compensation.grid_rom is not set: the daemon does not generate grids" if cfg.grid_rom is None else

@@ -4,8 +4,8 @@ DESIGN's data flow is models → histogram → fem → rom → chardiag → moni
 package may import the packages before it, never one after it; diagnose (measured data and a model)
 may import models, histogram, fem and rom, and no package imports diagnose.  The top-level modules of
 ``hybridcomp`` are of two kinds: the base every package may use (errors, lazy exports, safe output,
-the version) and the composers that use every package (the dispatcher and its command-line modules,
-the demo, the scenario harness and its metrics), which no package imports.
+the version, the frozen states' replace) and the composers that use every package (the dispatcher and
+its command-line modules, the demo, the scenario harness and its metrics), which no package imports.
 
 Every import counts, wherever it stands: at the top of a module, inside a function (a lazy import is
 still a dependency, only a later one) and under ``if TYPE_CHECKING:`` (a type from a later package in a
@@ -29,7 +29,7 @@ ORDER = ("models", "histogram", "fem", "rom", "chardiag", "monitor")
 #: a package beside the line and the packages it may import
 BESIDE = {"diagnose": ("models", "histogram", "fem", "rom")}
 #: top-level modules of hybridcomp every package may import (they import none)
-BASE = ("errors", "_lazy", "_version", "_packages", "safeio", "plotaxes")
+BASE = ("errors", "_lazy", "_version", "_packages", "safeio", "plotaxes", "frozen")
 #: top-level modules that compose every package (and the command-line modules, ``cli*``): no package imports them
 COMPOSERS = ("__init__", "__main__", "demo", "scenario", "metrics", "verify")
 PACKAGES = ORDER + tuple(BESIDE)
