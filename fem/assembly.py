@@ -13,6 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 import skfem
 from skfem.helpers import dot, grad
+from skfem.mapping import MappingIsoparametric
 
 
 def element_for(mesh: skfem.Mesh) -> skfem.Element:
@@ -104,11 +105,32 @@ def probe_matrix(basis: skfem.CellBasis, points_m: np.ndarray, cells: np.ndarray
     # point is taken into its cell's bounding box, which holds the cell, so a point inside stays where it is.
     nodes = basis.mesh.p[:, basis.mesh.t[:, cells]]
     pts = np.clip(pts, nodes.min(axis=1), nodes.max(axis=1))
-    X = basis.mapping.invF(pts[:, :, None], tind=cells)
-    phis = np.array([basis.elem.gbasis(basis.mapping, X, k, tind=cells)[0] for k in range(basis.Nbfun)])
+    X = _reference_points(basis.mapping, pts[:, :, None], cells)
+    # the P1 elements' values at a point are their reference functions' there (gbasis would also map gradients,
+    # inverting the Jacobian once per function)
+    phis = np.array([basis.elem.lbasis(X, k)[0] for k in range(basis.Nbfun)])
     rows = np.tile(np.arange(pts.shape[1]), basis.Nbfun)
     cols = basis.element_dofs[:, cells].ravel()
     return sp.coo_matrix((phis.reshape(basis.Nbfun, -1).ravel(), (rows, cols)), shape=(pts.shape[1], basis.N)).tocsr()
+
+
+def _reference_points(mapping, x: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """The reference coordinates of the points ``x`` (dim × n × 1) in their cells (the inverse mapping).
+
+    One Newton step from the cell's centre, as the mapping's own ``invF`` takes it, is exact where the map is
+    affine (a brick, a parallelepiped, every simplex): the points it lands on are kept, and only the others (a
+    distorted hexahedron) go on to ``invF``'s iteration. Half of the Jacobian inversions of ``invF``, which takes a
+    second step to see that the first converged.
+    """
+    if not isinstance(mapping, MappingIsoparametric):  # an affine map's invF is one solve already
+        return mapping.invF(x, tind=cells)
+    X = np.full(x.shape, 0.5)
+    X = np.clip(X + np.einsum("ijkl,jkl->ikl", mapping.invDF(X, cells), x - mapping.F(X, cells)), 0.0, 1.0)
+    size = np.abs(x).max() + 1.0
+    off = np.abs(mapping.F(X, cells) - x).max(axis=(0, 2)) > 1e-13 * size
+    if off.any():
+        X[:, off] = mapping.invF(x[:, off], tind=cells[off])
+    return X
 
 
 def lame(youngs_modulus_Pa, poisson_ratio):
