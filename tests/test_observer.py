@@ -251,3 +251,17 @@ def test_the_default_air_walk_follows_an_unmeasured_swing_within_minutes(machine
     old = ObserverSettings(air_common=0.0, air_rate_K=1.0)
     err_old, lags_old = _air_lag_min(build_observer(rom, machine, old), U, T, time_s, swing)
     assert min(lags_old) >= 20 and err_old > 2 * err, (err_old, lags_old)
+
+
+def test_the_open_loop_mean_is_the_filters_prediction_without_its_covariance(machine, rom):
+    """``predict_mean`` (the monitor's open-loop check of a sensor standing still, run at every model step) skips
+    the n × n transition matrix ``predict`` builds: the same mean, with disturbances and inputs of every kind."""
+    obs = build_observer(rom, machine)
+    rng = np.random.default_rng(5)
+    state = obs.initial(np.abs(rng.normal(size=obs.W.shape[1])) * 20.0)
+    x = state.x + rng.normal(size=obs.n) * 0.3  # air, scales, heat and bias away from zero
+    state = ObserverState(0.0, x, state.P)
+    for dt in (1e-9, 20.0, 3600.0, 1e7):
+        u = np.abs(rng.normal(size=obs.W.shape[1])) * 20.0
+        np.testing.assert_allclose(obs.predict_mean(x, u, dt), obs.predict(state, u, dt).x, rtol=1e-12,
+                                   atol=1e-12 * np.abs(x).max())
