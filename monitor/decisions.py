@@ -361,7 +361,7 @@ def check_sensor(
     else:
         raw_since = time_s
     st = evolve(state, raw_degC=raw_degC if math.isfinite(raw_degC) else math.nan, raw_since_s=raw_since,
-                 model_moved_K=state.model_moved_K if raw_since == state.raw_since_s else 0.0)
+                model_moved_K=state.model_moved_K if raw_since == state.raw_since_s else 0.0)
 
     reason = ""
     if not math.isfinite(raw_degC):

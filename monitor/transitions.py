@@ -431,7 +431,7 @@ def restored(ctx: Context, saved: MonitorState) -> State:
         from hybridcomp.rom.volumetric import table_from_dict
 
         st = evolve(st, track=volumetric.state_in(ctx.pose, saved.pose_track, saved.step_inputs, ctx.cfg.increment_s),
-                     written_table=table_from_dict(saved.table) if saved.table is not None else None)
+                    written_table=table_from_dict(saved.table) if saved.table is not None else None)
         if saved.gains is not None:
             st = evolve(st, drive_gains=volumetric.DriveGains.from_dict(saved.gains))
     elif saved.table is not None:  # a CD grid's table (a one-pose model): the rate limit continues from it
@@ -469,8 +469,8 @@ def boundary_saved(ctx: Context, boundary: State | None, st: State) -> MonitorSt
     snap = boundary.saved if boundary is not None else initial(ctx).saved
     s = st.saved
     return evolve(snap, pending=s.pending, regen_blocked_until_s=s.regen_blocked_until_s,
-                   grid_pending=s.grid_pending, grid_blocked_until_s=s.grid_blocked_until_s,
-                   activated_s=s.activated_s, active_ids=s.active_ids)
+                  grid_pending=s.grid_pending, grid_blocked_until_s=s.grid_blocked_until_s,
+                  activated_s=s.activated_s, active_ids=s.active_ids)
 
 
 # ============================================================================================ one reading
@@ -579,7 +579,7 @@ def _check_time(ctx: Context, st: State, r: Reading, now: float | None, time_sca
         st = counted(st, resyncs=int(chk.verdict == "resync"), gaps=int(chk.verdict == "gap"))
     pace = st.pace if chk.verdict == "ok" else ()
     st = evolve(_set(st, time_offset_s=chk.offset_s, last_source_time_s=r.time_s, last_wall_unix=now),
-                 pace=(*pace, (chk.time_s, now))[-PACE_SAMPLES:])
+                pace=(*pace, (chk.time_s, now))[-PACE_SAMPLES:])
     return st, (r if chk.time_s == r.time_s else evolve(r, time_s=chk.time_s))
 
 
@@ -661,7 +661,7 @@ def _check_sensors(ctx: Context, st: State, r: Reading, out: _Out) -> State:
         temps[name] = v.value_degC if math.isfinite(v.value_degC) else ref
     row = (r.time_s, np.array([measured[n] for n in ctx.sensor_names]))
     return evolve(_set(st, sensors=sensors), temps=temps, measured=measured,
-                   step_readings=(*st.step_readings, row))
+                  step_readings=(*st.step_readings, row))
 
 
 def _filter(ctx: Context, st: State, t: float) -> State:
@@ -851,7 +851,7 @@ def _close_step(ctx: Context, st: State, end_s: float, stored_sets: StoredSets, 
     # next step: the last sample carries over (continuity of the histogram)
     carry = st.buffer[-1] if st.buffer else st.saved.carry
     st = evolve(_set(st, carry=carry, next_step_s=end_s + ctx.cfg.increment_s),
-                 buffer=(carry,) if carry is not None else ())
+                buffer=(carry,) if carry is not None else ())
     if end_s >= st.saved.next_mon_s:
         st = _close_interval(ctx, st, end_s, stored_sets, out)
     return st
@@ -1040,7 +1040,7 @@ def _after_update(ctx: Context, st: State, t: float, u: np.ndarray, weights=None
     st = evolve(_set(st, step_time_s=t, step_inputs=[float(v) for v in u],
                       drift_um=[float(v) for v in obs.drift_um(state)],
                       drift_next_um=[float(v) for v in obs.forecast(state, u[None, :], ctx.cfg.increment_s)[1][0]]),
-                 track=track)
+                track=track)
     est = _estimate_degC(ctx, st)
     bias = dict(st.saved.bias_K)
     for n, v in st.measured.items():
@@ -1154,7 +1154,7 @@ def _compensate(ctx: Context, st: State, r: Reading, out: _Out) -> tuple[State, 
     step = cfg.max_step_um if s.written else math.inf
     applied, clamped, limited = decisions.limit_offsets(target, s.offsets_um, cfg.max_offset_um, step)
     st = evolve(_set(st, offsets_um=applied, written=True, **upd), eval_failed_logged=eval_failed,
-                 nonfinite_logged=nonfinite)
+                nonfinite_logged=nonfinite)
     ids = s.active_ids or {}
     active = ",".join(f"{k}={ids[k]}" for k in sorted(ids))
     at_pose = tuple(applied[c] for c in DRIFT_COLUMNS)
@@ -1178,7 +1178,7 @@ def _compensate_at_position(ctx: Context, st: State, r: Reading, at_pose: tuple,
         raw = volumetric.table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s, at_pose)
         nut = volumetric.nut_table_now(ctx.pose, st.track, r.time_s, ctx.cfg.increment_s)
         st = evolve(st, raw_table=raw, raw_nut_table=nut,
-                     raw_table_of=(float(r.time_s), tuple(float(v) for v in at_pose)))
+                    raw_table_of=(float(r.time_s), tuple(float(v) for v in at_pose)))
         table = volumetric.with_gains(raw, st.drive_gains, nut)
         table, moved = volumetric.table_step(table, st.written_table, ctx.cfg.max_step_um)
     except VolumetricError as exc:  # a model gone non-finite: the one-pose offsets, the last table held
