@@ -361,12 +361,17 @@ class Observer:
         return u
 
     # -- the model of one step ----------------------------------------------------------------------------
-    def _transition(self, u: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """F (n × n) and the known drive (r,) of one step of ``dt_s`` with inputs ``u`` held."""
-        sl = self.slices()
+    def _step_coefficients(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per mode, the decay ``a`` over a step of ``dt_s`` and the gain ``g0`` of an input held over it (r,)."""
         x = self.lam * dt_s
         a = np.where(x > 50.0, 0.0, np.exp(-np.minimum(x, 50.0)))
         g0 = np.where(x < 1e-8, dt_s, -np.expm1(-x) / np.where(x < 1e-8, 1.0, self.lam))
+        return a, g0
+
+    def _transition(self, u: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """F (n × n) and the known drive (r,) of one step of ``dt_s`` with inputs ``u`` held."""
+        sl = self.slices()
+        a, g0 = self._step_coefficients(dt_s)
         F = np.eye(self.n)
         F[sl["z"], sl["z"]] = np.diag(a)
         F[sl["z"], sl["air"]] = g0[:, None] * self.W[:, self.n_heat:]
@@ -515,9 +520,7 @@ class Observer:
         u = self._check_u(u)
         x = np.asarray(x, float)
         sl = self.slices()
-        lx = self.lam * dt_s  # the step's coefficients as _transition has them, without its n × n matrix
-        a = np.where(lx > 50.0, 0.0, np.exp(-np.minimum(lx, 50.0)))
-        g0 = np.where(lx < 1e-8, dt_s, -np.expm1(-lx) / np.where(lx < 1e-8, 1.0, self.lam))
+        a, g0 = self._step_coefficients(dt_s)  # _transition's rows of F, without building the n × n matrix
         h = self.n_heat
         heat = u[:h] * (1.0 + self.S @ x[sl["scale"]])
         out = x.copy()
