@@ -11,6 +11,9 @@ Prints one table of fit % per channel on the validation half and a final JSON li
   fit over fold counts 3, 5, 10 × seeds 0, 1, 2 with its spread; then the default choice, on the cross-validation
   curves of 3, 5 and 10 folds averaged (``choose_pooled``: it no longer depends on the fold count), and its smallest
   / largest over seeds 0, 1, 2 (goal: ≥ 70 % on every channel, spread ≤ 10 points);
+* partial least squares (PLS1 per channel, ``regularised.pls_choice_fits``) over the same families, the number of
+  components (1–20) chosen as λ is (the pooled curves, the one-standard-error rule, fewest components), with its
+  smallest fit and spread over seeds 0, 1, 2: the other regularisation the issue names, measured beside the ridge;
 * the regularised model with a probe every 2 h and every 1 h: gain and offset updated (``updated_prediction``) and
   its coefficients updated (``coefficient_updating``), each filter's settings chosen on the training half; scored on
   the validation rows without the probe rows (goals: ≥ 85 % every 2 h, ≥ 90 % every 1 h); the pooled choice
@@ -37,6 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _caiviac import add_arguments, missing
 
+from hybridcomp.diagnose import regularised as reg
 from hybridcomp.diagnose.data import parse_split, read_dataset
 from hybridcomp.diagnose.dataonly import _activity_signals, diagnose_data_only
 from hybridcomp.diagnose.metrics import fit_percent
@@ -52,8 +56,6 @@ EVERY_H = (2.0, 1.0)
 def _gain_offset(d, ds, c: str, every_h: float, probe_sd_um: float) -> float:
     """The regularised model with gain and offset updated (settings chosen on the training blocks), fit % on the
     validation rows without the probes."""
-    from hybridcomp.diagnose import regularised as reg
-
     r = d.regularised[c]
     t, tr, va = d.time_s, d.split.train, d.split.validation
     temps = {n: ds[n] for n in ds.names if n.endswith("_degC") and np.ptp(ds[n][tr]) > 0}
@@ -71,6 +73,15 @@ def _gain_offset(d, ds, c: str, every_h: float, probe_sd_um: float) -> float:
     keep = np.ones(rows.size, bool)
     keep[probes] = False
     return fit_percent(y[rows][keep], u[keep])
+
+
+def _families(ds, d, chans: list[str]):
+    """The regularised families of the data set and the channels as columns (as the diagnosis builds them)."""
+    if d.time_s.size != ds.time_s.size:  # the diagnosis thinned the record: the same rows
+        ds = ds.subset(np.flatnonzero(np.isin(ds.time_s, d.time_s)))
+    tr = d.split.train
+    temps = {n: ds[n] for n in ds.names if n.endswith("_degC") and np.ptp(ds[n][tr]) > 0}
+    return reg.families(d.time_s, temps, _activity_signals(ds)), np.column_stack([d.Y[c] for c in chans])
 
 
 def main(argv=None) -> int:
@@ -128,6 +139,16 @@ def main(argv=None) -> int:
     add("pooled: smallest over seeds 0/1/2", {c: spp[c]["min"] for c in chans})
     add("pooled: largest over seeds 0/1/2", {c: spp[c]["max"] for c in chans})
     add("pooled: spread (points)", {c: spp[c]["spread"] for c in chans}, "goal ≤ 10 (fold count no longer matters)")
+    tk = time.perf_counter()
+    fams, Y = _families(ds, dp, chans)
+    pls = {s: reg.pls_choice_fits(fams, Y, dp.split.train, va, seed=s) for s in reg.SPREAD_SEEDS}
+    timings["PLS"] = round(time.perf_counter() - tk, 1)
+    made0, fits0 = pls[reg.SPREAD_SEEDS[0]]
+    add("PLS over the same families, chosen as the pooled ridge (fewest components)", dict(zip(chans, fits0)),
+        "; ".join(f"{fams[m.family].name} {m.lam_index + 1} comp." for m in made0))
+    F = np.array([f for _, f in pls.values()])
+    add("PLS: smallest / spread over seeds 0/1/2", {c: F[:, j].min() for j, c in enumerate(chans)},
+        "spread " + " / ".join(f"{v:.1f}" for v in np.ptp(F, axis=0)))
     for h in EVERY_H:
         tk = time.perf_counter()
         d = diagnose_data_only(ds, split, folds=FOLDS[0], beam_width=1, max_terms=0, spread=False, probe_every_h=h,

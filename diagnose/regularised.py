@@ -304,6 +304,103 @@ def repeated_errors(fams: list[Family], Y: np.ndarray, train: np.ndarray, folds:
     return out
 
 
+# ---------------------------------------------------------------------------------------------------- PLS
+PLS_COMPONENTS = 20  # partial least squares: 1 … this many components are the candidates
+
+
+def pls_coefficients(Z: np.ndarray, y: np.ndarray, components: int = PLS_COMPONENTS) -> np.ndarray:
+    """PLS1 (NIPALS) of a centred ``y`` on centred regressors ``Z``: the coefficients of 1 … ``components``.
+
+    ``components × columns``; where the data hold fewer components, the last is repeated. Each component takes the
+    direction of ``Zᵀy`` left after the earlier ones; the coefficients of ``k`` are ``W (PᵀW)⁻¹ q`` of the first
+    ``k`` weights ``W``, loadings ``P`` and inner coefficients ``q``.
+    """
+    Z, y = np.array(Z, float), np.array(y, float)
+    p = Z.shape[1]
+    W, P, q = np.zeros((p, components)), np.zeros((p, components)), np.zeros(components)
+    out = np.zeros((components, p))
+    k = 0
+    scale = max(float(np.linalg.norm(Z)), 1e-300)
+    for a in range(components):
+        w = Z.T @ y
+        nw = float(np.linalg.norm(w))
+        if nw <= 1e-12 * scale * max(float(np.linalg.norm(y)), 1e-300):
+            break
+        w /= nw
+        t = Z @ w
+        tt = float(t @ t)
+        if tt <= 1e-24 * scale**2:
+            break
+        W[:, a], P[:, a], q[a] = w, Z.T @ t / tt, float(y @ t) / tt
+        Z -= np.outer(t, P[:, a])
+        y = y - q[a] * t
+        k = a + 1
+        out[a] = W[:, :k] @ np.linalg.solve(P[:, :k].T @ W[:, :k], q[:k])
+    out[k:] = out[k - 1] if k else 0.0
+    return out
+
+
+def pls_path(X: np.ndarray, Y: np.ndarray, fit_rows: np.ndarray, out_rows=None,
+             components: int = PLS_COMPONENTS) -> np.ndarray:
+    """Predictions of the PLS1 fits on ``fit_rows``, one per number of components 1 … ``components``.
+
+    Each channel on its own, the inputs standardised on the fit rows; at ``out_rows`` (default every row):
+    ``components × rows × channels``.
+    """
+    Xf = X[fit_rows]
+    mu, sd = Xf.mean(0), Xf.std(0)
+    sd = np.where(sd > 1e-12 * (1.0 + np.abs(mu)), sd, 1.0)
+    Zf = (Xf - mu) / sd
+    Zo = (X[slice(None) if out_rows is None else out_rows] - mu) / sd
+    out = np.empty((components, Zo.shape[0], Y.shape[1]))
+    for c in range(Y.shape[1]):
+        ym = Y[fit_rows, c].mean()
+        out[:, :, c] = ym + (Zo @ pls_coefficients(Zf, Y[fit_rows, c] - ym, components).T).T
+    return out
+
+
+def pls_repeated_errors(fams: list[Family], Y: np.ndarray, train: np.ndarray, folds: int, seed: int = 0,
+                        repeats: int = REPEATS, components: int = PLS_COMPONENTS) -> list[np.ndarray]:
+    """:func:`repeated_errors` for PLS: per phase, ``blocks × families × components × channels``.
+
+    The number of components stands in place of λ; the blocks and phases are :func:`repeated_errors`' for the same
+    ``seed``.
+    """
+    rng = np.random.default_rng(seed)
+    phases = [0.0] + list(rng.uniform(0.1, 0.9, repeats - 1))
+    out = []
+    for ph in phases:
+        blocks = cv_blocks(train, folds, ph)
+        E = np.empty((len(blocks), len(fams), components, Y.shape[1]))
+        for f, fam in enumerate(fams):
+            for b, rows in enumerate(blocks):
+                fit = train.copy()
+                fit[rows] = False
+                E[b, f] = np.mean((Y[rows][None] - pls_path(fam.X, Y, fit, rows, components)) ** 2, axis=1)
+        out.append(E)
+    return out
+
+
+def pls_choice_fits(fams: list[Family], Y: np.ndarray, train: np.ndarray, validation: np.ndarray,
+                    seed: int = 0, fold_counts=SPREAD_FOLDS, components: int = PLS_COMPONENTS
+                    ) -> tuple[list[Choice], np.ndarray]:
+    """PLS chosen as the ridge is, and its fit % on the validation rows per channel.
+
+    :func:`choose_pooled` on the curves of ``fold_counts`` folds, the simplest being the fewest components;
+    ``Choice.lam_index`` is the number of components less one.
+    """
+    errors = [pls_repeated_errors(fams, Y, train, k, seed, components=components) for k in fold_counts]
+    dof = np.tile(np.arange(1.0, components + 1.0), (len(fams), 1))
+    made = choose_pooled(errors, dof)
+    yv = Y[validation]
+    den = np.linalg.norm(yv - yv.mean(0), axis=0)
+    fits = np.empty(Y.shape[1])
+    for j, c in enumerate(made):
+        P = pls_path(fams[c.family].X, Y[:, [j]], train, validation, components)[c.lam_index, :, 0]
+        fits[j] = 100.0 * (1.0 - np.linalg.norm(yv[:, j] - P) / den[j])
+    return made, fits
+
+
 def held_out_fits(fams: list[Family], Y: np.ndarray, train: np.ndarray, validation: np.ndarray) -> np.ndarray:
     """Fit % on the validation rows of every (family, λ) fitted on the training rows: ``families × λ × channels``."""
     out = np.empty((len(fams), len(LAMBDAS), Y.shape[1]))

@@ -279,3 +279,36 @@ def test_pooled_spread_and_the_diagnosis_choice_on_planted_data():
     c5 = reg.choose(reg.repeated_errors(fams, Y, tr, 5, 0), dof)[0]
     assert (d5.regularised["dz_um"]["family"], d5.regularised["dz_um"]["lam"]) == (fams[c5.family].name,
                                                                                    reg.LAMBDAS[c5.lam_index])
+
+
+def test_pls_with_every_component_is_least_squares_and_its_first_is_the_covariance_direction():
+    rng = np.random.default_rng(3)
+    Z = rng.normal(size=(300, 6)) @ rng.normal(size=(6, 6))
+    Z -= Z.mean(0)
+    y = Z @ np.array([1.0, -2.0, 0.5, 3.0, 0.0, 1.5]) + 0.1 * rng.normal(size=300)
+    y -= y.mean()
+    B = reg.pls_coefficients(Z, y, 8)  # more components than columns: the last repeats
+    ols = np.linalg.lstsq(Z, y, rcond=None)[0]
+    np.testing.assert_allclose(B[5], ols, atol=1e-9 * np.abs(ols).max())
+    np.testing.assert_allclose(B[7], B[5])
+    w = Z.T @ y
+    np.testing.assert_allclose(B[0] / np.linalg.norm(B[0]), w / np.linalg.norm(w), atol=1e-12)
+    assert np.abs(B[1] - ols).max() > 0.1  # two components are not yet least squares here
+
+
+def test_pls_chooser_takes_few_components_for_two_latent_factors_and_predicts_held_out():
+    # twelve correlated columns driven by two slow latent factors; the drift follows both. The one-standard-error
+    # rule may keep a third component (its fold errors sit a little lower), not the eight offered
+    rng = np.random.default_rng(5)
+    n = 1200
+    t = np.arange(n) * 120.0
+    F = np.column_stack([np.sin(2 * np.pi * t / 40_000.0), first_order_lag(t, (np.arange(n) % 300 < 150) * 1.0, 5e3)])
+    X = F @ rng.normal(size=(2, 12)) + 0.005 * rng.normal(size=(n, 12))
+    Y = (F @ np.array([[4.0], [-3.0]])) + 0.05 * rng.normal(size=(n, 1))
+    fam = reg.Family("X", tuple(f"x{i}" for i in range(12)), X)
+    train = np.arange(n) < n // 2
+    made, fits = reg.pls_choice_fits([fam], Y, train, ~train, components=8)
+    assert 2 <= made[0].lam_index + 1 <= 3, f"chose {made[0].lam_index + 1} components"
+    assert fits[0] > 97.0
+    one = reg.pls_path(X, Y, train, ~train, components=2)[0, :, 0]  # one component misses the second factor
+    assert fit_percent(Y[~train, 0], one) < 90.0
