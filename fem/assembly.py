@@ -2,12 +2,15 @@
 
 All functions take per-element material arrays, so one mesh can carry many
 bodies.  SI units throughout.  The elastic operators are assembled with a
-vectorised element loop (einsum over the scalar basis gradients): the generic
-vector form takes about 75 s for 50k hexahedral nodes, this about 3 s.
-Displacement DOFs are node-interleaved: dof ``3 * node + component``.
+vectorised element loop (einsum over the scalar basis gradients) and summed per
+node pair (:func:`_block_csr`): the generic vector form takes about 75 s for 50k
+hexahedral nodes, this about 2 s at 65k. Displacement DOFs are node-interleaved:
+dof ``3 * node + component``.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -146,14 +149,40 @@ def _gradients(basis: skfem.CellBasis) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return G, P, basis.dx
 
 
-def _scatter_vector(t: np.ndarray, Ke: np.ndarray, n_nodes: int) -> sp.csr_matrix:
-    """Assemble element blocks Ke[e, a, i, b, j] into the node-interleaved global matrix."""
+class _Pattern(NamedTuple):
+    """The node pairs an element connectivity couples, sorted: where each (element, a, b) entry sums to."""
+
+    n_nodes: int
+    pairs: np.ndarray  # sorted keys row_node · n + col_node of the distinct pairs
+    where: np.ndarray  # per (element, a, b), C order, the index of its pair
+
+
+def _pattern(t: np.ndarray, n_nodes: int) -> _Pattern:
     nb = t.shape[0]
-    dofs = (3 * t.T[:, :, None] + np.arange(3)).reshape(t.shape[1], 3 * nb)  # (nel, 3nb)
-    rows = np.repeat(dofs, 3 * nb, axis=1).ravel()
-    cols = np.tile(dofs, (1, 3 * nb)).ravel()
-    A = sp.coo_matrix((Ke.reshape(t.shape[1], -1).ravel(), (rows, cols)), shape=(3 * n_nodes, 3 * n_nodes))
-    return A.tocsr()
+    nodes = t.T.astype(np.int64)
+    key = np.repeat(nodes, nb, axis=1).ravel() * n_nodes + np.tile(nodes, (1, nb)).ravel()  # (e, a, b)
+    pairs, where = np.unique(key, return_inverse=True)
+    return _Pattern(n_nodes, pairs, where.ravel())
+
+
+def _block_csr(pattern: _Pattern, entries) -> sp.csr_matrix:
+    """Sum element blocks into a global matrix, node-interleaved.
+
+    ``entries[i][j]`` (a ``p × q`` nesting) holds, per (element, a, b), the entry (i, j) of the block that couples
+    node ``t[a, e]`` (rows ``p·node + i``) with node ``t[b, e]`` (columns ``q·node + j``). The node pairs are summed
+    through their sorted pattern (one ``np.unique`` over the ``elements × nodes²`` pairs, then a ``bincount`` per
+    block entry) instead of sorting every scalar entry: for the elasticity matrix nine times fewer keys than a COO
+    assembly, and no ``elements × 24 × 24`` array (at 65,000 nodes about 2 s instead of 8 s).
+    """
+    n = pattern.n_nodes
+    p, q = len(entries), len(entries[0])
+    data = np.empty((pattern.pairs.size, p, q))
+    for i in range(p):
+        for j in range(q):
+            data[:, i, j] = np.bincount(pattern.where, weights=np.ravel(entries[i][j]), minlength=pattern.pairs.size)
+    indptr = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(pattern.pairs // n, minlength=n), out=indptr[1:])
+    return sp.bsr_matrix((data, pattern.pairs % n, indptr), shape=(p * n, q * n)).tocsr()
 
 
 def elasticity_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio) -> sp.csr_matrix:
@@ -163,18 +192,21 @@ def elasticity_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio) 
     """
     G, _, dx = _gradients(basis)
     lam, mu = lame(youngs_modulus_Pa, poisson_ratio)
-    lam = np.broadcast_to(lam, (basis.nelems,))
-    mu = np.broadcast_to(mu, (basis.nelems,))
-    # S[e, i, j, a, b] = ∫ ∂_i φ_a ∂_j φ_b dV
-    S = np.empty((basis.nelems, 3, 3, G.shape[0], G.shape[0]))
-    for i in range(3):
-        for j in range(3):
-            S[:, i, j] = np.einsum("aeq,beq,eq->eab", G[:, i], G[:, j], dx, optimize=True)
-    lap = S[:, 0, 0] + S[:, 1, 1] + S[:, 2, 2]
-    Ke = lam[:, None, None, None, None] * S.transpose(0, 3, 1, 4, 2)  # λ ∂_i φ_a ∂_j φ_b
-    Ke += mu[:, None, None, None, None] * S.transpose(0, 3, 2, 4, 1)  # μ ∂_j φ_a ∂_i φ_b
-    Ke += (mu[:, None, None] * lap)[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
-    return _scatter_vector(basis.mesh.t, Ke, basis.mesh.p.shape[1])
+    lam = np.broadcast_to(lam, (basis.nelems,))[:, None, None]
+    mu = np.broadcast_to(mu, (basis.nelems,))[:, None, None]
+
+    def T(i, j):  # T[e, a, b] = ∫ ∂_i φ_a ∂_j φ_b dV; ∫ ∂_j φ_a ∂_i φ_b is its transpose in (a, b)
+        return np.einsum("aeq,beq,eq->eab", G[:, i], G[:, j], dx, optimize=True)
+
+    diag = [T(i, i) for i in range(3)]
+    lap = mu * (diag[0] + diag[1] + diag[2])  # μ ∇φ_a·∇φ_b
+
+    def entry(i, j):
+        t = diag[i] if i == j else T(i, j)
+        k = lam * t + mu * t.transpose(0, 2, 1)
+        return k + lap if i == j else k
+
+    return _block_csr(_pattern(basis.mesh.t, basis.mesh.p.shape[1]), [[entry(i, j) for j in range(3)] for i in range(3)])
 
 
 def thermal_load_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio, expansion_1_K) -> sp.csr_matrix:
@@ -185,13 +217,9 @@ def thermal_load_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio
     G, P, dx = _gradients(basis)
     lam, mu = lame(youngs_modulus_Pa, poisson_ratio)
     beta = np.broadcast_to((3 * lam + 2 * mu) * np.asarray(expansion_1_K, float), (basis.nelems,))
-    Fe = np.einsum("aieq,beq,eq->eaib", G, P, dx * beta[:, None], optimize=True)  # (e, a, i, b)
-    nb = G.shape[0]
-    t = basis.mesh.t
-    rows = np.repeat((3 * t.T[:, :, None] + np.arange(3)).reshape(t.shape[1], 3 * nb), nb, axis=1).ravel()
-    cols = np.tile(t.T, (1, 3 * nb)).ravel()
-    n = basis.mesh.p.shape[1]
-    return sp.coo_matrix((Fe.ravel(), (rows, cols)), shape=(3 * n, n)).tocsr()
+    w = dx * beta[:, None]
+    entries = [[np.einsum("aeq,beq,eq->eab", G[:, i], P, w, optimize=True)] for i in range(3)]  # (e, a, b)
+    return _block_csr(_pattern(basis.mesh.t, basis.mesh.p.shape[1]), entries)
 
 
 def rigid_body_modes(points_m: np.ndarray) -> np.ndarray:
