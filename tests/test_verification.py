@@ -314,7 +314,10 @@ def test_elastic_operators_equal_scikit_fems_vector_assembly_on_distorted_cells(
 
     vbasis = skfem.Basis(mesh, skfem.ElementVector(basis.elem), quadrature=(basis.X, basis.W))
     lam, mu = assembly.lame(E, POISSON_RATIO)
-    per_qp = lambda v: np.repeat(np.asarray(v, float)[:, None], basis.X.shape[1], axis=1)  # noqa: E731 - local
+
+    def per_qp(values: np.ndarray) -> np.ndarray:  # one value per cell, at each of its quadrature points
+        return np.repeat(np.asarray(values, float)[:, None], basis.X.shape[1], axis=1)
+
     K_ref = skfem.asm(skfem.BilinearForm(lambda u, v, w: w.lam * div(u) * div(v) + 2.0 * w.mu * ddot(sym_grad(u),
                                                                                                    sym_grad(v))),
                       vbasis, lam=per_qp(lam), mu=per_qp(mu))
