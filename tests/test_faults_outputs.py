@@ -538,9 +538,15 @@ def _loads(tmp_path: Path) -> Path:
     return p
 
 
+# A conductivity of 1e-300 leaves the steady start's matrix singular inside the bodies (convection reaches the
+# surface only): what comes out is round-off, below absolute zero or far above melting depending on the sparse
+# ordering; either is an impossible result the check must refuse
+IMPOSSIBLE_T = ("below absolute zero", "where every solid has melted", "not finite")
+
+
 @pytest.mark.parametrize("old,new,column,why", [
-    ("conductivity_W_mK = 46.0", "conductivity_W_mK = 1e-300", "_degC", "below absolute zero"),
-    ("expansion_1_K = 11.5e-6", "expansion_1_K = 1e300", "_um", "not finite"),
+    ("conductivity_W_mK = 46.0", "conductivity_W_mK = 1e-300", "_degC", IMPOSSIBLE_T),
+    ("expansion_1_K = 11.5e-6", "expansion_1_K = 1e300", "_um", ("not finite",)),
 ], ids=["conductivity 1e-300", "expansion 1e300"])
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the overflow of 1e300 in the assembly, before the check
 def test_simulate_never_writes_a_non_finite_or_impossible_result(tmp_path, capsys, monkeypatch, old, new, column, why):
@@ -553,7 +559,8 @@ def test_simulate_never_writes_a_non_finite_or_impossible_result(tmp_path, capsy
     rc = main([str(a) for a in ["simulate", "--machine", m, "--loads", _loads(tmp_path), "--out", out,
                                 "--element-size-mm", "400", "--no-progress"]])
     err = capsys.readouterr().err.strip().splitlines()[-1]  # after the time-error warning, the one error line
-    assert rc == 2 and err.startswith(f"error: simulate {m}: column") and column in err and why in err, err
+    assert rc == 2 and err.startswith(f"error: simulate {m}: column") and column in err, err
+    assert any(w in err for w in why), err
     assert "nothing is written" in err
     assert not (out / "outputs.csv").exists() and not (out / "run.json").exists()
 
