@@ -42,7 +42,7 @@ from _caiviac import add_arguments, missing
 
 from hybridcomp.diagnose import regularised as reg
 from hybridcomp.diagnose.data import parse_split, read_dataset
-from hybridcomp.diagnose.dataonly import _activity_signals, diagnose_data_only
+from hybridcomp.diagnose.dataonly import diagnose_data_only, regularised_families
 from hybridcomp.diagnose.metrics import fit_percent
 from hybridcomp.diagnose.regularised import cv_blocks, fit_ridge
 from hybridcomp.diagnose.updating import choose_settings, probe_rows, updated_prediction
@@ -58,8 +58,7 @@ def _gain_offset(d, ds, c: str, every_h: float, probe_sd_um: float) -> float:
     validation rows without the probes."""
     r = d.regularised[c]
     t, tr, va = d.time_s, d.split.train, d.split.validation
-    temps = {n: ds[n] for n in ds.names if n.endswith("_degC") and np.ptp(ds[n][tr]) > 0}
-    fam = next(f for f in reg.families(t, temps, _activity_signals(ds)) if f.name == r["family"])
+    fam = next(f for f in regularised_families(ds, d)[3] if f.name == r["family"])
     y = d.Y[c]
     blocks = []
     for rows in cv_blocks(tr, d.folds):
@@ -73,15 +72,6 @@ def _gain_offset(d, ds, c: str, every_h: float, probe_sd_um: float) -> float:
     keep = np.ones(rows.size, bool)
     keep[probes] = False
     return fit_percent(y[rows][keep], u[keep])
-
-
-def _families(ds, d, chans: list[str]):
-    """The regularised families of the data set and the channels as columns (as the diagnosis builds them)."""
-    if d.time_s.size != ds.time_s.size:  # the diagnosis thinned the record: the same rows
-        ds = ds.subset(np.flatnonzero(np.isin(ds.time_s, d.time_s)))
-    tr = d.split.train
-    temps = {n: ds[n] for n in ds.names if n.endswith("_degC") and np.ptp(ds[n][tr]) > 0}
-    return reg.families(d.time_s, temps, _activity_signals(ds)), np.column_stack([d.Y[c] for c in chans])
 
 
 def main(argv=None) -> int:
@@ -140,7 +130,7 @@ def main(argv=None) -> int:
     add("pooled: largest over seeds 0/1/2", {c: spp[c]["max"] for c in chans})
     add("pooled: spread (points)", {c: spp[c]["spread"] for c in chans}, "goal ≤ 10 (fold count no longer matters)")
     tk = time.perf_counter()
-    fams, Y = _families(ds, dp, chans)
+    fams, Y = regularised_families(ds, dp)[3], np.column_stack([dp.Y[c] for c in chans])
     pls = {s: reg.pls_choice_fits(fams, Y, dp.split.train, va, seed=s) for s in reg.SPREAD_SEEDS}
     timings["PLS"] = round(time.perf_counter() - tk, 1)
     made0, fits0 = pls[reg.SPREAD_SEEDS[0]]

@@ -625,23 +625,35 @@ def _diagnose_data_only(ds: Dataset, split: Split, max_terms: int, min_fit_gain:
                              split_check, selection, folds, ds.runs, criterion, updating or None)
 
 
+def regularised_families(ds: Dataset, d: DataOnlyDiagnosis) -> tuple[Dataset, dict, dict, list]:
+    """The regularised families of a diagnosed dataset: the same rows, thinning and zeros as the search.
+
+    Returns the dataset on the diagnosis' rows, its temperatures and activity signals (name → values) and the
+    families (:func:`hybridcomp.diagnose.regularised.families`, each run from its own zero in a campaign).
+    """
+    t = d.time_s
+    if t.size != ds.time_s.size:  # the search thinned the record: the same rows
+        ds = ds.subset(np.flatnonzero(np.isin(ds.time_s, t)))
+    tr = d.split.train
+    starts = ds.run_starts()
+    temps = {n: ds[n] for n in ds.names if n.endswith("_degC") and np.ptp(ds[n][tr]) > 0}
+    act = _activity_signals(ds)
+    fams = reg.families(t, temps, act, starts)
+    if ds.runs is not None:
+        fams = [reg.Family(f.name, f.columns, reg.zero_runs(f.X, starts)) for f in fams]
+    return ds, temps, act, fams
+
+
 def _regularised(ds: Dataset, d: DataOnlyDiagnosis, folds: int, seed: int, spread: bool,
                  probe_every_h: float | None, probe_sd_um: float, pool_folds: bool = True) -> tuple[dict, dict | None]:
     """The regularised families of a diagnosed dataset (the same rows, thinning and zeros as the search)."""
     t = d.time_s
-    if t.size != ds.time_s.size:  # the search thinned the record: the same rows
-        ds = ds.subset(np.flatnonzero(np.isin(ds.time_s, t)))
     tr, va = d.split.train, d.split.validation
-    starts = ds.run_starts()
-    temps = {n: ds[n] for n in ds.names if n.endswith("_degC") and np.ptp(ds[n][tr]) > 0}
-    act = _activity_signals(ds)
+    ds, temps, act, fams = regularised_families(ds, d)
     # what an online evaluation needs to rebuild the regressors: the sensors in order and each activity's scale
     spec = {"temperatures": list(temps), "activity_max": {n: float(np.abs(ds[n]).max()) for n in act
                                                           if n.endswith("_rpm")},
             "temp_lags_h": list(reg.TEMP_LAGS_H), "source_lags_h": list(reg.SOURCE_LAGS_H)}
-    fams = reg.families(t, temps, act, starts)
-    if ds.runs is not None:
-        fams = [reg.Family(f.name, f.columns, reg.zero_runs(f.X, starts)) for f in fams]
     chans = list(d.extended)
     Y = np.column_stack([d.Y[c] for c in chans])
     dof = reg.effective_dof(fams, tr)

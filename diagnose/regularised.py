@@ -288,12 +288,16 @@ def choose_pooled(errors_by_count: list[list[np.ndarray]], dof: np.ndarray) -> l
     return out
 
 
+def _phases(seed: int, repeats: int) -> list[float]:
+    """The phases of the blocks of ``repeats`` cross-validation repetitions: 0, then drawn from ``seed``."""
+    return [0.0] + list(np.random.default_rng(seed).uniform(0.1, 0.9, repeats - 1))
+
+
 def repeated_errors(fams: list[Family], Y: np.ndarray, train: np.ndarray, folds: int, seed: int = 0,
                     repeats: int = REPEATS, runs: np.ndarray | None = None, cache: dict | None = None
                     ) -> list[np.ndarray]:
     """:func:`fold_errors` for ``repeats`` phases of the blocks: 0, then drawn from ``seed``."""
-    rng = np.random.default_rng(seed)
-    phases = [0.0] + list(rng.uniform(0.1, 0.9, repeats - 1))
+    phases = _phases(seed, repeats)
     out = []
     cache = {} if cache is None else cache
     for ph in phases:
@@ -366,10 +370,8 @@ def pls_repeated_errors(fams: list[Family], Y: np.ndarray, train: np.ndarray, fo
     The number of components stands in place of λ; the blocks and phases are :func:`repeated_errors`' for the same
     ``seed``.
     """
-    rng = np.random.default_rng(seed)
-    phases = [0.0] + list(rng.uniform(0.1, 0.9, repeats - 1))
     out = []
-    for ph in phases:
+    for ph in _phases(seed, repeats):
         blocks = cv_blocks(train, folds, ph)
         E = np.empty((len(blocks), len(fams), components, Y.shape[1]))
         for f, fam in enumerate(fams):
