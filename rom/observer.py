@@ -579,9 +579,7 @@ class Observer:
         if U.ndim != 2 or U.shape[1] != self.W.shape[1] or not np.all(np.isfinite(U)):
             raise ObserverError(f"forecast inputs must be finite, of shape (steps, {self.W.shape[1]}), got {U.shape}")
         sl = self.slices()
-        x = self.lam * dt_s
-        a = np.where(x > 50.0, 0.0, np.exp(-np.minimum(x, 50.0)))
-        g0 = -np.expm1(-x) / self.lam
+        a, g0 = self._step_coefficients(dt_s)
         air, scale = state.x[sl["air"]], state.x[sl["scale"]]
         const = g0 * (self.W[:, self.n_heat:] @ air + self.WD @ state.x[sl["heat"]])
         Wh = self.W[:, :self.n_heat] * (1.0 + self.S @ scale)[None, :]
