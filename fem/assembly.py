@@ -222,6 +222,27 @@ def elasticity_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio) 
 
     K[(a,i),(b,j)] = ∫ λ ∂_i φ_a ∂_j φ_b + μ (δ_ij ∇φ_a·∇φ_b + ∂_j φ_a ∂_i φ_b) dV.
     """
+    return _elasticity(basis, youngs_modulus_Pa, poisson_ratio, _pattern(basis.mesh.t, basis.mesh.p.shape[1]))
+
+
+def thermal_load_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio, expansion_1_K) -> sp.csr_matrix:
+    """F_th[(a,i), b] = ∫ (3λ + 2μ) α ∂_i φ_a φ_b dV [N/K]: nodal forces of a temperature rise.
+
+    ``K_u u = F_th ΔT`` is linear elasticity with thermal strain α ΔT I.
+    """
+    return _thermal_load(basis, youngs_modulus_Pa, poisson_ratio, expansion_1_K,
+                         _pattern(basis.mesh.t, basis.mesh.p.shape[1]))
+
+
+def elastic_operators(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio, expansion_1_K
+                      ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """:func:`elasticity_matrix` and :func:`thermal_load_matrix` of one basis, their node-pair pattern built once."""
+    pattern = _pattern(basis.mesh.t, basis.mesh.p.shape[1])
+    return (_elasticity(basis, youngs_modulus_Pa, poisson_ratio, pattern),
+            _thermal_load(basis, youngs_modulus_Pa, poisson_ratio, expansion_1_K, pattern))
+
+
+def _elasticity(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio, pattern: _Pattern) -> sp.csr_matrix:
     G, _, dx = _gradients(basis)
     lam, mu = lame(youngs_modulus_Pa, poisson_ratio)
     lam = np.broadcast_to(lam, (basis.nelems,))[:, None, None]
@@ -232,26 +253,26 @@ def elasticity_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio) 
 
     diag = [T(i, i) for i in range(3)]
     lap = mu * (diag[0] + diag[1] + diag[2])  # μ ∇φ_a·∇φ_b
+    blocks = [[None] * 3 for _ in range(3)]
+    for i in range(3):
+        for j in range(i, 3):
+            t = diag[i] if i == j else T(i, j)
+            blocks[i][j] = lam * t + mu * t.transpose(0, 2, 1)
+            if i == j:
+                blocks[i][i] = blocks[i][i] + lap
+            else:  # the (j, i) block is the (i, j) block transposed in (a, b): K is symmetric
+                blocks[j][i] = blocks[i][j].transpose(0, 2, 1)
+    return _block_csr(pattern, blocks)
 
-    def entry(i, j):
-        t = diag[i] if i == j else T(i, j)
-        k = lam * t + mu * t.transpose(0, 2, 1)
-        return k + lap if i == j else k
 
-    return _block_csr(_pattern(basis.mesh.t, basis.mesh.p.shape[1]), [[entry(i, j) for j in range(3)] for i in range(3)])
-
-
-def thermal_load_matrix(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio, expansion_1_K) -> sp.csr_matrix:
-    """F_th[(a,i), b] = ∫ (3λ + 2μ) α ∂_i φ_a φ_b dV [N/K]: nodal forces of a temperature rise.
-
-    ``K_u u = F_th ΔT`` is linear elasticity with thermal strain α ΔT I.
-    """
+def _thermal_load(basis: skfem.CellBasis, youngs_modulus_Pa, poisson_ratio, expansion_1_K, pattern: _Pattern
+                  ) -> sp.csr_matrix:
     G, P, dx = _gradients(basis)
     lam, mu = lame(youngs_modulus_Pa, poisson_ratio)
     beta = np.broadcast_to((3 * lam + 2 * mu) * np.asarray(expansion_1_K, float), (basis.nelems,))
     w = dx * beta[:, None]
     entries = [[np.einsum("aeq,beq,eq->eab", G[:, i], P, w, optimize=True)] for i in range(3)]  # (e, a, b)
-    return _block_csr(_pattern(basis.mesh.t, basis.mesh.p.shape[1]), entries)
+    return _block_csr(pattern, entries)
 
 
 def rigid_body_modes(points_m: np.ndarray) -> np.ndarray:

@@ -29,8 +29,7 @@ def displacement_fields(model: ThermoElasticModel, states_K: list[np.ndarray]) -
     mm = model.mesh
     basis = assembly.cell_basis(mm.mesh)
     mats = _material_arrays(model.machine, mm)
-    Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
-    Fth = assembly.thermal_load_matrix(basis, mats["E"], mats["nu"], mats["alpha"])
+    Ku, Fth = assembly.elastic_operators(basis, mats["E"], mats["nu"], mats["alpha"])
     sol, _ = solve_supported(Ku, np.column_stack([Fth @ x for x in states_K]), _support_dofs(model.machine, mm), mm.mesh.p)
     out = []
     for j in range(len(states_K)):

@@ -325,8 +325,7 @@ def _adjoint_rows(machine: Machine, mm: MachineMesh, basis, mats: dict[str, np.n
 
     Row ``i`` gives ``u_i = R[i] (T - T_ref)``, the displacement (x, y, z) where ``rows[i]`` interpolates.
     """
-    Ku = assembly.elasticity_matrix(basis, mats["E"], mats["nu"])
-    Fth = assembly.thermal_load_matrix(basis, mats["E"], mats["nu"], mats["alpha"])
+    Ku, Fth = assembly.elastic_operators(basis, mats["E"], mats["nu"], mats["alpha"])
     n, k = basis.N, rows.shape[0]
     E = np.zeros((3 * n, 3 * k))
     for i in range(k):
