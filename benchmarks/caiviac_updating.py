@@ -62,7 +62,7 @@ def _gain_offset(d, ds, c: str, every_h: float, probe_sd_um: float) -> float:
     """The regularised model with gain and offset updated (settings chosen on the training blocks), fit % on the
     validation rows without the probes."""
     r = d.regularised[c]
-    t, tr, va = d.time_s, d.split.train, d.split.validation
+    t, tr = d.time_s, d.split.train
     fam = next(f for f in regularised_families(ds, d)[3] if f.name == r["family"])
     y = d.Y[c]
     blocks = []
@@ -71,12 +71,20 @@ def _gain_offset(d, ds, c: str, every_h: float, probe_sd_um: float) -> float:
         fit_rows[rows] = False
         blocks.append((rows, fit_ridge(fam, y, fit_rows, r["lam"]).predict(fam.X[rows])))
     settings, _ = choose_settings(t, y, blocks, every_h, probe_sd_um)
-    rows = np.flatnonzero(va)
-    probes = probe_rows(t[rows], np.ones(rows.size, bool), every_h)
-    u, _ = updated_prediction(r["y_hat"][rows], y[rows], t[rows], probes, settings)
+    tv, yv, y_hat, probes, keep = _validation_probes(d, c, every_h)
+    u, _ = updated_prediction(y_hat, yv, tv, probes, settings)
+    return fit_percent(yv[keep], u[keep])
+
+
+def _validation_probes(d, c: str, every_h: float):
+    """Channel ``c`` on the validation rows: times [s], drift and the regularised model's prediction [µm], the probe
+    rows (indices into them) of a probe every ``every_h`` hours, and the rows scored (all but the probes)."""
+    rows = np.flatnonzero(d.split.validation)
+    t = d.time_s[rows]
+    probes = probe_rows(t, np.ones(rows.size, bool), every_h)
     keep = np.ones(rows.size, bool)
     keep[probes] = False
-    return fit_percent(y[rows][keep], u[keep])
+    return t, d.Y[c][rows], d.regularised[c]["y_hat"][rows], probes, keep
 
 
 # the filter's reach: its spreads tried on the validation rows themselves (NOT held out)
@@ -90,12 +98,7 @@ def _gain_offset_reach(d, c: str, every_h: float, probe_sd_um: float) -> float:
     """The best fit % a gain/offset filter of the grid above reaches on the validation rows (probes not scored), its
     spreads chosen on those very rows: NOT held out; near the held-out figure, the filter's tuning is not what
     limits the updating, the model is."""
-    r = d.regularised[c]
-    rows = np.flatnonzero(d.split.validation)
-    t, y, y_hat = d.time_s[rows], d.Y[c][rows], r["y_hat"][rows]
-    probes = probe_rows(t, np.ones(rows.size, bool), every_h)
-    keep = np.ones(rows.size, bool)
-    keep[probes] = False
+    t, y, y_hat, probes, keep = _validation_probes(d, c, every_h)
     best = -np.inf
     for gw, ow, o0 in itertools.product(REACH_GAIN_WALKS, REACH_OFFSET_WALKS, REACH_OFFSET_PRIORS):
         u, _ = updated_prediction(y_hat, y, t, probes, UpdateSettings(every_h, probe_sd_um, o0, gw, ow))
@@ -107,12 +110,8 @@ def _offset_oracle(d, c: str, every_h: float) -> float:
     """Fit % on the validation rows (probes not scored) when each interval between probes gets the one offset that
     fits it best, known in hindsight (NOT held out): no scheme that corrects the model by an offset held from one
     probe to the next can do better."""
-    rows = np.flatnonzero(d.split.validation)
-    t, y, y_hat = d.time_s[rows], d.Y[c][rows], d.regularised[c]["y_hat"][rows]
-    probes = probe_rows(t, np.ones(rows.size, bool), every_h)
-    keep = np.ones(rows.size, bool)
-    keep[probes] = False
-    interval = np.searchsorted(probes, np.arange(rows.size), side="right")
+    _, y, y_hat, probes, keep = _validation_probes(d, c, every_h)
+    interval = np.searchsorted(probes, np.arange(y.size), side="right")
     u = y_hat.copy()
     for k in np.unique(interval):
         m = interval == k

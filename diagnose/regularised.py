@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hybridcomp.diagnose.data import DatasetError
+from hybridcomp.diagnose.metrics import fit_percent
 from hybridcomp.diagnose.problem import first_order_lag
 
 TEMP_LAGS_H = (0.25, 1.0, 4.0)
@@ -394,12 +395,10 @@ def pls_choice_fits(fams: list[Family], Y: np.ndarray, train: np.ndarray, valida
     errors = [pls_repeated_errors(fams, Y, train, k, seed, components=components) for k in fold_counts]
     dof = np.tile(np.arange(1.0, components + 1.0), (len(fams), 1))
     made = choose_pooled(errors, dof)
-    yv = Y[validation]
-    den = np.linalg.norm(yv - yv.mean(0), axis=0)
     fits = np.empty(Y.shape[1])
     for j, c in enumerate(made):
         P = pls_path(fams[c.family].X, Y[:, [j]], train, validation, components)[c.lam_index, :, 0]
-        fits[j] = 100.0 * (1.0 - np.linalg.norm(yv[:, j] - P) / den[j])
+        fits[j] = fit_percent(Y[validation, j], P)
     return made, fits
 
 
